@@ -1,0 +1,80 @@
+// Eye pass: one measurement point per pixel and pass (SPPM, dissertation ch. 7).
+//
+// A jittered sub-pixel sample (and lens sample) is followed through mirror, glass and
+// glossy bounces to the first diffuse hit, which becomes this pass's measurement point
+// with weight = path throughput * f_r. Emission seen along the way is accumulated
+// separately (digest 5.1: directly visible emission is averaged over passes). In PPM
+// mode the host always passes pass index 0, so every pass sees the same points.
+
+typedef struct {
+    float4 position;   // w: near clip distance along the view axis
+    float4 forward;    // unit view axis; w: lens radius
+    float4 right;      // scaled by tan(fov_x / 2); w: focus distance
+    float4 up;         // scaled by tan(fov / 2)
+} CameraDesc;
+
+__kernel void eye_pass(
+    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
+    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
+    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
+    __global const float4* surf_a, __global const float4* surf_b,
+    __global const CameraDesc* cam, int width, int height,
+    ulong seed, uint pass, int max_depth,
+    __global float4* mp_pos,       // xyz; w: 1 if the pixel has a measurement point
+    __global float4* mp_nrm,       // normal facing the eye path
+    __global float4* mp_wgt,       // throughput * albedo / pi
+    __global float* mp_dist,       // eye path length to the point (initial radius)
+    __global double4* acc_direct)  // += directly seen emission, per batch
+{
+    int gid = get_global_id(0);
+    if (gid >= width * height) return;
+    SceneGeom g = {tri_v0, tri_e1, tri_e2, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    Rng rng = rng_make(seed, pass, (uint)gid, DOMAIN_EYE);
+
+    int x = gid % width, y = gid / width;
+    float sx = 2.0f * ((float)x + rng_float(&rng)) / (float)width - 1.0f;
+    float sy = 1.0f - 2.0f * ((float)y + rng_float(&rng)) / (float)height;
+    CameraDesc c = *cam;
+    float3 dir = c.forward.xyz + sx * c.right.xyz + sy * c.up.xyz;  // unit length along the axis
+    float3 origin = c.position.xyz;
+    float lens_radius = c.forward.w;
+    if (lens_radius > 0.0f) {
+        float3 focus = origin + c.right.w * dir;
+        float r = lens_radius * sqrt(rng_float(&rng)), phi = 2.0f * PI_F * rng_float(&rng);
+        origin += r * cos(phi) * normalize(c.right.xyz) + r * sin(phi) * normalize(c.up.xyz);
+        dir = (focus - origin) / c.right.w;  // still unit length along the axis
+    }
+    origin += c.position.w * dir;  // near clip: start on the plane at that axial distance
+    float3 d = normalize(dir);
+    float travelled = 0.0f;
+
+    float3 thr = (float3)(1.0f);
+    float3 direct = (float3)(0.0f);
+    float4 pos = (float4)(0.0f), nrm = (float4)(0.0f), wgt = (float4)(0.0f);
+    for (int depth = 0; depth < max_depth; ++depth) {
+        Hit h = intersect(&g, origin, d);
+        if (h.surf == SURF_NONE) break;
+        float3 p = origin + h.t * d;
+        travelled += h.t;
+        float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
+        if (dot(d, h.ng) < 0.0f) direct += thr * sb.xyz;  // emitters shine from their front side
+        int type = as_int(sa.w);
+        if (type == MAT_DIFFUSE) {
+            float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+            pos = (float4)(p, 1.0f);
+            nrm = (float4)(n, 0.0f);
+            wgt = (float4)(thr * sa.xyz / PI_F, 0.0f);
+            break;
+        }
+        float3 nd, w;
+        if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, &rng, &nd, &w)) break;
+        thr *= w;
+        d = nd;
+        origin = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
+    }
+    mp_pos[gid] = pos;
+    mp_nrm[gid] = nrm;
+    mp_wgt[gid] = wgt;
+    mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
+    acc_direct[gid] += (double4)(convert_double3(direct), 0.0);
+}

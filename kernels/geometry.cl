@@ -1,0 +1,117 @@
+// Rays, shapes and the BVH: closest-hit queries against spheres and triangles.
+//
+// Spheres are intersected in double precision: smallppm's walls are spheres of radius
+// 1e5, and the float32 quadratic loses every digit of the hit distance to cancellation.
+
+#define SURF_NONE (-1)
+#define HIT_EPS_REL 1e-4f
+
+typedef struct {
+    float t;
+    float3 ng;   // geometric normal, oriented as the shape defines its front side
+    int surf;    // surface record index, SURF_NONE on a miss
+} Hit;
+
+// Ray offset that scales with the magnitude of the coordinates it is added to.
+inline float ray_eps(float3 p) {
+    return HIT_EPS_REL * fmax(1.0f, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
+}
+
+inline double sphere_distance(float4 sph, float3 o, float3 d, double tmin, double tmax) {
+    double3 c = (double3)(sph.x, sph.y, sph.z);
+    double3 f = convert_double3(o) - c;
+    double3 dd = convert_double3(d);
+    double b = dot(f, dd);
+    double3 perp = f - b * dd;   // perpendicular offset: robust discriminant
+    double r = (double)sph.w;
+    double disc = r * r - dot(perp, perp);
+    if (disc < 0.0) return tmax;
+    double s = sqrt(disc);
+    double q = (b > 0.0) ? -b - s : -b + s;
+    double t0 = (dot(f, f) - r * r) / q, t1 = q;
+    if (t0 > t1) { double tmp = t0; t0 = t1; t1 = tmp; }
+    if (t0 > tmin && t0 < tmax) return t0;
+    if (t1 > tmin && t1 < tmax) return t1;
+    return tmax;
+}
+
+// Moller-Trumbore; returns t or `tmax` on a miss.
+inline float triangle_distance(float3 v0, float3 e1, float3 e2, float3 o, float3 d, float tmin, float tmax) {
+    float3 p = cross(d, e2);
+    float det = dot(e1, p);
+    if (fabs(det) < 1e-20f) return tmax;
+    float inv = 1.0f / det;
+    float3 s = o - v0;
+    float u = dot(s, p) * inv;
+    if (u < 0.0f || u > 1.0f) return tmax;
+    float3 q = cross(s, e1);
+    float v = dot(d, q) * inv;
+    if (v < 0.0f || u + v > 1.0f) return tmax;
+    float t = dot(e2, q) * inv;
+    return (t > tmin && t < tmax) ? t : tmax;
+}
+
+inline bool box_hit(float4 lo, float4 hi, float3 o, float3 inv_d, float tmax) {
+    float3 t0 = (lo.xyz - o) * inv_d, t1 = (hi.xyz - o) * inv_d;
+    float3 tn = fmin(t0, t1), tf = fmax(t0, t1);
+    float enter = fmax(fmax(tn.x, tn.y), fmax(tn.z, 0.0f));
+    float leave = fmin(fmin(tf.x, tf.y), fmin(tf.z, tmax));
+    return enter <= leave;
+}
+
+typedef struct {
+    __global const float4* tri_v0;   // w: surface index (int bits)
+    __global const float4* tri_e1;
+    __global const float4* tri_e2;
+    __global const float4* node_lo;  // see worker/bvh.py for the layout
+    __global const float4* node_hi;
+    __global const float4* spheres;  // xyz centre, w radius
+    __global const int* sphere_surf;
+    int n_nodes;
+    int n_spheres;
+} SceneGeom;
+
+inline Hit intersect(const SceneGeom* g, float3 o, float3 d) {
+    Hit h;
+    h.t = INFINITY;
+    h.surf = SURF_NONE;
+    float tmin = ray_eps(o);
+    int best_sphere = -1, best_tri = -1;
+    for (int i = 0; i < g->n_spheres; ++i) {
+        double t = sphere_distance(g->spheres[i], o, d, (double)tmin, (double)h.t);
+        if (t < (double)h.t) { h.t = (float)t; best_sphere = i; }
+    }
+    if (g->n_nodes > 0) {
+        float3 inv_d = 1.0f / d;
+        int stack[64];
+        int sp = 0;
+        int node = 0;
+        while (true) {
+            float4 lo = g->node_lo[node], hi = g->node_hi[node];
+            if (box_hit(lo, hi, o, inv_d, h.t)) {
+                int a = as_int(lo.w), count = as_int(hi.w);
+                if (count > 0) {
+                    for (int k = a; k < a + count; ++k) {
+                        float t = triangle_distance(g->tri_v0[k].xyz, g->tri_e1[k].xyz, g->tri_e2[k].xyz, o, d, tmin, h.t);
+                        if (t < h.t) { h.t = t; best_tri = k; best_sphere = -1; }
+                    }
+                } else {
+                    stack[sp++] = a;      // right child later
+                    node = node + 1;      // left child is next in pre-order
+                    continue;
+                }
+            }
+            if (sp == 0) break;
+            node = stack[--sp];
+        }
+    }
+    if (best_tri >= 0) {
+        h.ng = normalize(cross(g->tri_e1[best_tri].xyz, g->tri_e2[best_tri].xyz));
+        h.surf = as_int(g->tri_v0[best_tri].w);
+    } else if (best_sphere >= 0) {
+        float4 s = g->spheres[best_sphere];
+        h.ng = normalize(o + h.t * d - s.xyz);
+        h.surf = g->sphere_surf[best_sphere];
+    }
+    return h;
+}

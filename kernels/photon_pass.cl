@@ -1,0 +1,100 @@
+// Photon pass: emission proportional to light power, Russian roulette on albedo, a
+// photon stored at every diffuse hit (dissertation 5.3.4; slides 3.2).
+//
+// Emitter records are four float4 rows: row0 = (position or v0 or disc centre, type),
+// row1 = (edge1 | axis | direction, cos cone | disc radius), row2 = (edge2, sphere radius),
+// row3 = (power rgb, selection probability). Every path counts as one emitted photon, also
+// when it misses everything: the estimate is normalised by emitted photons (digest 11.1).
+// Each stored photon gets a 64-bit selection key, (random 32 bits << 32) | (path, bounce):
+// a pure function of (seed, pass, path), so the stochastic hash picks the same photons
+// whatever order the atomic slot counter hands out slots in.
+
+#define EMIT_TRIANGLE 0
+#define EMIT_SPHERE 1
+#define EMIT_POINT 2
+#define EMIT_SPOT 3
+#define EMIT_DIRECTIONAL 4
+
+__kernel void photon_pass(
+    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
+    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
+    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
+    __global const float4* surf_a, __global const float4* surf_b,
+    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    ulong seed, uint pass, int max_depth, uint capacity,
+    __global float4* ph_pos,     // xyz position
+    __global float4* ph_flux,    // rgb flux; w: packed incoming direction (uint bits)
+    __global ulong* ph_key,      // selection key for the stochastic hash
+    __global volatile uint* ph_count)
+{
+    uint path = (uint)get_global_id(0);
+    if (n_emitters == 0) return;
+    SceneGeom g = {tri_v0, tri_e1, tri_e2, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
+
+    // Pick an emitter in proportion to its power (binary search of the CDF).
+    float u = rng_float(&rng);
+    int lo = 0, hi = n_emitters - 1;
+    while (lo < hi) {
+        int mid = (lo + hi) / 2;
+        if (emitter_cdf[mid] > u) hi = mid; else lo = mid + 1;
+    }
+    float4 r0 = emitters[4 * lo], r1 = emitters[4 * lo + 1], r2 = emitters[4 * lo + 2], r3 = emitters[4 * lo + 3];
+    float3 flux = r3.xyz / r3.w;
+    float u1 = rng_float(&rng), u2 = rng_float(&rng), u3 = rng_float(&rng), u4 = rng_float(&rng);
+    float3 o, d;
+    int kind = as_int(r0.w);
+    if (kind == EMIT_TRIANGLE) {
+        float su = sqrt(u1);
+        o = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
+        float3 n = normalize(cross(r1.xyz, r2.xyz));
+        d = sample_cosine(n, u3, u4);
+        o += n * ray_eps(o);
+    } else if (kind == EMIT_SPHERE) {
+        float3 n = sample_sphere(u1, u2);
+        o = r0.xyz + r2.w * n;
+        d = sample_cosine(n, u3, u4);
+        o += n * ray_eps(o);
+    } else if (kind == EMIT_POINT) {
+        o = r0.xyz;
+        d = sample_sphere(u1, u2);
+    } else if (kind == EMIT_SPOT) {
+        o = r0.xyz;
+        d = sample_cone(r1.xyz, r1.w, u1, u2);
+    } else {  // directional: a disc of radius r1.w facing r1.xyz covers the bounding sphere
+        float3 t, b;
+        onb(r1.xyz, &t, &b);
+        float rr = r1.w * sqrt(u1), phi = 2.0f * PI_F * u2;
+        o = r0.xyz + rr * (cos(phi) * t + sin(phi) * b);
+        d = r1.xyz;
+    }
+
+    for (int bounce = 0; bounce < max_depth; ++bounce) {
+        Hit h = intersect(&g, o, d);
+        if (h.surf == SURF_NONE) return;
+        float3 p = o + h.t * d;
+        float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
+        int type = as_int(sa.w);
+        float3 w, nd;
+        if (type == MAT_DIFFUSE) {
+            ulong key = ((ulong)rng_u32(&rng) << 32) | (ulong)(path * (uint)max_depth + (uint)bounce);
+            uint slot = atomic_inc(ph_count);
+            if (slot < capacity) {  // the host re-runs the pass with more room on overflow
+                ph_pos[slot] = (float4)(p, 0.0f);
+                ph_flux[slot] = (float4)(flux, as_float(pack_dir(-d)));
+                ph_key[slot] = key;
+            }
+            float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+            nd = sample_cosine(n, rng_float(&rng), rng_float(&rng));
+            w = sa.xyz;  // f cos / pdf = (rho/pi) cos / (cos/pi)
+        } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, &rng, &nd, &w)) {
+            return;
+        }
+        // Russian roulette on the throughput factor keeps the expected flux unchanged.
+        float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));
+        if (rng_float(&rng) >= survive) return;
+        flux *= w / survive;
+        d = nd;
+        o = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
+    }
+}

@@ -1,0 +1,72 @@
+"""The one host wrapper of kernels/*.cl: pick the CPU device, build once, launch.
+
+The program is compiled once per process and context (PoCL caches the binary on disk
+as well) and the kernel objects are kept, so launching a pass costs no compilation.
+OpenCL state must never cross a fork: create it inside the process that uses it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+os.environ.setdefault("PYOPENCL_NO_CACHE", "1")  # PoCL caches itself; pyopencl's cache double-compiles
+
+import numpy as np  # noqa: E402
+import pyopencl as cl  # noqa: E402
+
+KERNEL_DIR = Path(__file__).resolve().parent
+# Order matters: later files use what earlier ones define.
+SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
+PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
+KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
+                "grid_scatter", "gather_stochastic", "gather_exact")
+
+
+def create_context() -> cl.Context:
+    """A context on the first CPU device (PoCL's pthread device here)."""
+    for platform in cl.get_platforms():
+        devices = platform.get_devices(device_type=cl.device_type.CPU)
+        if devices:
+            return cl.Context(devices[:1])
+    raise RuntimeError("no OpenCL CPU device found: install pocl-binary-distribution")
+
+
+class Program:
+    """Compiled kernels for one context, with a launcher that sizes the global range."""
+
+    def __init__(self, ctx: cl.Context) -> None:
+        source = PREAMBLE + "\n".join((KERNEL_DIR / name).read_text() for name in SOURCES)
+        program = cl.Program(ctx, source).build(options=["-cl-mad-enable"])
+        self.kernels = {name: getattr(program, name) for name in KERNEL_NAMES}
+
+    def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object) -> cl.Event:
+        """Run kernel `name` over n work items (kernels bound-check their id)."""
+        return self.kernels[name](queue, (max(int(n), 1),), None, *args)
+
+
+_programs: dict[int, Program] = {}
+
+
+def program_for(ctx: cl.Context) -> Program:
+    """The process-wide compiled program for `ctx`."""
+    key = ctx.int_ptr
+    if key not in _programs:
+        _programs[key] = Program(ctx)
+    return _programs[key]
+
+
+def i32(x: int) -> np.int32:
+    return np.int32(x)
+
+
+def u32(x: int) -> np.uint32:
+    return np.uint32(x)
+
+
+def u64(x: int) -> np.uint64:
+    return np.uint64(x)
+
+
+def f32(x: float) -> np.float32:
+    return np.float32(x)

@@ -1,0 +1,240 @@
+"""The pass loop: scene -> kernels -> per-batch delta.
+
+A pass is: eye pass (one measurement point per pixel), photon pass, lookup-structure
+build (stochastic hash or exact grid), gather. A batch runs several passes at the radii
+it was given and sums their contributions on the device in float64; the host merges the
+resulting `Delta` (worker/stats.py). The OpenCL context, compiled program, scene buffers
+and work buffers live as long as the Engine, so consecutive batches pay no set-up.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pyopencl as cl
+
+from kernels.program import create_context, f32, i32, program_for, u32, u64
+from worker.scene import Scene
+from worker.scene_arrays import SceneArrays, compile_scene
+from worker.stats import Delta
+
+MAX_PHOTONS_PER_PASS = 1 << 24
+MAX_DEPTH = 16  # bounces per photon path and specular bounces per eye path
+RADIUS_FOOTPRINTS = 2.0  # default initial radius: 2 pixel footprints at the first hit
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    method: Literal["sppm", "ppm"] = "sppm"
+    gather: Literal["stochastic", "exact"] = "stochastic"
+    photons_per_pass: int = 1 << 18
+    seed: int = 0
+    initial_radius: float | None = None  # world units; default: RADIUS_FOOTPRINTS pixel footprints
+    hash_entries_per_photon: float = 1.0  # stochastic hash table size / photons stored per pass
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.photons_per_pass <= MAX_PHOTONS_PER_PASS:
+            raise ValueError(f"photons_per_pass must lie in [1, {MAX_PHOTONS_PER_PASS}]")
+        if not 0 <= self.seed < 2 ** 63:
+            raise ValueError("seed must lie in [0, 2^63)")
+        if self.initial_radius is not None and not (0.0 < self.initial_radius < math.inf):
+            raise ValueError("initial_radius must be positive and finite")
+        if not 0.0 < self.hash_entries_per_photon <= 64.0:
+            raise ValueError("hash_entries_per_photon must lie in (0, 64]")
+
+
+STAGES = ("eye", "trace", "build", "gather", "readback")
+
+
+@dataclass
+class StageTimes:
+    """Seconds spent per stage: device time from OpenCL profiling events, read once the
+    events have completed (`settle`), so timing adds no synchronisation to a pass."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    pending: list[tuple[str, cl.Event]] = field(default_factory=list)
+
+    def add(self, stage: str, events: list[cl.Event]) -> None:
+        self.pending.extend((stage, e) for e in events)
+
+    def settle(self) -> None:
+        for stage, e in self.pending:
+            self.seconds[stage] += (e.profile.end - e.profile.start) * 1e-9
+        self.pending.clear()
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(10, math.ceil(math.log2(max(n, 1))))
+
+
+class Engine:
+    """Renders passes of one scene on the OpenCL CPU device of this process."""
+
+    def __init__(self, scene: Scene, base_dir: Path, settings: RenderSettings,
+                 resolution: tuple[int, int] | None = None, ctx: cl.Context | None = None) -> None:
+        self.settings = settings
+        self.arrays: SceneArrays = compile_scene(scene, base_dir, resolution)
+        self.ctx = ctx or create_context()
+        self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        self.program = program_for(self.ctx)
+        self.times = StageTimes()
+        a = self.arrays
+        mf = cl.mem_flags
+
+        def const(arr: np.ndarray) -> cl.Buffer:
+            arr = np.ascontiguousarray(arr)
+            if arr.nbytes == 0:  # OpenCL has no empty buffers
+                arr = np.zeros(4, arr.dtype)
+            return cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr)
+
+        self.geometry = [const(a.tri_v0), const(a.tri_e1), const(a.tri_e2), const(a.node_lo), const(a.node_hi),
+                         i32(len(a.node_lo)), const(a.spheres), const(a.sphere_surf), i32(len(a.spheres)),
+                         const(a.surf_a), const(a.surf_b)]
+        self.n_emitters = len(a.emitters) // 4 if a.emitters.any() else 0
+        self.emitter_args = [const(a.emitters), const(a.emitter_cdf), i32(self.n_emitters)]
+        self.camera = const(a.camera)
+
+        n = a.n_pixels
+        self.mp_pos = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * n)
+        self.mp_nrm = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * n)
+        self.mp_wgt = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * n)
+        self.mp_dist = cl.Buffer(self.ctx, mf.READ_WRITE, 4 * n)
+        self.radius = cl.Buffer(self.ctx, mf.READ_ONLY, 4 * n)
+        self.acc_S = cl.Buffer(self.ctx, mf.READ_WRITE, 32 * n)
+        self.acc_D = cl.Buffer(self.ctx, mf.READ_WRITE, 8 * n)
+        self.acc_Ld = cl.Buffer(self.ctx, mf.READ_WRITE, 32 * n)
+        self.ph_count = cl.Buffer(self.ctx, mf.READ_WRITE, 4)
+        self.capacity = 0
+        self.entries = 0
+        self._reserve_photons(3 * settings.photons_per_pass)
+        self.photons_stored = 0  # of the last pass
+
+    # ------------------------------------------------------------------ buffers
+    def _reserve_photons(self, capacity: int) -> None:
+        mf = cl.mem_flags
+        self.capacity = capacity
+        self.ph_pos = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * capacity)
+        self.ph_flux = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * capacity)
+        self.ph_key = cl.Buffer(self.ctx, mf.READ_WRITE, 8 * capacity)
+        self.sorted = cl.Buffer(self.ctx, mf.READ_WRITE, 4 * capacity)
+
+    def _reserve_table(self, entries: int) -> None:
+        if entries <= self.entries:
+            return
+        mf = cl.mem_flags
+        self.entries = entries
+        self.tab_key = cl.Buffer(self.ctx, mf.READ_WRITE, 8 * entries)
+        self.tab_count = cl.Buffer(self.ctx, mf.READ_WRITE, 4 * entries)
+        self.tab_pos = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * entries)
+        self.tab_flux = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * entries)
+        self.cell_start = cl.Buffer(self.ctx, mf.READ_WRITE, 4 * entries)
+        self.cell_fill = cl.Buffer(self.ctx, mf.READ_WRITE, 4 * entries)
+
+    def _fill(self, buf: cl.Buffer, value: np.generic, count: int) -> cl.Event:
+        return cl.enqueue_fill_buffer(self.queue, buf, value, 0, value.nbytes * count)
+
+    # ------------------------------------------------------------------- passes
+    def _eye_pass(self, pass_index: int) -> None:
+        a = self.arrays
+        eye_index = 0 if self.settings.method == "ppm" else pass_index  # PPM: one fixed set of points
+        ev = self.program.launch(self.queue, "eye_pass", a.n_pixels, *self.geometry, self.camera,
+                                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
+                                 i32(MAX_DEPTH), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc_Ld)
+        self.times.add("eye", [ev])
+
+    def _photon_pass(self, pass_index: int) -> int:
+        """Trace the pass's photons; returns how many were stored."""
+        while True:
+            events = [self._fill(self.ph_count, np.uint32(0), 1)]
+            events.append(self.program.launch(
+                self.queue, "photon_pass", self.settings.photons_per_pass, *self.geometry, *self.emitter_args,
+                u64(self.settings.seed), u32(pass_index), i32(MAX_DEPTH), u32(self.capacity),
+                self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
+            stored = np.zeros(1, np.uint32)
+            cl.enqueue_copy(self.queue, stored, self.ph_count)
+            self.times.add("trace", events)
+            if stored[0] <= self.capacity:
+                return int(stored[0])
+            self._reserve_photons(int(stored[0] * 1.25))  # same seed: the re-run is identical
+
+    def _build_and_gather(self, n_stored: int, max_radius: float) -> None:
+        a, p = self.arrays, self.program
+        inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
+        if self.settings.gather == "stochastic":
+            entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
+            self._reserve_table(entries)
+            mask = u32(entries - 1)
+            build = [self._fill(self.tab_key, np.uint64(2 ** 64 - 1), entries),
+                     self._fill(self.tab_count, np.uint32(0), entries),
+                     p.launch(self.queue, "hash_select", n_stored, u32(n_stored), self.ph_pos, self.ph_key,
+                              inv_cell, mask, self.tab_key, self.tab_count),
+                     p.launch(self.queue, "hash_store", n_stored, u32(n_stored), self.ph_pos, self.ph_flux,
+                              self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux)]
+            gather = p.launch(self.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
+                              self.mp_nrm, self.mp_wgt, self.radius, inv_cell, mask, self.tab_count,
+                              self.tab_pos, self.tab_flux, self.acc_S, self.acc_D)
+        else:
+            entries = _next_pow2(n_stored)
+            self._reserve_table(entries)
+            mask = u32(entries - 1)
+            build = [self._fill(self.tab_count, np.uint32(0), entries),
+                     p.launch(self.queue, "grid_count", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
+                              self.tab_count),
+                     p.launch(self.queue, "grid_scan", 1, u32(entries), self.tab_count, self.cell_start,
+                              self.cell_fill),
+                     p.launch(self.queue, "grid_scatter", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
+                              self.cell_fill, self.sorted)]
+            gather = p.launch(self.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
+                              self.mp_wgt, self.radius, inv_cell, mask, self.cell_start, self.tab_count,
+                              self.sorted, self.ph_pos, self.ph_flux, self.acc_S, self.acc_D)
+        gather.wait()
+        self.times.add("build", build)
+        self.times.add("gather", [gather])
+
+    def initial_radius(self) -> np.ndarray:
+        """R0 for every pixel: the override, or RADIUS_FOOTPRINTS times the median pixel
+        footprint (eye path length to the first diffuse hit of pass 0 times the pixel's
+        angular size). One value for the whole image, as in the dissertation's GPU SPPM:
+        per-pixel footprints would make the largest radius, and with it the stochastic
+        hash's cell, several times the typical one (measured: 4.7x on smallppm)."""
+        n = self.arrays.n_pixels
+        if self.settings.initial_radius is not None:
+            return np.full(n, self.settings.initial_radius)
+        self._fill(self.acc_Ld, np.float64(0.0), 4 * n)
+        self._eye_pass(0)
+        dist = np.empty(n, np.float32)
+        cl.enqueue_copy(self.queue, dist, self.mp_dist)
+        self.times.pending.clear()  # set-up, not rendering
+        hit = dist > 0.0
+        footprint = float(np.median(dist[hit])) * self.arrays.pixel_angle if hit.any() \
+            else self.arrays.scene_diagonal / max(self.arrays.width, self.arrays.height)
+        return np.full(n, RADIUS_FOOTPRINTS * footprint)
+
+    def run_batch(self, radius: np.ndarray, first_pass: int, n_passes: int) -> Delta:
+        """Run passes first_pass .. first_pass+n_passes-1, all gathering at `radius`."""
+        n = self.arrays.n_pixels
+        r32 = np.ascontiguousarray(radius, np.float32)
+        if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
+            raise ValueError("radius must hold one positive finite value per pixel")
+        cl.enqueue_copy(self.queue, self.radius, r32)
+        for buf, count in ((self.acc_S, 4 * n), (self.acc_D, n), (self.acc_Ld, 4 * n)):
+            self._fill(buf, np.float64(0.0), count)
+        for k in range(first_pass, first_pass + n_passes):
+            self._eye_pass(k)
+            self.photons_stored = self._photon_pass(k)
+            self._build_and_gather(self.photons_stored, float(r32.max()))
+        t0 = time.perf_counter()
+        S = np.empty((n, 4), np.float64)
+        D = np.empty(n, np.float64)
+        Ld = np.empty((n, 4), np.float64)
+        for host, dev in ((S, self.acc_S), (D, self.acc_D), (Ld, self.acc_Ld)):
+            cl.enqueue_copy(self.queue, host, dev)
+        self.times.seconds["readback"] += time.perf_counter() - t0
+        self.times.settle()
+        return Delta(first_pass=first_pass, n_passes=n_passes, emitted=n_passes * self.settings.photons_per_pass,
+                     S=S[:, :3].copy(), D=D, Ld=Ld[:, :3].copy())

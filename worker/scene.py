@@ -1,0 +1,319 @@
+"""Scene description: the JSON schema (pydantic), its limits, and loading.
+
+The model holds no more than the bundled scenes need: a pinhole or thin-lens camera,
+spheres, quads and triangle meshes (any of which may emit and is then an area light),
+four materials and three kinds of delta light. Every validation failure is reported
+as a `SceneError` whose `field` is the dotted path of the offending value, so the CLI
+and the HTTP API can name it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+
+# Documented limits (README, "Limits"). They bound memory and kernel time per pass.
+MAX_RESOLUTION = 4096  # pixels along either image axis
+MAX_PIXELS = 4096 * 2160
+MAX_SHAPES = 10_000
+MAX_TRIANGLES = 500_000  # after quads are split and meshes loaded
+MAX_LIGHTS = 64
+MAX_COORD = 1e7  # |coordinate| bound: keeps float32 positions meaningful
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
+Vec3 = tuple[Coord, Coord, Coord]
+Unit = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1.0)]
+Albedo = tuple[Unit, Unit, Unit]
+NonNeg = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1e12)]
+Power = tuple[NonNeg, NonNeg, NonNeg]
+
+
+class SceneError(ValueError):
+    """A scene that cannot be rendered; `field` is the dotted path of the bad value."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field}: {message}" if field else message)
+        self.field = field
+        self.message = message
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _norm(v: tuple[float, float, float]) -> float:
+    return math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+
+
+# ----------------------------------------------------------------------------- camera
+class Camera(_Model):
+    position: Vec3
+    look_at: Vec3
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov: Annotated[float, Field(gt=0.0, lt=180.0, allow_inf_nan=False)] = 40.0  # vertical, degrees
+    resolution: tuple[Annotated[int, Field(ge=1, le=MAX_RESOLUTION)], Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]] = (512, 512)
+    aperture_radius: NonNeg = 0.0  # thin lens when > 0
+    focus_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None  # defaults to |look_at - position|
+    near_clip: NonNeg = 0.0  # rays start this far along the view axis (smallppm starts them past its front wall)
+
+    @model_validator(mode="after")
+    def _check(self) -> "Camera":
+        forward = tuple(a - b for a, b in zip(self.look_at, self.position))
+        if _norm(forward) == 0.0:
+            raise ValueError("look_at equals position")
+        cross = np.cross(np.array(forward), np.array(self.up))
+        if float(np.linalg.norm(cross)) <= 1e-9 * _norm(forward) * max(_norm(self.up), 1e-30):
+            raise ValueError("up is parallel to the view direction")
+        if self.resolution[0] * self.resolution[1] > MAX_PIXELS:
+            raise ValueError(f"resolution has more than {MAX_PIXELS} pixels")
+        return self
+
+
+# -------------------------------------------------------------------------- materials
+class Diffuse(_Model):
+    type: Literal["diffuse"]
+    albedo: Albedo
+
+
+class Mirror(_Model):
+    type: Literal["mirror"]
+    albedo: Albedo = (1.0, 1.0, 1.0)
+
+
+class Glass(_Model):
+    type: Literal["glass"]
+    ior: Annotated[float, Field(ge=1.0, le=3.0, allow_inf_nan=False)] = 1.5
+    albedo: Albedo = (1.0, 1.0, 1.0)  # tint applied at every interaction
+
+
+class Glossy(_Model):
+    """Modified Phong lobe f = albedo (n+2)/(2 pi) cos^n(angle to the mirror direction)."""
+
+    type: Literal["glossy"]
+    albedo: Albedo
+    exponent: Annotated[float, Field(ge=1.0, le=100_000.0, allow_inf_nan=False)]
+
+
+Material = Annotated[Union[Diffuse, Mirror, Glass, Glossy], Field(discriminator="type")]
+
+# ----------------------------------------------------------------------------- shapes
+
+
+class _Shape(_Model):
+    material: str
+    emission: Power | None = None  # radiance leaving the front side: the shape is an area light
+
+
+class Sphere(_Shape):
+    type: Literal["sphere"]
+    center: Vec3
+    radius: Annotated[float, Field(gt=0.0, le=MAX_COORD, allow_inf_nan=False)]
+
+
+class Quad(_Shape):
+    """Parallelogram corner + s*edge1 + t*edge2, s,t in [0,1]; front side along edge1 x edge2."""
+
+    type: Literal["quad"]
+    corner: Vec3
+    edge1: Vec3
+    edge2: Vec3
+
+
+class Mesh(_Shape):
+    """Triangles given inline or as a Wavefront .obj next to the scene (inside scenes/)."""
+
+    type: Literal["mesh"]
+    vertices: list[Vec3] | None = None
+    triangles: list[tuple[int, int, int]] | None = None
+    obj: str | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> "Mesh":
+        if (self.obj is None) == (self.vertices is None or self.triangles is None):
+            raise ValueError("give either obj or both vertices and triangles")
+        if self.triangles is not None and len(self.triangles) > MAX_TRIANGLES:
+            raise ValueError(f"more than {MAX_TRIANGLES} triangles")
+        if self.vertices is not None and self.triangles is not None:
+            n = len(self.vertices)
+            for i, tri in enumerate(self.triangles):
+                if min(tri) < 0 or max(tri) >= n:
+                    raise ValueError(f"triangles[{i}] indexes a vertex outside 0..{n - 1}")
+        return self
+
+
+Shape = Annotated[Union[Sphere, Quad, Mesh], Field(discriminator="type")]
+
+# ----------------------------------------------------------------------------- lights
+
+
+def _nonzero_direction(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    if _norm(v) == 0.0:
+        raise ValueError("direction must not be the zero vector")
+    return v
+
+
+class PointLight(_Model):
+    type: Literal["point"]
+    position: Vec3
+    power: Power  # total flux, emitted uniformly over the sphere of directions
+
+
+class SpotLight(_Model):
+    type: Literal["spot"]
+    position: Vec3
+    direction: Vec3
+    cone_angle: Annotated[float, Field(gt=0.0, le=90.0, allow_inf_nan=False)]  # half-angle, degrees
+    power: Power  # total flux, uniform in solid angle inside the cone
+
+    _direction = field_validator("direction")(_nonzero_direction)
+
+
+class DirectionalLight(_Model):
+    """Zero solid angle: photons leave a disc that covers the scene's bounding sphere."""
+
+    type: Literal["directional"]
+    direction: Vec3  # direction of travel of the light
+    irradiance: Power  # W/m^2 on a surface perpendicular to `direction`
+
+    _direction = field_validator("direction")(_nonzero_direction)
+
+
+Light = Annotated[Union[PointLight, SpotLight, DirectionalLight], Field(discriminator="type")]
+
+
+# ------------------------------------------------------------------------------ scene
+class Scene(_Model):
+    description: str = Field(default="", max_length=500)
+    camera: Camera
+    materials: dict[str, Material]
+    shapes: list[Shape] = Field(max_length=MAX_SHAPES)
+    lights: list[Light] = Field(default_factory=list, max_length=MAX_LIGHTS)
+
+    @model_validator(mode="after")
+    def _check(self) -> "Scene":
+        for i, shape in enumerate(self.shapes):
+            if shape.material not in self.materials:
+                raise SceneError(f"shapes.{i}.material", f"unknown material {shape.material!r}")
+        return self
+
+
+# ------------------------------------------------------------------------ triangulation
+def _load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and (fan-triangulated) faces of a Wavefront .obj; only `v` and `f` matter."""
+    verts: list[list[float]] = []
+    faces: list[tuple[int, int, int]] = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        try:
+            if parts[0] == "v":
+                verts.append([float(x) for x in parts[1:4]])
+            elif parts[0] == "f":
+                idx = [int(p.split("/")[0]) for p in parts[1:]]
+                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+                faces.extend((idx[0], idx[k], idx[k + 1]) for k in range(1, len(idx) - 1))
+        except (ValueError, IndexError) as exc:
+            raise ValueError(f"line {lineno}: {exc}") from None
+    v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError("a face indexes a missing vertex")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("non-finite vertex coordinate")
+    return v, f
+
+
+def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> list[np.ndarray | None]:
+    """Per shape, its triangles as an (n, 3, 3) array (None for spheres).
+
+    Mesh files are resolved relative to `base_dir` and must lie inside `root`: a scene
+    can never make the renderer read an arbitrary file.
+    """
+    out: list[np.ndarray | None] = []
+    total = 0
+    root = root.resolve()
+    for i, shape in enumerate(scene.shapes):
+        if isinstance(shape, Sphere):
+            out.append(None)
+            continue
+        if isinstance(shape, Quad):
+            c, e1, e2 = (np.array(x, dtype=np.float64) for x in (shape.corner, shape.edge1, shape.edge2))
+            tris = np.array([[c, c + e1, c + e1 + e2], [c, c + e1 + e2, c + e2]])
+        elif shape.obj is not None:
+            path = (base_dir / shape.obj).resolve()
+            if not path.is_relative_to(root):
+                raise SceneError(f"shapes.{i}.obj", "mesh path leaves the scenes directory")
+            if path.suffix.lower() != ".obj" or not path.is_file():
+                raise SceneError(f"shapes.{i}.obj", f"mesh file {shape.obj!r} not found")
+            try:
+                v, f = _load_obj(path)
+            except ValueError as exc:
+                raise SceneError(f"shapes.{i}.obj", f"malformed .obj: {exc}") from None
+            tris = v[f]
+        else:
+            tris = np.asarray(shape.vertices, dtype=np.float64)[np.asarray(shape.triangles, dtype=np.int64)]
+        total += len(tris)
+        if total > MAX_TRIANGLES:
+            raise SceneError(f"shapes.{i}", f"scene has more than {MAX_TRIANGLES} triangles")
+        if np.abs(tris).max(initial=0.0) > MAX_COORD:
+            raise SceneError(f"shapes.{i}", f"a coordinate exceeds {MAX_COORD:g}")
+        if shape.emission is not None and max(shape.emission) > 0.0:
+            area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1).sum()
+            if not area > 0.0:
+                raise SceneError(f"shapes.{i}.emission", "an emitting shape must have non-zero area")
+        out.append(tris)
+    return out
+
+
+_UNION_FIELDS = {"materials", "shapes", "lights"}
+
+
+def _field_path(loc: tuple) -> str:
+    return ".".join(str(p) for p in loc)
+
+
+def parse_scene(data: object) -> Scene:
+    """Validate a scene given as parsed JSON, raising SceneError naming the field."""
+    try:
+        scene = Scene.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        ctx_err = err.get("ctx", {}).get("error")
+        if isinstance(ctx_err, SceneError):
+            raise ctx_err from None
+        loc = list(err["loc"])
+        # A discriminated union puts the tag after the list index or dict key: drop it.
+        if len(loc) > 3 and loc[0] in _UNION_FIELDS and isinstance(loc[2], str):
+            del loc[2]
+        raise SceneError(_field_path(tuple(loc)), err["msg"]) from None
+    return scene
+
+
+def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
+    """Read and validate a scene file; returns the scene and its directory (for meshes)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SceneError("", f"scene file {str(path)!r} not found") from None
+    except json.JSONDecodeError as exc:
+        raise SceneError("", f"{path.name} is not valid JSON: {exc}") from None
+    return parse_scene(data), path.resolve().parent
+
+
+def bundled_scene_path(name: str) -> Path:
+    """The file of a bundled scene, by name (e.g. 'cornell-box')."""
+    path = SCENES_DIR / f"{name}.json"
+    if not path.is_file():
+        names = ", ".join(sorted(p.stem for p in SCENES_DIR.glob("*.json")))
+        raise SceneError("scene", f"no bundled scene {name!r} (have: {names})")
+    return path

@@ -1,0 +1,180 @@
+"""A validated scene flattened into the arrays the kernels read (layouts in kernels/*.cl)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from worker.bvh import build_bvh
+from worker.scene import (
+    SCENES_DIR,
+    DirectionalLight,
+    Glass,
+    Glossy,
+    Mirror,
+    PointLight,
+    Scene,
+    Sphere,
+    SpotLight,
+    shape_triangles,
+)
+
+MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS, MAT_GLOSSY = 0, 1, 2, 3
+EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL = 0, 1, 2, 3, 4
+
+
+@dataclass(frozen=True)
+class SceneArrays:
+    width: int
+    height: int
+    tri_v0: np.ndarray  # (T, 4) float32, w = surface index bits
+    tri_e1: np.ndarray
+    tri_e2: np.ndarray
+    node_lo: np.ndarray  # (nodes, 4) float32, see worker/bvh.py
+    node_hi: np.ndarray
+    spheres: np.ndarray  # (S, 4) float32 centre + radius
+    sphere_surf: np.ndarray  # (S,) int32
+    surf_a: np.ndarray  # (shapes, 4) float32: albedo, type bits
+    surf_b: np.ndarray  # (shapes, 4) float32: emission, ior or exponent
+    emitters: np.ndarray  # (4 * E, 4) float32 rows, see kernels/photon_pass.cl
+    emitter_cdf: np.ndarray  # (E,) float32, last entry exactly 1
+    camera: np.ndarray  # (4, 4) float32, see CameraDesc in kernels/eye_pass.cl
+    pixel_angle: float  # pixel footprint per unit distance along the view axis
+    scene_diagonal: float
+
+    @property
+    def n_pixels(self) -> int:
+        return self.width * self.height
+
+
+def _bits(values: np.ndarray | list[int]) -> np.ndarray:
+    return np.asarray(values, np.int32).view(np.float32)
+
+
+def _material_record(material: object) -> tuple[int, float]:
+    if isinstance(material, Mirror):
+        return MAT_MIRROR, 0.0
+    if isinstance(material, Glass):
+        return MAT_GLASS, material.ior
+    if isinstance(material, Glossy):
+        return MAT_GLOSSY, material.exponent
+    return MAT_DIFFUSE, 0.0
+
+
+def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | None = None,
+                  root: Path = SCENES_DIR) -> SceneArrays:
+    width, height = resolution or scene.camera.resolution
+    per_shape = shape_triangles(scene, base_dir, root)
+
+    # Surfaces: one record per shape (material + emission).
+    surf_a = np.zeros((len(scene.shapes), 4), np.float32)
+    surf_b = np.zeros((len(scene.shapes), 4), np.float32)
+    for i, shape in enumerate(scene.shapes):
+        material = scene.materials[shape.material]
+        mtype, param = _material_record(material)
+        surf_a[i, :3] = material.albedo
+        surf_a[i, 3] = _bits([mtype])[0]
+        surf_b[i, :3] = shape.emission or (0.0, 0.0, 0.0)
+        surf_b[i, 3] = param
+
+    tri_list = [t for t in per_shape if t is not None]
+    tris = np.concatenate(tri_list) if tri_list else np.zeros((0, 3, 3))
+    tri_surf = np.concatenate([np.full(len(t), i, np.int32) for i, t in enumerate(per_shape) if t is not None]) \
+        if tri_list else np.zeros(0, np.int32)
+    node_lo, node_hi, order = build_bvh(tris)
+    tris, tri_surf = tris[order], tri_surf[order]
+    tri_v0 = np.zeros((len(tris), 4), np.float32)
+    tri_e1 = np.zeros((len(tris), 4), np.float32)
+    tri_e2 = np.zeros((len(tris), 4), np.float32)
+    tri_v0[:, :3] = tris[:, 0]
+    tri_v0[:, 3] = _bits(tri_surf)
+    tri_e1[:, :3] = tris[:, 1] - tris[:, 0]
+    tri_e2[:, :3] = tris[:, 2] - tris[:, 0]
+
+    sphere_idx = [i for i, s in enumerate(scene.shapes) if isinstance(s, Sphere)]
+    spheres = np.array([[*scene.shapes[i].center, scene.shapes[i].radius] for i in sphere_idx], np.float32).reshape(-1, 4)
+    sphere_surf = np.array(sphere_idx, np.int32)
+
+    # Bounding sphere of everything: directional lights emit from a disc that covers it.
+    points = [tris.reshape(-1, 3)]
+    points += [np.array([np.subtract(s.center, s.radius), np.add(s.center, s.radius)]) for s in scene.shapes if isinstance(s, Sphere)]
+    points += [np.array([light.position]) for light in scene.lights if not isinstance(light, DirectionalLight)]
+    points += [np.array([scene.camera.position])]
+    allp = np.concatenate([p.reshape(-1, 3) for p in points])
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    bound_radius = 0.5 * float(np.linalg.norm(hi - lo)) * 1.001 + 1e-6
+
+    # Emitters, each with its power (flux) for selection in proportion to power.
+    rows: list[np.ndarray] = []
+    powers: list[np.ndarray] = []
+
+    def add(kind: int, r0: tuple, r1: tuple, r2: tuple, power: np.ndarray) -> None:
+        rec = np.zeros((4, 4), np.float32)
+        rec[0, :3], rec[1], rec[2] = r0, r1, r2
+        rec[0, 3] = _bits([kind])[0]
+        rec[3, :3] = power
+        rows.append(rec)
+        powers.append(power)
+
+    for i, shape in enumerate(scene.shapes):
+        if shape.emission is None or max(shape.emission) <= 0.0:
+            continue
+        le = np.array(shape.emission, np.float64)
+        if isinstance(shape, Sphere):
+            area = 4.0 * math.pi * shape.radius ** 2
+            add(EMIT_SPHERE, tuple(shape.center), (0, 0, 0, 0), (0, 0, 0, shape.radius), math.pi * le * area)
+            continue
+        t = per_shape[i]
+        e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+        areas = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+        for k in np.nonzero(areas > 0.0)[0]:  # Lambertian emitter: flux = pi * Le * area
+            add(EMIT_TRIANGLE, tuple(t[k, 0]), (*e1[k], 0.0), (*e2[k], 0.0), math.pi * le * areas[k])
+    for light in scene.lights:
+        power = np.array(getattr(light, "power", (0, 0, 0)), np.float64)
+        if isinstance(light, PointLight):
+            add(EMIT_POINT, tuple(light.position), (0, 0, 0, 0), (0, 0, 0, 0), power)
+        elif isinstance(light, SpotLight):
+            axis = np.array(light.direction) / np.linalg.norm(light.direction)
+            add(EMIT_SPOT, tuple(light.position), (*axis, math.cos(math.radians(light.cone_angle))), (0, 0, 0, 0), power)
+        else:
+            axis = np.array(light.direction) / np.linalg.norm(light.direction)
+            power = np.array(light.irradiance, np.float64) * math.pi * bound_radius ** 2
+            add(EMIT_DIRECTIONAL, tuple(centre - axis * bound_radius), (*axis, bound_radius), (0, 0, 0, 0), power)
+
+    weights = np.array([p.sum() for p in powers], np.float64)
+    keep = weights > 0.0
+    rows = [r for r, k in zip(rows, keep) if k]
+    weights = weights[keep]
+    emitters = np.concatenate(rows) if rows else np.zeros((4, 4), np.float32)
+    if rows:
+        pdf = weights / weights.sum()
+        emitters[3::4, 3] = pdf
+        cdf = np.cumsum(pdf).astype(np.float32)
+        cdf[-1] = 1.0
+    else:
+        cdf = np.ones(1, np.float32)
+
+    cam = scene.camera
+    pos = np.array(cam.position, np.float64)
+    forward = np.array(cam.look_at, np.float64) - pos
+    focus = cam.focus_distance or float(np.linalg.norm(forward))
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.array(cam.up, np.float64))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    tan_y = math.tan(math.radians(cam.fov) / 2.0)
+    tan_x = tan_y * width / height
+    camera = np.array([[*pos, cam.near_clip], [*forward, cam.aperture_radius],
+                       [*(right * tan_x), focus], [*(up * tan_y), 0.0]], np.float32)
+
+    return SceneArrays(
+        width=width, height=height, tri_v0=tri_v0, tri_e1=tri_e1, tri_e2=tri_e2,
+        node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
+        surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
+        camera=camera, pixel_angle=2.0 * tan_y / height,
+        scene_diagonal=float(np.linalg.norm(hi - lo)),
+    )
