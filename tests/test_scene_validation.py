@@ -549,8 +549,7 @@ def write_scene(path: Path, data: dict) -> Path:
 
 @pytest.fixture(scope="module")
 def cli_available():
-    if not PHOTONFARM.exists():
-        pytest.skip(f"{PHOTONFARM} not installed")
+    assert PHOTONFARM.exists(), f"{PHOTONFARM} not installed: run the tests through `make test`"
 
 
 def test_cli_negative_radius(cli_available, tmp_path: Path):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from worker.engine import MAX_PHOTONS_PER_PASS, Engine, RenderSettings
 from worker.image_io import write_image
-from worker.scene import MAX_RESOLUTION, SceneError, bundled_scene_path, load_scene_file
+from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_scene_file
 from worker.stats import Accumulators
 
 
@@ -20,6 +20,8 @@ def _resolution(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
     if not (1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION):
         raise argparse.ArgumentTypeError(f"each side must lie in 1..{MAX_RESOLUTION}")
+    if w * h > MAX_PIXELS:
+        raise argparse.ArgumentTypeError(f"at most {MAX_PIXELS} pixels")
     return w, h
 
 

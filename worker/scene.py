@@ -216,9 +216,13 @@ def _load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
             continue
         try:
             if parts[0] == "v":
+                if len(parts) < 4:
+                    raise ValueError("a vertex needs three coordinates")
                 verts.append([float(x) for x in parts[1:4]])
             elif parts[0] == "f":
                 idx = [int(p.split("/")[0]) for p in parts[1:]]
+                if len(idx) < 3 or 0 in idx:
+                    raise ValueError("a face needs three or more 1-based (or negative) vertex indices")
                 idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
                 faces.extend((idx[0], idx[k], idx[k + 1]) for k in range(1, len(idx) - 1))
         except (ValueError, IndexError) as exc:
@@ -274,7 +278,11 @@ def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> li
     return out
 
 
-_UNION_FIELDS = {"materials", "shapes", "lights"}
+_UNION_TAGS = {
+    "materials": {"diffuse", "mirror", "glass", "glossy"},
+    "shapes": {"sphere", "quad", "mesh"},
+    "lights": {"point", "spot", "directional"},
+}
 
 
 def _field_path(loc: tuple) -> str:
@@ -292,7 +300,7 @@ def parse_scene(data: object) -> Scene:
             raise ctx_err from None
         loc = list(err["loc"])
         # A discriminated union puts the tag after the list index or dict key: drop it.
-        if len(loc) > 3 and loc[0] in _UNION_FIELDS and isinstance(loc[2], str):
+        if len(loc) >= 3 and loc[0] in _UNION_TAGS and loc[2] in _UNION_TAGS[loc[0]]:
             del loc[2]
         raise SceneError(_field_path(tuple(loc)), err["msg"]) from None
     return scene
@@ -305,7 +313,9 @@ def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise SceneError("", f"scene file {str(path)!r} not found") from None
-    except json.JSONDecodeError as exc:
+    except OSError as exc:
+        raise SceneError("", f"cannot read scene file {str(path)!r}: {exc.strerror or exc}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise SceneError("", f"{path.name} is not valid JSON: {exc}") from None
     return parse_scene(data), path.resolve().parent
 
