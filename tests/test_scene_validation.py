@@ -14,6 +14,7 @@ import json
 import math
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ from worker.scene import (
 from worker.scene_arrays import compile_scene
 
 REPO = Path(__file__).resolve().parent.parent
-PHOTONFARM = REPO / ".venv" / "bin" / "photonfarm"
+PHOTONFARM = Path(sys.executable).parent / "photonfarm"  # installed beside the running interpreter
 BUNDLED = sorted(SCENES_DIR.glob("*.json"))
 
 
