@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -68,6 +69,19 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--radius", type=_positive(float), help="initial radius in world units "
                         "(default: 2 pixel footprints at each pixel's first diffuse hit)")
     render.add_argument("--out", type=_output, required=True, help="output image, .exr (linear) or .png")
+
+    serve = sub.add_parser("serve", help="run the HTTP API (with embedded Redis and local workers by default)")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    serve.add_argument("--redis-url", default=os.environ.get("REDIS_URL"),
+                       help="external Redis (default: $REDIS_URL, else an embedded one)")
+    serve.add_argument("--data-dir", type=Path, default=Path(os.environ.get("PHOTONFARM_DATA", "data")),
+                       help="where the embedded Redis keeps its append-only file (default: ./data)")
+
+    worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
+    worker.add_argument("--redis-url", default=os.environ.get("REDIS_URL"), required="REDIS_URL" not in os.environ)
+    worker.add_argument("--burst", action="store_true", help="exit when the queues are empty")
     return parser
 
 
@@ -103,6 +117,15 @@ def render(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "serve":
+        from service.serve import serve  # the HTTP stack is only needed here
+
+        return serve(args.host, args.port, args.workers, args.redis_url, args.data_dir,
+                     os.environ.get("PHOTONFARM_TOKEN") or None)
+    if args.command == "worker":
+        from worker.queue_worker import run_worker
+
+        return run_worker(args.redis_url, burst=args.burst)
     try:
         return render(args)
     except SceneError as exc:

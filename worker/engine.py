@@ -13,7 +13,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 import pyopencl as cl
@@ -49,6 +49,10 @@ class RenderSettings:
 
 
 STAGES = ("eye", "trace", "build", "gather", "readback")
+
+
+class BatchAborted(Exception):
+    """A batch stopped between passes because its job no longer wants it."""
 
 
 @dataclass
@@ -215,8 +219,11 @@ class Engine:
             else self.arrays.scene_diagonal / max(self.arrays.width, self.arrays.height)
         return np.full(n, RADIUS_FOOTPRINTS * footprint)
 
-    def run_batch(self, radius: np.ndarray, first_pass: int, n_passes: int) -> Delta:
-        """Run passes first_pass .. first_pass+n_passes-1, all gathering at `radius`."""
+    def run_batch(self, radius: np.ndarray, first_pass: int, n_passes: int,
+                  keep_going: Callable[[int], bool] | None = None) -> Delta:
+        """Run passes first_pass .. first_pass+n_passes-1, all gathering at `radius`.
+
+        `keep_going(pass_index)` is asked after every pass; False raises BatchAborted."""
         n = self.arrays.n_pixels
         r32 = np.ascontiguousarray(radius, np.float32)
         if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
@@ -228,6 +235,9 @@ class Engine:
             self._eye_pass(k)
             self.photons_stored = self._photon_pass(k)
             self._build_and_gather(self.photons_stored, float(r32.max()))
+            if keep_going is not None and not keep_going(k):
+                self.times.settle()
+                raise BatchAborted(f"stopped after pass {k}")
         t0 = time.perf_counter()
         S = np.empty((n, 4), np.float64)
         D = np.empty(n, np.float64)

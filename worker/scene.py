@@ -206,6 +206,21 @@ class Scene(_Model):
 
 
 # ------------------------------------------------------------------------ triangulation
+def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> dict:
+    """The scene as JSON with every .obj mesh replaced by its triangles, so that a worker
+    on any machine renders it with no file at hand. Also runs the checks that need the
+    geometry (mesh paths, triangle limit, zero-area emitters)."""
+    triangles = shape_triangles(scene, base_dir, root)
+    data = scene.model_dump(mode="json", exclude_none=True)
+    for i, shape in enumerate(scene.shapes):
+        if isinstance(shape, Mesh) and shape.obj is not None:
+            tris = triangles[i]
+            del data["shapes"][i]["obj"]
+            data["shapes"][i]["vertices"] = tris.reshape(-1, 3).tolist()
+            data["shapes"][i]["triangles"] = np.arange(3 * len(tris)).reshape(-1, 3).tolist()
+    return data
+
+
 def _load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and (fan-triangulated) faces of a Wavefront .obj; only `v` and `f` matter."""
     verts: list[list[float]] = []

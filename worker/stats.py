@@ -27,6 +27,24 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Current radius per pixel: R^2 = N / (pi D) where photons were ever found.
+
+    A pixel that never found a photon (D = 0) carries no statistics, so its radius is
+    free (the dissertation only asks R0 > 0): it takes R0 capped at the largest radius
+    of the lit pixels. That keeps the stochastic hash's cell (twice the largest current
+    radius, dissertation 10.2.2) shrinking with the radii instead of staying at 2 R0
+    because of pixels no light reaches.
+    """
+    lit = D > 0.0
+    r2 = R0 ** 2
+    if lit.any():
+        lit_r2 = N[lit] / (math.pi * D[lit])
+        r2 = np.minimum(r2, lit_r2.max())
+        r2[lit] = lit_r2
+    return np.sqrt(r2)
+
+
 @dataclass
 class Delta:
     """What a batch of passes adds: sums over its passes, each at the radius it read."""
@@ -66,21 +84,7 @@ class Accumulators:
                    N=np.zeros(n), Ld=np.zeros((n, 3)))
 
     def radius(self) -> np.ndarray:
-        """Current radius per pixel: R^2 = N / (pi D) where photons were ever found.
-
-        A pixel that never found a photon (D = 0) carries no statistics, so its radius is
-        free (the dissertation only asks R0 > 0): it takes R0 capped at the largest radius
-        of the lit pixels. That keeps the stochastic hash's cell (twice the largest current
-        radius, dissertation 10.2.2) shrinking with the radii instead of staying at 2 R0
-        because of pixels no light reaches.
-        """
-        lit = self.D > 0.0
-        r2 = self.R0 ** 2
-        if lit.any():
-            lit_r2 = self.N[lit] / (math.pi * self.D[lit])
-            r2 = np.minimum(r2, lit_r2.max())
-            r2[lit] = lit_r2
-        return np.sqrt(r2)
+        return radius(self.R0, self.N, self.D)
 
     def merge(self, delta: Delta) -> None:
         """Add a batch. Commutative in S, D, E, Ld; N uses the radius at merge time."""

@@ -1,0 +1,203 @@
+"""The HTTP API (FastAPI). OpenAPI at /docs.
+
+It stores jobs and reads their state; it never renders. Batches run on the workers, and
+this process only kicks a new job off and runs the reaper that re-issues lost batches.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import os
+import tempfile
+import threading
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any, AsyncIterator, Literal
+
+import numpy as np
+import redis
+from fastapi import FastAPI, HTTPException, Query, Request, Response
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, JobLinks, JobRequest, JobView,
+                            SceneSummary)
+from worker.image_io import write_image
+from worker.job_store import JobStore, elapsed_seconds, photons_per_second
+from worker.scene import SCENES_DIR, SceneError, bundled_scene_path, inline_meshes, load_scene_file, parse_scene
+from worker.scheduler import feed, reap
+
+log = logging.getLogger("photonfarm.api")
+REAP_SECONDS = 2.0
+
+
+def _iso(ts: str | None) -> str | None:
+    return dt.datetime.fromtimestamp(float(ts), dt.timezone.utc).isoformat() if ts else None
+
+
+def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:
+    return HTTPException(422, detail=[{"loc": loc, "msg": msg, "type": "value_error"}])
+
+
+def job_view(store: JobStore, job_id: str, meta: dict[str, str]) -> JobView:
+    base = f"/v1/jobs/{job_id}"
+    return JobView(
+        id=job_id, status=meta["status"], scene_name=meta["scene_name"] or None,
+        settings=json.loads(meta["settings"]), width=int(meta["width"]), height=int(meta["height"]),
+        passes=int(meta["passes"]), photons=int(meta["emitted"]), elapsed_seconds=round(elapsed_seconds(meta), 3),
+        photons_per_second=round(photons_per_second(meta), 1), workers_active=store.workers_on(job_id),
+        created=_iso(meta["created"]), started=_iso(meta.get("started")), finished=_iso(meta.get("finished")),
+        error=meta.get("error") or None,
+        links=JobLinks(self=base, image_png=f"{base}/image?format=png", image_exr=f"{base}/image?format=exr"))
+
+
+def encode_image(rgb: np.ndarray, fmt: Literal["png", "exr"]) -> bytes:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"image.{fmt}"
+        write_image(path, rgb)
+        return path.read_bytes()
+
+
+def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
+    conn = redis.Redis.from_url(redis_url, health_check_interval=10)
+    store = JobStore(conn)
+    stop = threading.Event()
+
+    def reap_forever() -> None:
+        while not stop.wait(REAP_SECONDS):
+            try:
+                if n := reap(store):
+                    log.info("re-issued %d lost batches", n)
+            except redis.RedisError as exc:
+                log.warning("reaper: redis unavailable (%s)", exc)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        thread = threading.Thread(target=reap_forever, name="reaper", daemon=True)
+        if reaper:
+            thread.start()
+        yield
+        stop.set()
+
+    app = FastAPI(title="photonfarm", version="0.1.0", lifespan=lifespan,
+                  description="Distributed progressive photon mapping (SPPM) render service.")
+
+    @app.middleware("http")
+    async def guard(request: Request, call_next):  # type: ignore[no-untyped-def]
+        if token and request.url.path != "/healthz" and request.headers.get("authorization") != f"Bearer {token}":
+            return JSONResponse({"detail": "missing or wrong bearer token"}, 401, headers={"WWW-Authenticate": "Bearer"})
+        length = request.headers.get("content-length")
+        if length is not None and length.isdigit() and int(length) > MAX_BODY_BYTES:
+            return JSONResponse({"detail": f"body larger than {MAX_BODY_BYTES} bytes"}, 413)
+        if length is None and request.method in ("POST", "PUT", "PATCH"):
+            body = b""
+            async for chunk in request.stream():
+                body += chunk
+                if len(body) > MAX_BODY_BYTES:
+                    return JSONResponse({"detail": f"body larger than {MAX_BODY_BYTES} bytes"}, 413)
+            request._body = body  # noqa: SLF001 - the stream is consumed; hand the body on
+        try:
+            return await call_next(request)
+        except redis.ConnectionError:
+            return JSONResponse({"detail": "job store unavailable, retry shortly"}, 503)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
+        return JSONResponse({"detail": errors}, 422)
+
+    def existing(job_id: str) -> dict[str, str]:
+        meta = store.meta(job_id)
+        if meta is None:
+            raise HTTPException(404, detail=f"no job {job_id!r}")
+        return meta
+
+    @app.get("/healthz")
+    def healthz() -> dict[str, Any]:
+        try:
+            ok = bool(conn.ping())
+        except redis.RedisError:
+            ok = False
+        if not ok:
+            raise HTTPException(503, detail="redis unreachable")
+        return {"status": "ok"}
+
+    @app.get("/v1/scenes", response_model=list[SceneSummary])
+    def scenes() -> list[SceneSummary]:
+        out = []
+        for path in sorted(SCENES_DIR.glob("*.json")):
+            out.append(SceneSummary(name=path.stem, description=json.loads(path.read_text()).get("description", "")))
+        return out
+
+    @app.get("/v1/scenes/{name}")
+    def scene(name: str) -> dict[str, Any]:
+        try:
+            return json.loads(bundled_scene_path(name).read_text())
+        except SceneError as exc:
+            raise HTTPException(404, detail=exc.message) from None
+
+    @app.post("/v1/jobs", status_code=201, response_model=JobView)
+    def submit(body: JobRequest, response: Response) -> JobView:
+        try:
+            if body.scene_name is not None:
+                parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
+            else:
+                parsed, base_dir = parse_scene(body.scene), SCENES_DIR
+            scene_json = inline_meshes(parsed, base_dir)
+        except SceneError as exc:
+            if body.scene_name is not None:
+                raise _unprocessable(["body", "scene_name"], exc.message) from None
+            loc = ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
+            raise _unprocessable(loc, exc.message) from None
+        settings = body.settings
+        width, height = settings.resolution or parsed.camera.resolution
+        if width * height > MAX_SERVICE_PIXELS:
+            raise _unprocessable(["body", "scene", "camera", "resolution"],
+                                 f"at most {MAX_SERVICE_PIXELS} pixels per job")
+        if store.active_count() >= MAX_ACTIVE_JOBS:
+            raise _unprocessable(["body"], f"at most {MAX_ACTIVE_JOBS} jobs may be active at once")
+        job_id = store.create(scene_json, settings.model_dump(), width, height, body.scene_name)
+        feed(store, job_id)
+        response.headers["Location"] = f"/v1/jobs/{job_id}"
+        log.info("job %s submitted (%s, %dx%d)", job_id, body.scene_name or "inline scene", width, height)
+        return job_view(store, job_id, store.meta(job_id))
+
+    @app.get("/v1/jobs", response_model=list[JobView])
+    def jobs() -> list[JobView]:
+        out = []
+        for job_id in reversed(store.job_ids()):
+            meta = store.meta(job_id)
+            if meta is not None:
+                out.append(job_view(store, job_id, meta))
+        return out
+
+    @app.get("/v1/jobs/{job_id}", response_model=JobView)
+    def job(job_id: str) -> JobView:
+        return job_view(store, job_id, existing(job_id))
+
+    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202)
+    def cancel(job_id: str) -> JobView:
+        meta = existing(job_id)
+        if meta["status"] in ("completed", "converged", "failed"):
+            raise HTTPException(409, detail=f"job already {meta['status']}")
+        store.cancel(job_id)
+        return job_view(store, job_id, store.meta(job_id))
+
+    @app.get("/v1/jobs/{job_id}/image", responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}})
+    def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
+        meta = existing(job_id)
+        w, h = int(meta["width"]), int(meta["height"])
+        state = store.accumulators(job_id, meta)
+        rgb = state.radiance().reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
+        media = "image/png" if format == "png" else "image/x-exr"
+        return Response(encode_image(rgb, format), media_type=media,
+                        headers={"X-Passes": meta["passes"], "X-Photons": meta["emitted"]})
+
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """For `uvicorn service.app:app_from_env --factory`: REDIS_URL and PHOTONFARM_TOKEN."""
+    return create_app(os.environ["REDIS_URL"], os.environ.get("PHOTONFARM_TOKEN") or None)

@@ -1,0 +1,83 @@
+"""Request and response bodies of the HTTP API, with the service's documented limits."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from worker.engine import RenderSettings
+
+# Service limits (README, "Limits"): each answers 413 or 422 naming what it limits.
+MAX_BODY_BYTES = 16 * 1024 * 1024
+MAX_SERVICE_PIXELS = 1280 * 1024  # per job; the job state is 64 bytes per pixel in Redis
+MAX_SERVICE_PHOTONS_PER_PASS = 1 << 22
+MAX_ACTIVE_JOBS = 16
+DEFAULT_MAX_SECONDS = 300.0  # when a job names no budget at all
+
+
+class JobSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    method: Literal["sppm", "ppm"] = "sppm"
+    gather: Literal["stochastic", "exact"] = RenderSettings.gather
+    alpha: float = Field(0.7, gt=0.0, le=1.0)
+    photons_per_pass: int = Field(RenderSettings.photons_per_pass, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS)
+    max_passes: int | None = Field(None, ge=1, le=10_000_000)
+    max_seconds: float | None = Field(None, gt=0.0, le=7 * 86_400.0)
+    seed: int = Field(0, ge=0, lt=2 ** 63)
+    resolution: tuple[int, int] | None = None
+    priority: Literal["high", "normal", "low"] = "normal"
+    initial_radius: float | None = Field(None, gt=0.0)
+
+    @model_validator(mode="after")
+    def _budget(self) -> "JobSettings":
+        if self.resolution is not None and (min(self.resolution) < 1 or self.resolution[0] * self.resolution[1] > MAX_SERVICE_PIXELS):
+            raise ValueError(f"resolution must have positive sides and at most {MAX_SERVICE_PIXELS} pixels")
+        if self.max_passes is None and self.max_seconds is None:
+            self.max_seconds = DEFAULT_MAX_SECONDS
+        return self
+
+
+class JobRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    scene: dict[str, Any] | None = Field(None, description="a scene in the format of scenes/*.json")
+    scene_name: str | None = Field(None, description="a bundled scene, see GET /v1/scenes")
+    settings: JobSettings = Field(default_factory=JobSettings)
+
+    @model_validator(mode="after")
+    def _one_scene(self) -> "JobRequest":
+        if (self.scene is None) == (self.scene_name is None):
+            raise ValueError("give exactly one of scene and scene_name")
+        return self
+
+
+class JobLinks(BaseModel):
+    self: str
+    image_png: str
+    image_exr: str
+
+
+class JobView(BaseModel):
+    id: str
+    status: Literal["queued", "running", "cancel-requested", "cancelled", "converged", "completed", "failed"]
+    scene_name: str | None
+    settings: dict[str, Any]
+    width: int
+    height: int
+    passes: int = Field(description="passes merged into the estimate")
+    photons: int = Field(description="photon paths emitted by the merged passes")
+    elapsed_seconds: float
+    photons_per_second: float
+    workers_active: int
+    created: str
+    started: str | None
+    finished: str | None
+    error: str | None
+    links: JobLinks
+
+
+class SceneSummary(BaseModel):
+    name: str
+    description: str

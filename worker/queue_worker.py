@@ -1,0 +1,33 @@
+"""`photonfarm worker`: an RQ worker for render batches, on this or any machine that
+reaches the Redis server. It needs nothing but the Redis URL: scenes travel inline.
+
+SimpleWorker runs every batch in this process (no fork), so the OpenCL context and
+compiled kernels live across batches. A lost Redis connection (a Redis restart) is not
+fatal: the worker waits and reconnects; its batch in flight, if any, is re-issued by
+the reaper when its lease expires.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import redis
+from rq import Queue, SimpleWorker
+
+from worker.job_store import QUEUE_NAMES
+
+log = logging.getLogger("photonfarm.worker")
+
+
+def run_worker(redis_url: str, burst: bool = False) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    conn = redis.Redis.from_url(redis_url)
+    while True:
+        try:
+            queues = [Queue(name, connection=conn) for name in QUEUE_NAMES]
+            SimpleWorker(queues, connection=conn).work(burst=burst, with_scheduler=False)
+            return 0
+        except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
+            log.warning("redis unavailable (%s); retrying in 1 s", exc)
+            time.sleep(1.0)
