@@ -21,6 +21,7 @@ apply (the loser re-reads and retries).
 from __future__ import annotations
 
 import json
+import os
 import time
 import uuid
 from dataclasses import dataclass
@@ -36,7 +37,8 @@ FINAL = ("cancelled", "converged", "completed", "failed")
 PRIORITIES = ("high", "normal", "low")
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 
-LEASE_SECONDS = 30.0  # a started batch must report a pass (or finish) this often
+# A started batch must report a pass (or finish) this often, or it is taken for lost.
+LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
 QUEUED_SECONDS = 120.0  # how often the reaper looks again at a batch still waiting in a queue
 BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long
 MAX_BATCH_PASSES = 32

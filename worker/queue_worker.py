@@ -10,7 +10,10 @@ the reaper when its lease expires.
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import time
+import uuid
 
 import redis
 from rq import Queue, SimpleWorker
@@ -26,7 +29,8 @@ def run_worker(redis_url: str, burst: bool = False) -> int:
     while True:
         try:
             queues = [Queue(name, connection=conn) for name in QUEUE_NAMES]
-            SimpleWorker(queues, connection=conn).work(burst=burst, with_scheduler=False)
+            name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"  # says where it runs
+            SimpleWorker(queues, connection=conn, name=name).work(burst=burst, with_scheduler=False)
             return 0
         except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
             log.warning("redis unavailable (%s); retrying in 1 s", exc)
