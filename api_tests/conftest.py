@@ -21,15 +21,18 @@ LEASE_SECONDS = "4"  # short leases so lost batches are re-issued within the tes
 
 
 class Cluster:
-    def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None) -> None:
+    def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
+                 redis_bind: str = "127.0.0.1") -> None:
         self.data_dir = data_dir
-        self.redis = EmbeddedRedis(data_dir / "redis").start(supervise=False)
+        self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind).start(supervise=False)
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": "1", "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS,
                     "PYTHONUNBUFFERED": "1"}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()
-        self.workers: list[subprocess.Popen] = [self.start_worker() for _ in range(workers)]
+        self.workers: list[subprocess.Popen] = []
+        for _ in range(workers):
+            self.start_worker()
         self.api: subprocess.Popen | None = None
         self.start_api()
         headers = {"Authorization": f"Bearer {token}"} if token else {}
@@ -42,9 +45,12 @@ class Cluster:
     def _log(self, name: str):  # noqa: ANN202
         return open(self.data_dir / f"{name}.log", "ab")
 
-    def start_worker(self, prefix: list[str] | None = None, redis_url: str | None = None) -> subprocess.Popen:
-        cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker", "--redis-url", redis_url or self.redis.url]
-        return subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT)
+    def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:
+        """A worker process; `prefix` runs it elsewhere (e.g. `ip netns exec NS`)."""
+        cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis.url]
+        proc = subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
+        self.workers.append(proc)
+        return proc
 
     def start_api(self) -> None:
         cmd = [sys.executable, "-m", "worker.cli", "serve", "--port", str(self.port), "--workers", "0",

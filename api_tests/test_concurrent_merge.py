@@ -1,0 +1,74 @@
+"""The same batches merged by several concurrent worker processes, each in its own
+shuffled order, against a real Redis: every batch counts exactly once and the state is
+the same whatever the order (S, D, Ld and E are sums; N only schedules future radii)."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import pickle
+import random
+from pathlib import Path
+
+import numpy as np
+import redis
+
+from service.redis_server import EmbeddedRedis
+from worker.engine import Engine, RenderSettings
+from worker.job_store import Batch, JobStore
+from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
+from worker.stats import Delta
+
+BATCHES = 12
+PROCESSES = 4
+
+
+def _merge_all(url: str, job_id: str, deltas_file: str, order_seed: int) -> list[str]:
+    deltas: list[Delta] = pickle.loads(Path(deltas_file).read_bytes())
+    store = JobStore(redis.Redis.from_url(url))
+    order = list(range(len(deltas)))
+    random.Random(order_seed).shuffle(order)
+    return [store.merge(Batch(job_id, deltas[i].first_pass, deltas[i].n_passes), deltas[i], 0.1) for i in order]
+
+
+def _job(store: JobStore, scene: dict, r0: np.ndarray, w: int, h: int) -> str:
+    settings = {"alpha": 0.7, "priority": "normal", "max_passes": None, "max_seconds": None}
+    job_id = store.create(scene, settings, w, h, "cornell-caustics")
+    store.init_radius(job_id, r0)
+    store.r.hset(f"pf:job:{job_id}", mapping={"status": "running", "started": 1.0})
+    return job_id
+
+
+def test_concurrent_shuffled_merges_give_one_state(tmp_path: Path) -> None:
+    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
+    try:
+        parsed, base = load_scene_file(bundled_scene_path("cornell-caustics"))
+        w, h = 64, 48
+        engine = Engine(parsed, base, RenderSettings(photons_per_pass=1 << 14, seed=21), resolution=(w, h))
+        r0 = engine.initial_radius()
+        deltas = [engine.run_batch(r0 * (1.0 - 0.03 * i), 2 * i, 2) for i in range(BATCHES)]
+        deltas_file = tmp_path / "deltas.pkl"
+        deltas_file.write_bytes(pickle.dumps(deltas))
+        store = JobStore(redis.Redis.from_url(server.url))
+        scene = inline_meshes(parsed, base)
+        states = []
+        for trial in range(2):
+            job_id = _job(store, scene, r0, w, h)
+            with mp.get_context("spawn").Pool(PROCESSES) as pool:
+                outcomes = pool.starmap(_merge_all, [(server.url, job_id, str(deltas_file), 100 * trial + p)
+                                                      for p in range(PROCESSES)])
+            flat = [o for per_process in outcomes for o in per_process]
+            assert flat.count("merged") == BATCHES and flat.count("duplicate") == (PROCESSES - 1) * BATCHES
+            meta = store.meta(job_id)
+            assert int(meta["passes"]) == 2 * BATCHES
+            assert int(meta["emitted"]) == sum(d.emitted for d in deltas)
+            states.append(store.accumulators(job_id))
+        a, b = states
+        for name in ("S", "D", "Ld"):
+            expected = sum(getattr(d, name) for d in deltas)
+            np.testing.assert_allclose(getattr(a, name), expected, rtol=1e-12, atol=1e-300)
+            np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, atol=1e-300)
+        np.testing.assert_allclose(a.radiance(), b.radiance(), rtol=1e-12, atol=1e-300)
+        lit = a.D > 0
+        assert abs(np.mean(a.radius()[lit] ** 2) / np.mean(b.radius()[lit] ** 2) - 1) < 0.03
+    finally:
+        server.stop()
