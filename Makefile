@@ -11,10 +11,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test,bench]'
 	touch $(STAMP)
 
-# Until the service lands, `make serve` renders a bundled scene locally.
+# The API on :8000 with an embedded Redis (data in ./data) and one worker per core.
 serve: $(STAMP)
-	mkdir -p out
-	$(VENV)/bin/photonfarm render cornell-caustics --seconds 60 --out out/cornell-caustics.png
+	$(VENV)/bin/photonfarm serve --host 127.0.0.1 --port 8000
 
 test: $(STAMP)
 	$(PY) -m pytest -q
