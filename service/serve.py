@@ -17,6 +17,7 @@ from pathlib import Path
 import uvicorn
 
 from service.app import create_app
+from service.child_process import spawn
 from service.redis_server import EmbeddedRedis
 
 log = logging.getLogger("photonfarm.serve")
@@ -34,8 +35,7 @@ class LocalWorkers:
         self._stop = threading.Event()
 
     def _spawn(self) -> subprocess.Popen:
-        return subprocess.Popen([sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis_url],
-                                env=self.env)
+        return spawn([sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis_url], env=self.env)
 
     def start(self) -> "LocalWorkers":
         self.procs = [self._spawn() for _ in range(self.count)]
