@@ -24,7 +24,8 @@ from fastapi.responses import JSONResponse
 
 from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, JobLinks, JobRequest, JobView,
                             SceneSummary)
-from worker.image_io import write_image
+from worker.error_estimate import estimate
+from worker.image_io import error_colours, write_image
 from worker.job_store import JobStore, elapsed_seconds, photons_per_second
 from worker.scene import SCENES_DIR, SceneError, bundled_scene_path, inline_meshes, load_scene_file, parse_scene
 from worker.scheduler import feed, reap
@@ -41,7 +42,7 @@ def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:
     return HTTPException(422, detail=[{"loc": loc, "msg": msg, "type": "value_error"}])
 
 
-def job_view(store: JobStore, job_id: str, meta: dict[str, str]) -> JobView:
+def job_view(store: JobStore, job_id: str, meta: dict[str, str], history: bool = False) -> JobView:
     base = f"/v1/jobs/{job_id}"
     return JobView(
         id=job_id, status=meta["status"], scene_name=meta["scene_name"] or None,
@@ -49,15 +50,20 @@ def job_view(store: JobStore, job_id: str, meta: dict[str, str]) -> JobView:
         passes=int(meta["passes"]), photons=int(meta["emitted"]), elapsed_seconds=round(elapsed_seconds(meta), 3),
         photons_per_second=round(photons_per_second(meta), 1), workers_active=store.workers_on(job_id),
         created=_iso(meta["created"]), started=_iso(meta.get("started")), finished=_iso(meta.get("finished")),
-        error=meta.get("error") or None,
-        links=JobLinks(self=base, image_png=f"{base}/image?format=png", image_exr=f"{base}/image?format=exr"))
+        failure=meta.get("error") or None, error_estimate=store.last_error(job_id),
+        error_history=store.history(job_id) if history else None,
+        links=JobLinks(self=base, image_png=f"{base}/image?format=png", image_exr=f"{base}/image?format=exr",
+                       error_png=f"{base}/error?format=png", error_exr=f"{base}/error?format=exr"))
 
 
-def encode_image(rgb: np.ndarray, fmt: Literal["png", "exr"]) -> bytes:
+def encode_image(pixels: np.ndarray, fmt: Literal["png", "exr"], **options: Any) -> bytes:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"image.{fmt}"
-        write_image(path, rgb)
+        write_image(path, pixels, **options)
         return path.read_bytes()
+
+
+MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 
 
 def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
@@ -175,7 +181,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
 
     @app.get("/v1/jobs/{job_id}", response_model=JobView)
     def job(job_id: str) -> JobView:
-        return job_view(store, job_id, existing(job_id))
+        return job_view(store, job_id, existing(job_id), history=True)
 
     @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202)
     def cancel(job_id: str) -> JobView:
@@ -191,9 +197,27 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         w, h = int(meta["width"]), int(meta["height"])
         state = store.accumulators(job_id, meta)
         rgb = state.radiance().reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
-        media = "image/png" if format == "png" else "image/x-exr"
-        return Response(encode_image(rgb, format), media_type=media,
+        return Response(encode_image(rgb, format), media_type=MEDIA[format],
                         headers={"X-Passes": meta["passes"], "X-Photons": meta["emitted"]})
+
+    @app.get("/v1/jobs/{job_id}/error", responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}})
+    def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
+        """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
+        red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
+        meta = existing(job_id)
+        w, h = int(meta["width"]), int(meta["height"])
+        state = store.accumulators(job_id, meta)
+        if state is None:
+            raise HTTPException(409, detail="no pass merged yet")
+        settings = json.loads(meta["settings"])
+        est = estimate(state, settings["confidence"], settings["bias_constant"])
+        if format == "png":
+            body = encode_image(error_colours(est.relative, est.measured).reshape(h, w, 3), "png", display=True)
+        else:
+            channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
+            body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
+        return Response(body, media_type=MEDIA[format], headers={"X-Passes": meta["passes"],
+                                                                 "X-Average-Relative-Error": f"{est.average:.6g}"})
 
     return app
 

@@ -29,12 +29,16 @@ class JobSettings(BaseModel):
     resolution: tuple[int, int] | None = None
     priority: Literal["high", "normal", "low"] = "normal"
     initial_radius: float | None = Field(None, gt=0.0)
+    error_threshold: float | None = Field(None, gt=0.0, le=10.0,
+                                          description="stop, as converged, when the average relative error is at most this")
+    confidence: float = Field(0.5, gt=0.0, lt=1.0, description="of the error bound (the dissertation terminates at 0.5)")
+    bias_constant: Literal["taylor", "dissertation"] = "taylor"
 
     @model_validator(mode="after")
     def _budget(self) -> "JobSettings":
         if self.resolution is not None and (min(self.resolution) < 1 or self.resolution[0] * self.resolution[1] > MAX_SERVICE_PIXELS):
             raise ValueError(f"resolution must have positive sides and at most {MAX_SERVICE_PIXELS} pixels")
-        if self.max_passes is None and self.max_seconds is None:
+        if self.max_passes is None and self.max_seconds is None:  # also with a threshold: it may be out of reach
             self.max_seconds = DEFAULT_MAX_SECONDS
         return self
 
@@ -57,6 +61,15 @@ class JobLinks(BaseModel):
     self: str
     image_png: str
     image_exr: str
+    error_png: str
+    error_exr: str
+
+
+class ErrorPoint(BaseModel):
+    passes: int
+    photons: int
+    seconds: float
+    error: float = Field(description="estimated average relative error at the job's confidence")
 
 
 class JobView(BaseModel):
@@ -74,7 +87,9 @@ class JobView(BaseModel):
     created: str
     started: str | None
     finished: str | None
-    error: str | None
+    failure: str | None = Field(description="why the job failed")
+    error_estimate: ErrorPoint | None = Field(description="the latest estimate (after the last merge)")
+    error_history: list[ErrorPoint] | None = Field(None, description="every estimate so far (single-job view)")
     links: JobLinks
 
 

@@ -64,7 +64,7 @@ def _point_plane_truth(eng, sub: int = 4) -> np.ndarray:
 
 def test_point_plane_matches_analytic_radiance(make_engine) -> None:
     """Per pixel, with every photon gathered (exact grid)."""
-    eng = make_engine("point-plane", photons_per_pass=1 << 18, seed=5, gather="exact")
+    eng = make_engine("point-plane", photons_per_pass=1 << 19, seed=5, gather="exact")
     state = render(eng, 64)
     est = image(eng, state)
     rel = est[..., 0] / _point_plane_truth(eng) - 1.0

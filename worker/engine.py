@@ -21,7 +21,7 @@ import pyopencl as cl
 from kernels.program import create_context, f32, i32, program_for, u32, u64
 from worker.scene import Scene
 from worker.scene_arrays import SceneArrays, compile_scene
-from worker.stats import Delta
+from worker.stats import ADDITIVE, Delta
 
 MAX_PHOTONS_PER_PASS = 1 << 24
 MAX_DEPTH = 16  # bounces per photon path and specular bounces per eye path
@@ -109,9 +109,11 @@ class Engine:
         self.mp_wgt = cl.Buffer(self.ctx, mf.READ_WRITE, 16 * n)
         self.mp_dist = cl.Buffer(self.ctx, mf.READ_WRITE, 4 * n)
         self.radius = cl.Buffer(self.ctx, mf.READ_ONLY, 4 * n)
-        self.acc_S = cl.Buffer(self.ctx, mf.READ_WRITE, 32 * n)
-        self.acc_D = cl.Buffer(self.ctx, mf.READ_WRITE, 8 * n)
-        self.acc_Ld = cl.Buffer(self.ctx, mf.READ_WRITE, 32 * n)
+        self.bias = cl.Buffer(self.ctx, mf.READ_ONLY, 4 * n)
+        # Batch sums on the device, float64; rgb and vectors as double4.
+        self.acc = {name: cl.Buffer(self.ctx, mf.READ_WRITE, (32 if width == 3 else 8) * n)
+                    for name, width in ADDITIVE.items()}
+        self.acc_Ld = self.acc["Ld"]
         self.ph_count = cl.Buffer(self.ctx, mf.READ_WRITE, 4)
         self.capacity = 0
         self.entries = 0
@@ -166,8 +168,12 @@ class Engine:
                 return int(stored[0])
             self._reserve_photons(int(stored[0] * 1.25))  # same seed: the re-run is identical
 
+    def _gather_sums(self) -> list[cl.Buffer]:
+        return [self.acc[name] for name in ("S", "D", "G", "Gr", "X1", "X2", "H")]
+
     def _build_and_gather(self, n_stored: int, max_radius: float) -> None:
         a, p = self.arrays, self.program
+        photons = f32(self.settings.photons_per_pass)
         inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
         if self.settings.gather == "stochastic":
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
@@ -180,8 +186,8 @@ class Engine:
                      p.launch(self.queue, "hash_store", n_stored, u32(n_stored), self.ph_pos, self.ph_flux,
                               self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux)]
             gather = p.launch(self.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
-                              self.mp_nrm, self.mp_wgt, self.radius, inv_cell, mask, self.tab_count,
-                              self.tab_pos, self.tab_flux, self.acc_S, self.acc_D)
+                              self.mp_nrm, self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask,
+                              self.tab_count, self.tab_pos, self.tab_flux, *self._gather_sums())
         else:
             entries = _next_pow2(n_stored)
             self._reserve_table(entries)
@@ -194,8 +200,8 @@ class Engine:
                      p.launch(self.queue, "grid_scatter", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
                               self.cell_fill, self.sorted)]
             gather = p.launch(self.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
-                              self.mp_wgt, self.radius, inv_cell, mask, self.cell_start, self.tab_count,
-                              self.sorted, self.ph_pos, self.ph_flux, self.acc_S, self.acc_D)
+                              self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
+                              self.tab_count, self.sorted, self.ph_pos, self.ph_flux, *self._gather_sums())
         gather.wait()
         self.times.add("build", build)
         self.times.add("gather", [gather])
@@ -209,7 +215,7 @@ class Engine:
         n = self.arrays.n_pixels
         if self.settings.initial_radius is not None:
             return np.full(n, self.settings.initial_radius)
-        self._fill(self.acc_Ld, np.float64(0.0), 4 * n)
+        self._fill(self.acc_Ld, np.float64(0.0), 4 * n)  # the eye pass adds to it
         self._eye_pass(0)
         dist = np.empty(n, np.float32)
         cl.enqueue_copy(self.queue, dist, self.mp_dist)
@@ -219,18 +225,22 @@ class Engine:
             else self.arrays.scene_diagonal / max(self.arrays.width, self.arrays.height)
         return np.full(n, RADIUS_FOOTPRINTS * footprint)
 
-    def run_batch(self, radius: np.ndarray, first_pass: int, n_passes: int,
+    def run_batch(self, radius: np.ndarray, first_pass: int, n_passes: int, bias: np.ndarray | None = None,
                   keep_going: Callable[[int], bool] | None = None) -> Delta:
         """Run passes first_pass .. first_pass+n_passes-1, all gathering at `radius`.
 
-        `keep_going(pass_index)` is asked after every pass; False raises BatchAborted."""
+        `bias` is the per-pixel bias estimate subtracted from each pass's sample for the
+        variance estimate (eq. 6.22); zero if not given. `keep_going(pass_index)` is asked
+        after every pass; False raises BatchAborted."""
         n = self.arrays.n_pixels
         r32 = np.ascontiguousarray(radius, np.float32)
         if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
             raise ValueError("radius must hold one positive finite value per pixel")
+        b32 = np.zeros(n, np.float32) if bias is None else np.ascontiguousarray(bias, np.float32)
         cl.enqueue_copy(self.queue, self.radius, r32)
-        for buf, count in ((self.acc_S, 4 * n), (self.acc_D, n), (self.acc_Ld, 4 * n)):
-            self._fill(buf, np.float64(0.0), count)
+        cl.enqueue_copy(self.queue, self.bias, b32)
+        for name, width in ADDITIVE.items():
+            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * n)
         for k in range(first_pass, first_pass + n_passes):
             self._eye_pass(k)
             self.photons_stored = self._photon_pass(k)
@@ -239,12 +249,12 @@ class Engine:
                 self.times.settle()
                 raise BatchAborted(f"stopped after pass {k}")
         t0 = time.perf_counter()
-        S = np.empty((n, 4), np.float64)
-        D = np.empty(n, np.float64)
-        Ld = np.empty((n, 4), np.float64)
-        for host, dev in ((S, self.acc_S), (D, self.acc_D), (Ld, self.acc_Ld)):
-            cl.enqueue_copy(self.queue, host, dev)
+        sums = {}
+        for name, width in ADDITIVE.items():
+            host = np.empty((n, 4) if width == 3 else n, np.float64)
+            cl.enqueue_copy(self.queue, host, self.acc[name])
+            sums[name] = host[:, :3].copy() if width == 3 else host
         self.times.seconds["readback"] += time.perf_counter() - t0
         self.times.settle()
         return Delta(first_pass=first_pass, n_passes=n_passes, emitted=n_passes * self.settings.photons_per_pass,
-                     S=S[:, :3].copy(), D=D, Ld=Ld[:, :3].copy())
+                     sums=sums)

@@ -15,17 +15,34 @@ def tonemap(rgb: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     return np.clip(np.round(srgb * 255.0), 0, 255).astype(np.uint8)
 
 
-def write_image(path: Path | str, rgb: np.ndarray) -> None:
-    """Write an (H, W, 3) linear image: .exr as float32, .png tone-mapped."""
+# Error-map colours from relative error 0.1% (blue) through 1%, 10% to 100% and above (red).
+_ERROR_STOPS = np.log10([1e-3, 1e-2, 1e-1, 1.0])
+_ERROR_COLOURS = np.array([[0.15, 0.25, 0.85], [0.1, 0.75, 0.3], [0.95, 0.85, 0.1], [0.9, 0.1, 0.1]])
+
+
+def error_colours(relative: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Display colours (0..1) for a relative-error map on a log scale; unmeasured pixels black."""
+    x = np.log10(np.clip(relative, 1e-3, 1.0))
+    rgb = np.stack([np.interp(x, _ERROR_STOPS, _ERROR_COLOURS[:, c]) for c in range(3)], axis=-1)
+    return np.where(measured[..., None], rgb, 0.0)
+
+
+def write_image(path: Path | str, pixels_in: np.ndarray, channels: tuple[str, ...] | None = None,
+                display: bool = False) -> None:
+    """Write an (H, W, C) image. .exr: float32, linear, optionally named channels.
+    .png: 8-bit; linear radiance is tone-mapped unless `display` says it already is 0..1."""
     path = Path(path)
     suffix = path.suffix.lower()
+    n_channels = pixels_in.shape[2]
     if suffix == ".exr":
-        pixels = np.ascontiguousarray(rgb, np.float32)
-        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 3, oiio.FLOAT)
+        pixels = np.ascontiguousarray(pixels_in, np.float32)
+        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], n_channels, oiio.FLOAT)
         spec.attribute("compression", "zip")
+        if channels is not None:
+            spec.channelnames = channels
     elif suffix == ".png":
-        pixels = tonemap(rgb)
-        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 3, oiio.UINT8)
+        pixels = np.clip(np.round(pixels_in * 255.0), 0, 255).astype(np.uint8) if display else tonemap(pixels_in)
+        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], n_channels, oiio.UINT8)
     else:
         raise ValueError(f"unsupported image format {suffix!r}: use .exr or .png")
     out = oiio.ImageOutput.create(str(path))

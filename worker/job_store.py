@@ -3,9 +3,10 @@
 Layout (all keys under `pf:`):
     pf:jobs                     zset   job id -> creation time
     pf:job:{id}                 hash   status, scene, settings, width, height, counters, times
-    pf:job:{id}:{S,D,N,Ld,R0}   string float64 arrays (worker/stats.py accumulators)
+    pf:job:{id}:{R0,N,S,D,...}  string float64 arrays (worker/stats.py accumulators)
     pf:job:{id}:version         int    bumped by every merge; merges WATCH it
     pf:job:{id}:merged          set    batch ids already merged (exactly once)
+    pf:job:{id}:history         list   JSON {passes, photons, seconds, error} after each merge
     pf:job:{id}:inflight        set    batch ids issued and not yet merged or dropped
     pf:leases                   zset   "job/first/n" -> deadline; expired and unmerged = re-issue
     pf:lease-owner              hash   "job/first/n" -> worker name
@@ -30,7 +31,8 @@ from typing import Any
 import numpy as np
 import redis
 
-from worker.stats import Accumulators, Delta, radius
+from worker.error_estimate import bias_estimate, estimate
+from worker.stats import ADDITIVE, Accumulators, Delta, radius, zeros
 
 ACTIVE = ("queued", "running", "cancel-requested")
 FINAL = ("cancelled", "converged", "completed", "failed")
@@ -43,7 +45,7 @@ QUEUED_SECONDS = 120.0  # how often the reaper looks again at a batch still wait
 BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long
 MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
-ARRAYS = ("S", "D", "N", "Ld")
+ARRAYS = ("N", *ADDITIVE)  # every per-pixel array of the state but R0
 
 
 def job_key(job_id: str) -> str:
@@ -133,8 +135,8 @@ class JobStore:
         blobs = self.r.mget([array_key(job_id, name) for name in names])
         out = {}
         for name, blob in zip(names, blobs):
-            shape = (n_pixels, 3) if name in ("S", "Ld") else (n_pixels,)
-            out[name] = np.frombuffer(blob, np.float64).reshape(shape).copy() if blob else np.zeros(shape)
+            empty = zeros(n_pixels, name)
+            out[name] = np.frombuffer(blob, np.float64).reshape(empty.shape).copy() if blob else empty
         return out
 
     def accumulators(self, job_id: str, meta: dict[str, str] | None = None) -> Accumulators | None:
@@ -146,16 +148,26 @@ class JobStore:
             return None
         arrays = self._arrays(job_id, ARRAYS, n)
         return Accumulators(alpha=self.settings(meta)["alpha"], R0=np.frombuffer(r0, np.float64).copy(),
-                            emitted=int(meta["emitted"]), passes=int(meta["passes"]), **arrays)
+                            N=arrays.pop("N"), sums=arrays, emitted=int(meta["emitted"]), passes=int(meta["passes"]))
 
-    def current_radius(self, job_id: str, r0: np.ndarray) -> np.ndarray:
-        """The radii a batch starting now gathers with (reads N and D only)."""
-        arrays = self._arrays(job_id, ("N", "D"), len(r0))
-        return radius(r0, arrays["N"], arrays["D"])
+    def batch_inputs(self, job_id: str, r0: np.ndarray, meta: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
+        """What a batch starting now needs: the current radii, and the current bias estimate
+        that its per-pass variance samples subtract (reads N, D and G only)."""
+        arrays = self._arrays(job_id, ("N", "D", "G"), len(r0))
+        r = radius(r0, arrays["N"], arrays["D"])
+        constant = json.loads(meta["settings"]).get("bias_constant", "taylor")
+        return r, bias_estimate(r, arrays["G"], int(meta["emitted"]), constant)
 
     def initial_radius(self, job_id: str) -> np.ndarray | None:
         blob = self.r.get(array_key(job_id, "R0"))
         return np.frombuffer(blob, np.float64).copy() if blob is not None else None
+
+    def history(self, job_id: str) -> list[dict[str, float]]:
+        return [json.loads(x) for x in self.r.lrange(f"{job_key(job_id)}:history", 0, -1)]
+
+    def last_error(self, job_id: str) -> dict[str, float] | None:
+        last = self.r.lindex(f"{job_key(job_id)}:history", -1)
+        return json.loads(last) if last else None
 
     def init_radius(self, job_id: str, r0: np.ndarray) -> np.ndarray:
         """Fix the job's initial radii once (first writer wins) and return the stored ones."""
@@ -322,9 +334,12 @@ class JobStore:
                         state.merge(delta)
                         settings = json.loads(meta["settings"])
                         now = time.time()
+                        error = estimate(state, settings["confidence"], settings["bias_constant"]).average
                         status = meta["status"]
                         if status == "cancel-requested":
                             status = "cancelled"
+                        elif settings.get("error_threshold") and error <= settings["error_threshold"]:
+                            status = "converged"
                         elif settings.get("max_passes") and state.passes >= settings["max_passes"]:
                             status = "completed"
                         elif settings.get("max_seconds") and now - float(meta["started"]) >= settings["max_seconds"]:
@@ -339,8 +354,12 @@ class JobStore:
                         if status != meta["status"]:
                             fields["finished"] = now
                         pipe.multi()
-                        pipe.mset({array_key(batch.job_id, name): getattr(state, name).tobytes() for name in ARRAYS})
+                        arrays = {"N": state.N, **state.sums}
+                        pipe.mset({array_key(batch.job_id, name): arrays[name].tobytes() for name in ARRAYS})
                         pipe.hset(key, mapping=fields)
+                        pipe.rpush(f"{key}:history", json.dumps(
+                            {"passes": state.passes, "photons": state.emitted,
+                             "seconds": round(now - float(meta["started"]), 3), "error": error}))
                         pipe.sadd(f"{key}:merged", batch.id)
                         pipe.srem(f"{key}:inflight", batch.id)
                         pipe.zrem("pf:leases", batch.member)

@@ -11,6 +11,13 @@ section 11.2 (iii), which turns the dissertation's sequential update (eqs. 6.5-6
     R^2 = N / (pi D)  (R0^2 while D = 0)
     L = S / E + (directly seen emission) / passes
 
+S uses the smooth kernel K of eq. 6.34 (normalised by k1 r^2, so L estimates the same
+radiance as with PPM's disc); D stays count based (pi r^2), as the radius rule derives
+from counts. The error estimator's sums (worker/error_estimate.py) are additive too:
+G and Gr (Laplacian and gradient of the luminance, /k1 r^2), X1 and X2 (sums of the
+bias-corrected per-pass samples and of their squares) and H (passes with a measurement
+point).
+
 With r = R (a batch of one pass gathered at the current radius) this is exactly eq. 6.6:
 R'^2 = R^2 (N + alpha M) / (N + M), and S/E equals tau/(pi R^2 E) of eq. 6.1. S, D, E and
 the emission sum are plain sums, so the estimate does not depend on merge order; N (and
@@ -45,6 +52,23 @@ def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
     return np.sqrt(r2)
 
 
+# The sums a batch adds, with their per-pixel width (1 = scalar, 3 = rgb or a vector).
+ADDITIVE = {"S": 3, "D": 1, "Ld": 3, "G": 1, "Gr": 3, "X1": 1, "X2": 1, "H": 1}
+
+
+def zeros(n_pixels: int, name: str) -> np.ndarray:
+    width = ADDITIVE.get(name, 1)
+    return np.zeros((n_pixels, width) if width > 1 else n_pixels)
+
+
+def _sum_attribute(obj: object, name: str) -> np.ndarray:
+    """`obj.S` for `obj.sums["S"]` (and no recursion while unpickling, before `sums` exists)."""
+    sums = obj.__dict__.get("sums")
+    if sums is not None and name in sums:
+        return sums[name]
+    raise AttributeError(name)
+
+
 @dataclass
 class Delta:
     """What a batch of passes adds: sums over its passes, each at the radius it read."""
@@ -52,13 +76,14 @@ class Delta:
     first_pass: int
     n_passes: int
     emitted: int  # photon paths emitted over the batch
-    S: np.ndarray  # (pixels, 3) float64
-    D: np.ndarray  # (pixels,) float64
-    Ld: np.ndarray  # (pixels, 3) float64, directly seen emission summed over passes
+    sums: dict[str, np.ndarray]  # every name of ADDITIVE, float64
 
     @property
     def pass_ids(self) -> range:
         return range(self.first_pass, self.first_pass + self.n_passes)
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        return _sum_attribute(self, name)
 
 
 @dataclass
@@ -67,10 +92,8 @@ class Accumulators:
 
     alpha: float
     R0: np.ndarray  # (pixels,) initial radius
-    S: np.ndarray
-    D: np.ndarray
     N: np.ndarray
-    Ld: np.ndarray
+    sums: dict[str, np.ndarray]  # every name of ADDITIVE
     emitted: int = 0
     passes: int = 0
 
@@ -80,25 +103,30 @@ class Accumulators:
         if not 0.0 < alpha <= 1.0:
             raise ValueError("alpha must lie in (0, 1]")
         n = len(R0)
-        return cls(alpha=alpha, R0=np.asarray(R0, np.float64), S=np.zeros((n, 3)), D=np.zeros(n),
-                   N=np.zeros(n), Ld=np.zeros((n, 3)))
+        return cls(alpha=alpha, R0=np.asarray(R0, np.float64), N=np.zeros(n),
+                   sums={name: zeros(n, name) for name in ADDITIVE})
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        return _sum_attribute(self, name)
 
     def radius(self) -> np.ndarray:
         return radius(self.R0, self.N, self.D)
 
     def merge(self, delta: Delta) -> None:
-        """Add a batch. Commutative in S, D, E, Ld; N uses the radius at merge time."""
+        """Add a batch. Commutative in every sum; N uses the radius at merge time."""
         r2_now = self.radius() ** 2
         self.N += self.alpha * math.pi * r2_now * delta.D
-        self.S += delta.S
-        self.D += delta.D
-        self.Ld += delta.Ld
+        for name in ADDITIVE:
+            self.sums[name] += delta.sums[name]
         self.emitted += delta.emitted
         self.passes += delta.n_passes
+
+    def photon_radiance(self) -> np.ndarray:
+        """The density estimate S/E alone, (pixels, 3)."""
+        return self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
 
     def radiance(self) -> np.ndarray:
         """Current estimate L = S/E + Ld/passes, (pixels, 3) float64."""
         if self.passes == 0:
             return np.zeros_like(self.S)
-        photon = self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
-        return photon + self.Ld / self.passes
+        return self.photon_radiance() + self.Ld / self.passes

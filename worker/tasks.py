@@ -64,8 +64,8 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         r0 = store.initial_radius(job_id)
         if r0 is None:  # the job's first batch fixes R0 (one eye pass)
             r0 = store.init_radius(job_id, engine.initial_radius())
-        radius = store.current_radius(job_id, r0)
-        delta = engine.run_batch(radius, first, n,
+        radius, bias = store.batch_inputs(job_id, r0, meta)
+        delta = engine.run_batch(radius, first, n, bias=bias,
                                  keep_going=lambda k: store.renew_lease(batch) == "running")
     except BatchAborted:
         store.drop_batch(batch)
