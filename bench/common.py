@@ -1,0 +1,54 @@
+"""Shared by the benchmarks: the smallppm peer's scene and the image error metric.
+
+The error metric compares images in smallppm's display space: v = (1 - exp(-x))^(1/2.2)
+for linear radiance x (smallppm's own 8-bit output is read as v = byte / 255), then the
+RMS of v_img - v_ref over all pixels and channels.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from worker.scene import Scene, bundled_scene_path, load_scene_file
+
+BENCH_DIR = Path(__file__).resolve().parent
+OUT_DIR = BENCH_DIR / "out"
+PEERS_FILE = BENCH_DIR / "peers.json"
+REFERENCE_FILE = BENCH_DIR / "reference" / "smallppm-ref.exr"
+
+def smallppm_scene() -> tuple[Scene, Path]:
+    """The bundled smallppm scene (smallppm's camera: position y = 48)."""
+    return load_scene_file(bundled_scene_path("smallppm"))
+
+
+def display(rgb: np.ndarray) -> np.ndarray:
+    """smallppm's tone curve without 8-bit quantisation: (1 - exp(-x))^(1/2.2)."""
+    x = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=1e30), 0.0, None)
+    return (1.0 - np.exp(-x)) ** (1.0 / 2.2)
+
+
+def display_rms(img: np.ndarray, ref_display: np.ndarray) -> float:
+    """RMS over pixels and channels of display(img) - ref_display."""
+    return float(np.sqrt(np.mean((display(img) - ref_display) ** 2)))
+
+
+def box2x2(img: np.ndarray) -> np.ndarray:
+    """Halve an (H, W, C) image by averaging 2x2 blocks (H and W even)."""
+    h, w, c = img.shape
+    return img.reshape(h // 2, 2, w // 2, 2, c).mean(axis=(1, 3))
+
+
+def read_ppm(path: Path | str) -> np.ndarray:
+    """A plain (P3) or binary (P6) PPM as (H, W, 3) float64 in [0, 1], top row first."""
+    data = Path(path).read_bytes()
+    if data[:2] == b"P6":
+        parts = data.split(maxsplit=4)
+        w, h, maxval = int(parts[1]), int(parts[2]), int(parts[3])
+        pix = np.frombuffer(parts[4][: w * h * 3], np.uint8)
+    else:
+        tokens = data.split()
+        w, h, maxval = int(tokens[1]), int(tokens[2]), int(tokens[3])
+        pix = np.array(tokens[4 : 4 + w * h * 3], dtype=np.float64)
+    return pix.reshape(h, w, 3).astype(np.float64) / maxval
