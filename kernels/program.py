@@ -20,7 +20,7 @@ KERNEL_DIR = Path(__file__).resolve().parent
 SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
 PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
-                "grid_scatter", "gather_stochastic", "gather_exact")
+                "grid_scatter", "grid_sort", "gather_stochastic", "gather_exact")
 
 
 def create_context() -> cl.Context:
@@ -33,11 +33,13 @@ def create_context() -> cl.Context:
 
 
 class Program:
-    """Compiled kernels for one context, with a launcher that sizes the global range."""
+    """Compiled kernels for one context, with a launcher that sizes the global range.
+    `error_sums=False` builds the gather without the error estimator's sums."""
 
-    def __init__(self, ctx: cl.Context) -> None:
+    def __init__(self, ctx: cl.Context, error_sums: bool = True) -> None:
         source = PREAMBLE + "\n".join((KERNEL_DIR / name).read_text() for name in SOURCES)
-        program = cl.Program(ctx, source).build(options=["-cl-mad-enable"])
+        options = ["-cl-mad-enable"] + ([] if error_sums else ["-DNO_ERROR_SUMS"])
+        program = cl.Program(ctx, source).build(options=options)
         self.kernels = {name: getattr(program, name) for name in KERNEL_NAMES}
 
     def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object) -> cl.Event:
@@ -45,14 +47,14 @@ class Program:
         return self.kernels[name](queue, (max(int(n), 1),), None, *args)
 
 
-_programs: dict[int, Program] = {}
+_programs: dict[tuple[int, bool], Program] = {}
 
 
-def program_for(ctx: cl.Context) -> Program:
-    """The process-wide compiled program for `ctx`."""
-    key = ctx.int_ptr
+def program_for(ctx: cl.Context, error_sums: bool = True) -> Program:
+    """The process-wide compiled program for `ctx` (one per variant)."""
+    key = (ctx.int_ptr, error_sums)
     if key not in _programs:
-        _programs[key] = Program(ctx)
+        _programs[key] = Program(ctx, error_sums)
     return _programs[key]
 
 

@@ -72,6 +72,33 @@ __kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell
     sorted[atomic_inc(&cell_fill[h])] = i;
 }
 
+// The scatter fills each entry in whatever order the atomics ran (and photon slots came
+// from an atomic counter too), so the float sums of a gather would differ in the last bits
+// from run to run. Heap-sorting each entry by the photons' keys, which are a function of
+// (seed, pass, path, bounce), makes the same seed give the same image, bit for bit.
+inline void sift_down(__global uint* a, __global const ulong* key, int root, int end) {
+    while (2 * root + 1 < end) {
+        int c = 2 * root + 1;
+        if (c + 1 < end && key[a[c + 1]] > key[a[c]]) ++c;
+        if (key[a[root]] >= key[a[c]]) return;
+        uint t = a[root]; a[root] = a[c]; a[c] = t;
+        root = c;
+    }
+}
+
+__kernel void grid_sort(uint entries, __global const uint* cell_start, __global const uint* cell_count,
+                        __global uint* sorted, __global const ulong* ph_key) {
+    uint h = get_global_id(0);
+    if (h >= entries) return;
+    __global uint* a = sorted + cell_start[h];
+    int n = (int)cell_count[h];
+    for (int root = n / 2 - 1; root >= 0; --root) sift_down(a, ph_key, root, n);
+    for (int end = n - 1; end > 0; --end) {
+        uint t = a[0]; a[0] = a[end]; a[end] = t;
+        sift_down(a, ph_key, 0, end);
+    }
+}
+
 // --- gather: per pixel, the photons within its radius of this pass's measurement point
 //
 // Density estimation with the smooth kernel of dissertation eq. 6.34,
@@ -87,7 +114,8 @@ __kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell
 //     S += w Phi_K / (k1 r^2),  D += M / (pi r^2),  G += lap / (k1 r^2),  Gr += grad / (k1 r^2)
 // where M is the raw photon count (the radius rule is count based). For the variance
 // estimate (eq. 6.22), the pass's own luminance estimate minus the bias estimated at the
-// start of the batch, x = L_p - B', adds to X1 and its square to X2.
+// start of the batch, x = L_p - B', adds to X1 and its square to X2; the square of the
+// pass's own Laplacian estimate adds to L2 (the noise of the bias estimate).
 
 #define K1 0.8975979010256552   /* 2 pi / 7 */
 
@@ -112,11 +140,13 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
     float3 vt = v - dot(v, n) * n;
     float t = fmin(length(vt) / r, 1.0f);
     float k = 1.0f - t * t * t * (10.0f - 15.0f * t + 6.0f * t * t);
-    float y = luminance(wgt * flux) * count;
     s->phi += k * flux * count;
+    s->m += count;
+#ifndef NO_ERROR_SUMS
+    float y = luminance(wgt * flux) * count;
     s->lap += -30.0f * t * (t - 1.0f) * (5.0f * t - 3.0f) / (r * r) * y;
     s->grad += 30.0f * t * (t - 1.0f) * (t - 1.0f) / (r * r) * y * vt;
-    s->m += count;
+#endif
 }
 
 typedef struct {
@@ -126,6 +156,7 @@ typedef struct {
     __global double4* Gr;
     __global double* X1;
     __global double* X2;
+    __global double* L2;
     __global double* H;
 } Accumulators;
 
@@ -134,12 +165,16 @@ inline void accumulate(int gid, float r, float3 wgt, PassSums s, float photons, 
     double3 flux = convert_double3(wgt * s.phi) / kr2;
     acc.S[gid] += (double4)(flux, 0.0);
     acc.D[gid] += (double)s.m / (M_PI * (double)r * (double)r);
-    acc.G[gid] += (double)s.lap / kr2;
+    acc.H[gid] += 1.0;
+#ifndef NO_ERROR_SUMS  // the error estimator's sums (the program is also built without them)
+    double lap = (double)s.lap / kr2;
+    acc.G[gid] += lap;
+    acc.L2[gid] += (lap / (double)photons) * (lap / (double)photons);  // the pass's own lap L, squared
     acc.Gr[gid] += (double4)(convert_double3(s.grad) / kr2, 0.0);
     double x = dot(flux, (double3)(0.2126, 0.7152, 0.0722)) / (double)photons - (double)bias;
     acc.X1[gid] += x;
     acc.X2[gid] += x * x;
-    acc.H[gid] += 1.0;
+#endif
 }
 
 // The 8 cells a disc of radius <= cell/2 around x can touch: x's own cell and, per axis,
@@ -159,8 +194,9 @@ inline int3 query_cell(QueryCells q, int k) {
 }
 
 #define ACCUMULATOR_ARGS __global double4* acc_S, __global double* acc_D, __global double* acc_G, \
-    __global double4* acc_Gr, __global double* acc_X1, __global double* acc_X2, __global double* acc_H
-#define ACCUMULATORS {acc_S, acc_D, acc_G, acc_Gr, acc_X1, acc_X2, acc_H}
+    __global double4* acc_Gr, __global double* acc_X1, __global double* acc_X2, __global double* acc_L2, \
+    __global double* acc_H
+#define ACCUMULATORS {acc_S, acc_D, acc_G, acc_Gr, acc_X1, acc_X2, acc_L2, acc_H}
 
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                                 __global const float4* mp_wgt, __global const float* radius,

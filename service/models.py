@@ -31,7 +31,7 @@ class JobSettings(BaseModel):
     initial_radius: float | None = Field(None, gt=0.0)
     error_threshold: float | None = Field(None, gt=0.0, le=10.0,
                                           description="stop, as converged, when the average relative error is at most this")
-    confidence: float = Field(0.5, gt=0.0, lt=1.0, description="of the error bound (the dissertation terminates at 0.5)")
+    confidence: float = Field(0.9, gt=0.0, lt=1.0, description="of the per-pixel error bound; 0.5 bounds the median error (README)")
     bias_constant: Literal["taylor", "dissertation"] = "taylor"
 
     @model_validator(mode="after")

@@ -25,17 +25,20 @@ from worker.stats import ADDITIVE, Delta
 
 MAX_PHOTONS_PER_PASS = 1 << 24
 MAX_DEPTH = 16  # bounces per photon path and specular bounces per eye path
-RADIUS_FOOTPRINTS = 2.0  # default initial radius: 2 pixel footprints at the first hit
+R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at the median lit pixel ...
+R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
+PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
 
 
 @dataclass(frozen=True)
 class RenderSettings:
     method: Literal["sppm", "ppm"] = "sppm"
-    gather: Literal["stochastic", "exact"] = "stochastic"
+    gather: Literal["stochastic", "exact"] = "exact"
     photons_per_pass: int = 1 << 18
     seed: int = 0
-    initial_radius: float | None = None  # world units; default: RADIUS_FOOTPRINTS pixel footprints
+    initial_radius: float | None = None  # world units; default: see Engine.initial_radius
     hash_entries_per_photon: float = 1.0  # stochastic hash table size / photons stored per pass
+    error_estimation: bool = True  # accumulate the error estimator's sums (G, Gr, X1, X2, L2)
 
     def __post_init__(self) -> None:
         if not 1 <= self.photons_per_pass <= MAX_PHOTONS_PER_PASS:
@@ -72,6 +75,14 @@ class StageTimes:
         self.pending.clear()
 
 
+def _pack_dir(d: np.ndarray) -> int:
+    """Octahedral 2 x 16-bit direction, as pack_dir in kernels/materials.cl."""
+    v = np.asarray(d, np.float64) / np.abs(d).sum()
+    p = v[:2] if v[2] >= 0 else (1.0 - np.abs(v[[1, 0]])) * np.where(v[:2] >= 0, 1.0, -1.0)
+    q = np.clip(np.round((p * 0.5 + 0.5) * 65535.0), 0, 65535).astype(np.uint32)
+    return int(q[0] | (q[1] << 16))
+
+
 def _next_pow2(n: int) -> int:
     return 1 << max(10, math.ceil(math.log2(max(n, 1))))
 
@@ -85,7 +96,7 @@ class Engine:
         self.arrays: SceneArrays = compile_scene(scene, base_dir, resolution)
         self.ctx = ctx or create_context()
         self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
-        self.program = program_for(self.ctx)
+        self.program = program_for(self.ctx, settings.error_estimation)
         self.times = StageTimes()
         a = self.arrays
         mf = cl.mem_flags
@@ -169,13 +180,13 @@ class Engine:
             self._reserve_photons(int(stored[0] * 1.25))  # same seed: the re-run is identical
 
     def _gather_sums(self) -> list[cl.Buffer]:
-        return [self.acc[name] for name in ("S", "D", "G", "Gr", "X1", "X2", "H")]
+        return [self.acc[name] for name in ("S", "D", "G", "Gr", "X1", "X2", "L2", "H")]
 
-    def _build_and_gather(self, n_stored: int, max_radius: float) -> None:
+    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
         a, p = self.arrays, self.program
         photons = f32(self.settings.photons_per_pass)
         inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
-        if self.settings.gather == "stochastic":
+        if (gather or self.settings.gather) == "stochastic":
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
             self._reserve_table(entries)
             mask = u32(entries - 1)
@@ -198,7 +209,9 @@ class Engine:
                      p.launch(self.queue, "grid_scan", 1, u32(entries), self.tab_count, self.cell_start,
                               self.cell_fill),
                      p.launch(self.queue, "grid_scatter", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
-                              self.cell_fill, self.sorted)]
+                              self.cell_fill, self.sorted),
+                     p.launch(self.queue, "grid_sort", entries, u32(entries), self.cell_start, self.tab_count,
+                              self.sorted, self.ph_key)]
             gather = p.launch(self.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
                               self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
                               self.tab_count, self.sorted, self.ph_pos, self.ph_flux, *self._gather_sums())
@@ -206,24 +219,71 @@ class Engine:
         self.times.add("build", build)
         self.times.add("gather", [gather])
 
+    def gather_photons(self, points: np.ndarray, normals: np.ndarray, radius: np.ndarray, photon_pos: np.ndarray,
+                       photon_flux: np.ndarray, photon_dir: np.ndarray) -> Delta:
+        """Gather given photons at given points with the real kernels, no eye or photon pass:
+        a probe of the density and derivative estimates (e.g. noise-free on a photon grid).
+        Needs an Engine whose resolution has exactly len(points) pixels; unit weights."""
+        n, m = self.arrays.n_pixels, len(photon_pos)
+        if len(points) != n:
+            raise ValueError(f"this engine gathers at exactly {n} points")
+        if m > self.capacity:
+            self._reserve_photons(m)
+
+        def f4(a: np.ndarray, w: float | np.ndarray = 0.0) -> np.ndarray:
+            out = np.zeros((len(a), 4), np.float32)
+            out[:, :3] = a
+            out[:, 3] = w
+            return out
+
+        packed = np.array([_pack_dir(d) for d in photon_dir], np.uint32).view(np.float32)
+        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)), (self.mp_wgt, f4(np.ones((n, 3)))),
+                          (self.ph_pos, f4(photon_pos)), (self.ph_flux, f4(photon_flux, packed)),
+                          (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
+            cl.enqueue_copy(self.queue, buf, host)
+        cl.enqueue_copy(self.queue, self.ph_key, np.arange(m, dtype=np.uint64))
+        for name, width in ADDITIVE.items():
+            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * n)
+        self._build_and_gather(m, float(np.max(radius)))
+        return self._read_sums(0, 1)
+
     def initial_radius(self) -> np.ndarray:
-        """R0 for every pixel: the override, or RADIUS_FOOTPRINTS times the median pixel
-        footprint (eye path length to the first diffuse hit of pass 0 times the pixel's
-        angular size). One value for the whole image, as in the dissertation's GPU SPPM:
-        per-pixel footprints would make the largest radius, and with it the stochastic
-        hash's cell, several times the typical one (measured: 4.7x on smallppm)."""
+        """R0 for every pixel: the override, or the larger of R0_FOOTPRINTS pixel footprints
+        and the radius that holds R0_PHOTONS photons per pass at the median lit pixel.
+
+        Both are the dissertation's (5.3.1): "the footprint of the pixel", or after the first
+        photon pass a k-nearest-photon radius, here made one value for the whole image as in
+        its GPU SPPM, since the stochastic hash sizes its cells by the largest radius. The
+        footprint alone ignores how many photons a pass brings: on smallppm at 1024x768 it
+        gave R0 = 0.10 and 4.7x the image error of R0 = 0.5 at smallppm's 4M photons. The
+        photon count alone shrinks R0 below a pixel where photons are dense, which buys no
+        resolution, only noise.
+
+        The density comes from pass 0 itself: its eye pass, its photons, and an exact gather
+        at PROBE_FOOTPRINTS pixel footprints; nothing of it is kept."""
         n = self.arrays.n_pixels
         if self.settings.initial_radius is not None:
             return np.full(n, self.settings.initial_radius)
-        self._fill(self.acc_Ld, np.float64(0.0), 4 * n)  # the eye pass adds to it
         self._eye_pass(0)
         dist = np.empty(n, np.float32)
         cl.enqueue_copy(self.queue, dist, self.mp_dist)
-        self.times.pending.clear()  # set-up, not rendering
         hit = dist > 0.0
         footprint = float(np.median(dist[hit])) * self.arrays.pixel_angle if hit.any() \
             else self.arrays.scene_diagonal / max(self.arrays.width, self.arrays.height)
-        return np.full(n, RADIUS_FOOTPRINTS * footprint)
+        probe = PROBE_FOOTPRINTS * footprint
+        for name, width in ADDITIVE.items():
+            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * n)
+        cl.enqueue_copy(self.queue, self.radius, np.full(n, probe, np.float32))
+        cl.enqueue_copy(self.queue, self.bias, np.zeros(n, np.float32))
+        self._build_and_gather(self._photon_pass(0), probe, gather="exact")  # every photon counted
+        density = np.empty(n, np.float64)  # D = M / (pi probe^2): photons per unit area per pass
+        cl.enqueue_copy(self.queue, density, self.acc["D"])
+        self.times.pending.clear()  # set-up, not rendering
+        lit = density > 0.0
+        r0 = R0_FOOTPRINTS * footprint
+        if lit.any():  # else no photon reached anything the camera sees
+            r0 = max(r0, math.sqrt(R0_PHOTONS / (math.pi * float(np.median(density[lit])))))
+        return np.full(n, r0)
 
     def run_batch(self, radius: np.ndarray, first_pass: int, n_passes: int, bias: np.ndarray | None = None,
                   keep_going: Callable[[int], bool] | None = None) -> Delta:
@@ -248,6 +308,10 @@ class Engine:
             if keep_going is not None and not keep_going(k):
                 self.times.settle()
                 raise BatchAborted(f"stopped after pass {k}")
+        return self._read_sums(first_pass, n_passes)
+
+    def _read_sums(self, first_pass: int, n_passes: int) -> Delta:
+        n = self.arrays.n_pixels
         t0 = time.perf_counter()
         sums = {}
         for name, width in ADDITIVE.items():

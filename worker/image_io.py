@@ -61,3 +61,12 @@ def read_image(path: Path | str) -> np.ndarray:
     if buf.has_error:
         raise OSError(f"cannot read {path}: {buf.geterror()}")
     return buf.get_pixels(oiio.FLOAT)
+
+
+def read_channels(path: Path | str) -> dict[str, np.ndarray]:
+    """An image's channels by name (EXR keeps them in alphabetical order, not written order)."""
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise OSError(f"cannot read {path}: {buf.geterror()}")
+    pixels = buf.get_pixels(oiio.FLOAT)
+    return {name: pixels[..., i] for i, name in enumerate(buf.spec().channelnames)}

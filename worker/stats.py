@@ -15,8 +15,8 @@ S uses the smooth kernel K of eq. 6.34 (normalised by k1 r^2, so L estimates the
 radiance as with PPM's disc); D stays count based (pi r^2), as the radius rule derives
 from counts. The error estimator's sums (worker/error_estimate.py) are additive too:
 G and Gr (Laplacian and gradient of the luminance, /k1 r^2), X1 and X2 (sums of the
-bias-corrected per-pass samples and of their squares) and H (passes with a measurement
-point).
+bias-corrected per-pass samples and of their squares), L2 (sum of the squared per-pass
+Laplacian estimates) and H (passes with a measurement point).
 
 With r = R (a batch of one pass gathered at the current radius) this is exactly eq. 6.6:
 R'^2 = R^2 (N + alpha M) / (N + M), and S/E equals tau/(pi R^2 E) of eq. 6.1. S, D, E and
@@ -53,7 +53,7 @@ def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
 
 
 # The sums a batch adds, with their per-pixel width (1 = scalar, 3 = rgb or a vector).
-ADDITIVE = {"S": 3, "D": 1, "Ld": 3, "G": 1, "Gr": 3, "X1": 1, "X2": 1, "H": 1}
+ADDITIVE = {"S": 3, "D": 1, "Ld": 3, "G": 1, "Gr": 3, "X1": 1, "X2": 1, "L2": 1, "H": 1}
 
 
 def zeros(n_pixels: int, name: str) -> np.ndarray:
