@@ -1,13 +1,14 @@
-"""Render the converged reference of smallppm's scene: bench/reference/smallppm-ref.exr.
+"""Render a cached reference image: bench/reference/<name>.exr with a JSON sidecar.
 
-SPPM, exact gather, 2^20 photon paths per pass, alpha 0.7, from smallppm's camera
-(bench.common.smallppm_scene). Two independent runs (seeds 1 and 2), each for
---seconds of rendering, are averaged; half the display-space RMS between the two runs
-estimates the reference's own error (each run's noise is independent, so
-rms(A - B) ~ sqrt(2) e_run and the average has e ~ e_run / sqrt(2)). The result is a
-float32 EXR at full resolution, or box-filtered to half resolution with --half.
+Two independent SPPM runs (exact gather, alpha 0.7, seeds 101 and 102 unless given), each
+for --seconds, averaged; half the RMS difference of the two runs estimates the average's
+own error (their noise is independent: rms(A - B) ~ sqrt(2) e_run, e_avg ~ e_run / sqrt(2)).
 
-    python -m bench.make_reference --seconds 270
+    python -m bench.make_reference smallppm --seconds 270 --photons-per-pass 1048576 --out smallppm-ref
+    python -m bench.make_reference cornell-caustics --resolution 48x48 --seconds 120 --photon-only
+
+--photon-only keeps the photon-density part S/E alone (no directly seen emission), which is
+what the error estimator bounds (tests/test_error_estimation.py).
 """
 
 from __future__ import annotations
@@ -18,44 +19,52 @@ import time
 
 import numpy as np
 
-from bench.common import REFERENCE_FILE, box2x2, display, smallppm_scene
+from bench.common import BENCH_DIR
+from worker.cli import _resolution
 from worker.engine import Engine, RenderSettings
+from worker.error_estimate import LUMINANCE
 from worker.image_io import write_image
+from worker.scene import bundled_scene_path, load_scene_file
 from worker.stats import Accumulators
 
-PHOTONS_PER_PASS = 1 << 20
 
-
-def render(seed: int, seconds: float) -> tuple[np.ndarray, int]:
-    """One SPPM run for `seconds`; returns the (H, W, 3) linear image and its passes."""
-    scene, base = smallppm_scene()
-    eng = Engine(scene, base, RenderSettings(method="sppm", gather="exact", photons_per_pass=PHOTONS_PER_PASS,
-                                             seed=seed))
-    acc = Accumulators.start(0.7, eng.initial_radius())
+def render(scene: str, resolution: tuple[int, int] | None, photons: int, seed: int, seconds: float,
+           photon_only: bool) -> tuple[np.ndarray, int]:
+    parsed, base = load_scene_file(bundled_scene_path(scene))
+    eng = Engine(parsed, base, RenderSettings(gather="exact", photons_per_pass=photons, seed=seed), resolution)
+    st = Accumulators.start(0.7, eng.initial_radius())
     start = time.perf_counter()
     while time.perf_counter() - start < seconds:
-        acc.merge(eng.run_batch(acc.radius(), acc.passes, 1))
-        print(f"seed {seed}: {acc.passes} passes, {time.perf_counter() - start:.0f} s", flush=True)
-    return acc.radiance().reshape(eng.arrays.height, eng.arrays.width, 3), acc.passes
+        st.merge(eng.run_batch(st.radius(), st.passes, 1))
+    rgb = st.photon_radiance() if photon_only else st.radiance()
+    return rgb.reshape(eng.arrays.height, eng.arrays.width, 3), st.passes
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=270.0, help="render time per run (two runs)")
-    parser.add_argument("--half", action="store_true", help="save at half resolution (2x2 box filter)")
+    parser.add_argument("scene")
+    parser.add_argument("--resolution", type=_resolution)
+    parser.add_argument("--seconds", type=float, default=120.0, help="render time of each of the two runs")
+    parser.add_argument("--photons-per-pass", type=int, default=1 << 18)
+    parser.add_argument("--photon-only", action="store_true")
+    parser.add_argument("--seeds", type=int, nargs=2, default=(101, 102))
+    parser.add_argument("--out", help="file name without suffix (default: SCENE-WxH)")
     args = parser.parse_args()
-    (a, passes_a), (b, passes_b) = render(1, args.seconds), render(2, args.seconds)
+    runs = [render(args.scene, args.resolution, args.photons_per_pass, seed, args.seconds, args.photon_only)
+            for seed in args.seeds]
+    (a, passes_a), (b, passes_b) = runs
     ref = 0.5 * (a + b)
-    est_error = float(np.sqrt(np.mean((display(a) - display(b)) ** 2))) / 2.0
-    if args.half:
-        ref = box2x2(ref)
-    REFERENCE_FILE.parent.mkdir(parents=True, exist_ok=True)
-    write_image(REFERENCE_FILE, ref)
-    info = {"passes": [passes_a, passes_b], "photons_per_pass": PHOTONS_PER_PASS,
-            "photon_paths": (passes_a + passes_b) * PHOTONS_PER_PASS, "resolution": [ref.shape[1], ref.shape[0]],
-            "estimated_display_rms_error": est_error}
+    name = args.out or f"{args.scene}-{ref.shape[1]}x{ref.shape[0]}"
+    path = BENCH_DIR / "reference" / f"{name}.exr"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_image(path, ref)
+    info = {"scene": args.scene, "resolution": [ref.shape[1], ref.shape[0]], "method": "sppm", "gather": "exact",
+            "alpha": 0.7, "photons_per_pass": args.photons_per_pass, "passes": [passes_a, passes_b],
+            "seeds": list(args.seeds), "seconds_per_run": args.seconds,
+            "quantity": "photon-density radiance S/E only" if args.photon_only else "radiance",
+            "estimated_luminance_rms_error": float(np.sqrt(np.mean(((a - b) @ LUMINANCE) ** 2)) / 2.0)}
+    path.with_suffix(".json").write_text(json.dumps(info, indent=1) + "\n")
     print(json.dumps(info))
-    REFERENCE_FILE.with_suffix(".json").write_text(json.dumps(info, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from worker.engine import Engine, RenderSettings
 from worker.image_io import read_image
 from worker.stats import Accumulators
 
-CANDIDATES = (1 << 17, 1 << 18, 1 << 19)
+CANDIDATES = (1 << 18, 1 << 19, 1 << 20)
 DEFAULT_PHOTONS_PER_PASS = 1 << 19
 ALPHA = 0.7
 CAP_FACTOR = 3.0  # give up at this multiple of smallppm's time
@@ -44,6 +44,7 @@ GOAL_RATIO = 5.0
 @dataclass
 class Run:
     photons_per_pass: int
+    gather: str
     setup_seconds: float
     reached: bool = False
     seconds_to_reach: float | None = None  # render clock, set-up included
@@ -71,16 +72,17 @@ def to_reference_size(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
     raise ValueError(f"image {img.shape[:2]} does not match reference {ref.shape[:2]}")
 
 
-def render_until(photons_per_pass: int, ref: np.ndarray, target: float, peer_seconds: float, seed: int = 0) -> Run:
+def render_until(photons_per_pass: int, ref: np.ndarray, target: float, peer_seconds: float, gather: str,
+                 seed: int = 0) -> Run:
     """Render passes until the display RMS is <= target or the clock passes the cap."""
     ref_display = display(ref)
     ref_norm = float(np.sqrt(np.mean(ref ** 2)))
     t0 = time.perf_counter()
     scene, base = smallppm_scene()
-    eng = Engine(scene, base, RenderSettings(gather="stochastic", photons_per_pass=photons_per_pass, seed=seed))
+    eng = Engine(scene, base, RenderSettings(gather=gather, photons_per_pass=photons_per_pass, seed=seed))
     acc = Accumulators.start(ALPHA, eng.initial_radius())
     clock = time.perf_counter() - t0
-    run = Run(photons_per_pass=photons_per_pass, setup_seconds=clock)
+    run = Run(photons_per_pass=photons_per_pass, gather=gather, setup_seconds=clock)
     h, w = eng.arrays.height, eng.arrays.width
     while clock < CAP_FACTOR * peer_seconds:
         t = time.perf_counter()
@@ -121,7 +123,7 @@ def chart(runs: list[Run], peer: dict, path: str) -> None:
     for run in runs:
         t = [c[0] for c in run.curve]
         e = [c[2] for c in run.curve]
-        label = f"photonfarm, 2^{run.photons_per_pass.bit_length() - 1} paths/pass"
+        label = f"photonfarm {run.gather}, 2^{run.photons_per_pass.bit_length() - 1} paths/pass"
         if run.reached:
             label += f": {run.seconds_to_reach:.1f} s, ratio {run.ratio:.2f}"
         elif run.extrapolated_seconds_to_reach:
@@ -144,7 +146,9 @@ def chart(runs: list[Run], peer: dict, path: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description="Time to reach smallppm's image error, and the speed ratio.")
     parser.add_argument("--photons-per-pass", type=int, default=DEFAULT_PHOTONS_PER_PASS)
-    parser.add_argument("--sweep", action="store_true", help=f"run every photons_per_pass in {CANDIDATES}")
+    parser.add_argument("--gather", choices=("exact", "stochastic"), default=RenderSettings.gather)
+    parser.add_argument("--sweep", action="store_true",
+                        help=f"both gathers, each with every photons_per_pass in {CANDIDATES}")
     parser.add_argument("--peer-image", help="instead: print a smallppm image.ppm's display RMS vs the reference")
     args = parser.parse_args()
     ref = load_reference()
@@ -158,14 +162,16 @@ def main() -> None:
     peer = json.loads(PEERS_FILE.read_text())["smallppm"]
     target, peer_seconds = peer["display_rms_vs_reference"], peer["seconds"]
     runs = []
-    for ppp in CANDIDATES if args.sweep else (args.photons_per_pass,):
-        run = render_until(ppp, ref, target, peer_seconds)
+    configs = [(g, p) for g in ("exact", "stochastic") for p in CANDIDATES] if args.sweep \
+        else [(args.gather, args.photons_per_pass)]
+    for gather, ppp in configs:
+        run = render_until(ppp, ref, target, peer_seconds, gather)
         status = (f"reached {target:.4f} in {run.seconds_to_reach:.1f} s ({run.paths_to_reach / 1e6:.1f}M paths), "
                   f"ratio {run.ratio:.2f}" if run.reached else
                   f"not reached in {run.curve[-1][0]:.1f} s: error {run.final_display_rms:.4f} > {target:.4f}, "
                   f"{run.error_at_peer_seconds:.4f} at {peer_seconds:.1f} s; "
                   f"extrapolated {run.extrapolated_seconds_to_reach or float('nan'):.0f} s")
-        print(f"photons_per_pass {ppp}: {status}", flush=True)
+        print(f"{gather} gather, photons_per_pass {ppp}: {status}", flush=True)
         runs.append(run)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     report = {
@@ -176,7 +182,7 @@ def main() -> None:
         "goal_ratio": GOAL_RATIO,
         "reference": str(REFERENCE_FILE.relative_to(REFERENCE_FILE.parents[2])),
         "reference_resolution": [ref.shape[1], ref.shape[0]],
-        "settings": {"method": "sppm", "gather": "stochastic", "alpha": ALPHA, "seed": 0},
+        "settings": {"method": "sppm", "alpha": ALPHA, "seed": 0},
         "runs": [asdict(r) for r in runs],
     }
     (OUT_DIR / "peer_smallppm.json").write_text(json.dumps(report, indent=1) + "\n")
