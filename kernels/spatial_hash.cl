@@ -198,6 +198,26 @@ inline int3 query_cell(QueryCells q, int k) {
     __global double* acc_H
 #define ACCUMULATORS {acc_S, acc_D, acc_G, acc_Gr, acc_X1, acc_X2, acc_L2, acc_H}
 
+// A pixel's query this pass; false if the pixel has no measurement point.
+typedef struct {
+    float3 x, n, wgt;
+    float r, r2;
+    QueryCells cells;
+} Query;
+
+inline bool start_query(int gid, __global const float4* mp_pos, __global const float4* mp_nrm,
+                        __global const float4* mp_wgt, __global const float* radius, float inv_cell, Query* q) {
+    float4 mp = mp_pos[gid];
+    if (mp.w == 0.0f) return false;
+    q->x = mp.xyz;
+    q->n = mp_nrm[gid].xyz;
+    q->wgt = mp_wgt[gid].xyz;
+    q->r = radius[gid];
+    q->r2 = q->r * q->r;
+    q->cells = query_cells(q->x, inv_cell);
+    return true;
+}
+
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                                 __global const float4* mp_wgt, __global const float* radius,
                                 __global const float* bias, float photons,
@@ -205,23 +225,19 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                                 __global const float4* tab_pos, __global const float4* tab_flux,
                                 ACCUMULATOR_ARGS) {
     int gid = get_global_id(0);
-    if (gid >= n_pixels) return;
-    float4 mp = mp_pos[gid];
-    if (mp.w == 0.0f) return;
-    float3 x = mp.xyz, n = mp_nrm[gid].xyz, wgt = mp_wgt[gid].xyz;
-    float r = radius[gid], r2 = r * r;
+    Query q;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
-    QueryCells q = query_cells(x, inv_cell);
     for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q, k);
+        int3 cell = query_cell(q.cells, k);
         uint h = cell_hash(cell, mask);
         uint count = tab_count[h];
         if (count == 0) continue;
         float4 pp = tab_pos[h], pf = tab_flux[h];
-        if (photon_counts(x, n, r2, cell, inv_cell, pp, pf)) add_photon(&s, x, n, r, wgt, pp, pf.xyz, (float)count);
+        if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, (float)count);
     }
     Accumulators acc = ACCUMULATORS;
-    accumulate(gid, r, wgt, s, photons, bias[gid], acc);
+    accumulate(gid, q.r, q.wgt, s, photons, bias[gid], acc);
 }
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
@@ -232,23 +248,19 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                            __global const float4* ph_pos, __global const float4* ph_flux,
                            ACCUMULATOR_ARGS) {
     int gid = get_global_id(0);
-    if (gid >= n_pixels) return;
-    float4 mp = mp_pos[gid];
-    if (mp.w == 0.0f) return;
-    float3 x = mp.xyz, n = mp_nrm[gid].xyz, wgt = mp_wgt[gid].xyz;
-    float r = radius[gid], r2 = r * r;
+    Query q;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
-    QueryCells q = query_cells(x, inv_cell);
     for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q, k);
+        int3 cell = query_cell(q.cells, k);
         uint h = cell_hash(cell, mask);
         uint begin = cell_start[h], end = begin + cell_count[h];
         for (uint j = begin; j < end; ++j) {
             uint i = sorted[j];
             float4 pp = ph_pos[i], pf = ph_flux[i];
-            if (photon_counts(x, n, r2, cell, inv_cell, pp, pf)) add_photon(&s, x, n, r, wgt, pp, pf.xyz, 1.0f);
+            if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, 1.0f);
         }
     }
     Accumulators acc = ACCUMULATORS;
-    accumulate(gid, r, wgt, s, photons, bias[gid], acc);
+    accumulate(gid, q.r, q.wgt, s, photons, bias[gid], acc);
 }

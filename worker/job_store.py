@@ -248,18 +248,22 @@ class JobStore:
         pipe.execute()
         self.settle_cancel(batch.job_id)
 
-    def settle_cancel(self, job_id: str) -> None:
-        """A cancel-requested job with nothing in flight is cancelled."""
+    def _settle(self, job_id: str, status: str, final: str) -> None:
+        """A job in `status` with nothing in flight ends as `final` (atomically)."""
         key = job_key(job_id)
         with self.r.pipeline() as pipe:
             try:
                 pipe.watch(key, f"{key}:inflight")
-                if pipe.hget(key, "status") == b"cancel-requested" and pipe.scard(f"{key}:inflight") == 0:
+                if pipe.hget(key, "status") == status.encode() and pipe.scard(f"{key}:inflight") == 0:
                     pipe.multi()
-                    pipe.hset(key, mapping={"status": "cancelled", "finished": time.time()})
+                    pipe.hset(key, mapping={"status": final, "finished": time.time()})
                     pipe.execute()
             except redis.WatchError:
-                pass
+                pass  # something changed meanwhile: the next merge or reap decides
+
+    def settle_cancel(self, job_id: str) -> None:
+        """A cancel-requested job with nothing in flight is cancelled."""
+        self._settle(job_id, "cancel-requested", "cancelled")
 
     def record_failure(self, batch: Batch, message: str) -> bool:
         """Count a failed attempt; after MAX_ATTEMPTS the job fails. True if it failed."""
@@ -279,16 +283,7 @@ class JobStore:
 
     def finish_spent(self, job_id: str) -> None:
         """A running job whose budget is spent and with nothing in flight is completed."""
-        key = job_key(job_id)
-        with self.r.pipeline() as pipe:
-            try:
-                pipe.watch(key, f"{key}:inflight")
-                if pipe.hget(key, "status") == b"running" and pipe.scard(f"{key}:inflight") == 0:
-                    pipe.multi()
-                    pipe.hset(key, mapping={"status": "completed", "finished": time.time()})
-                    pipe.execute()
-            except redis.WatchError:
-                pass
+        self._settle(job_id, "running", "completed")
 
     def cancel(self, job_id: str) -> str:
         """Request cancellation; returns the resulting status."""

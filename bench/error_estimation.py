@@ -1,0 +1,189 @@
+"""Progressive error estimation: its overhead per pass, its coverage (Fig. 6.6), the bias
+significance sweep behind z, and termination at halving thresholds (Table 6.2).
+
+    python -m bench.error_estimation [--full]
+
+Overhead: the same job rendered with the error sums compiled in and out, side by side,
+plus the host's estimate per merge. Coverage: the share of pixels whose bound is at least
+the actual error against the analytic answer (furnace, point-plane) or the cached
+reference (cornell-caustics, photon part only). Termination: passes until the estimated
+average relative error falls to T, for T halving, and the actual error at that point.
+Writes bench/out/error_estimation.json and .png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+import worker.error_estimate as ee
+from tests.analytic import FURNACE_L, point_plane
+from worker.engine import Engine, RenderSettings
+from worker.image_io import read_image
+from worker.scene import bundled_scene_path, load_scene_file
+from worker.stats import Accumulators
+
+OUT = Path(__file__).resolve().parent / "out"
+REFERENCE = Path(__file__).resolve().parent / "reference" / "cornell-caustics-48x48.exr"
+Truth = Callable[[Engine], np.ndarray | float]
+CASES: dict[str, tuple[tuple[int, int] | None, int, Truth]] = {
+    "furnace": (None, 1 << 15, lambda eng: FURNACE_L),
+    "point-plane": (None, 1 << 15, lambda eng: point_plane(eng)[0]),
+    "cornell-caustics": ((48, 48), 1 << 12, lambda eng: read_image(REFERENCE).reshape(-1, 3) @ ee.LUMINANCE),
+}
+
+
+def engine(scene: str, resolution: tuple[int, int] | None, photons: int, **settings: object) -> Engine:
+    parsed, base = load_scene_file(bundled_scene_path(scene))
+    return Engine(parsed, base, RenderSettings(photons_per_pass=photons, **settings), resolution=resolution)
+
+
+def step(eng: Engine, st: Accumulators) -> None:
+    r = st.radius()
+    st.merge(eng.run_batch(r, st.passes, 1, bias=ee.bias_estimate(r, st.G, st.emitted, "taylor")))
+
+
+def overhead(passes: int) -> dict:
+    """Seconds per pass with and without the estimator (kernel sums + host estimate per pass)."""
+    out = {}
+    for on in (False, True, False, True):  # interleaved, to spread any drift of the machine
+        eng = engine("cornell-caustics", (256, 256), 1 << 18, seed=3, error_estimation=on)
+        st = Accumulators.start(0.7, eng.initial_radius())
+        step(eng, st)  # warm-up
+        t0 = time.perf_counter()
+        host = 0.0
+        for _ in range(passes):
+            step(eng, st)
+            if on:
+                h0 = time.perf_counter()
+                ee.estimate(st, 0.9)
+                host += time.perf_counter() - h0
+        key = "with" if on else "without"
+        out.setdefault(key, []).append((time.perf_counter() - t0) / passes)
+        if on:
+            out.setdefault("host_estimate", []).append(host / passes)
+    per_pass = {k: float(np.median(v)) for k, v in out.items()}
+    per_pass["overhead_fraction"] = per_pass["with"] / per_pass["without"] - 1.0
+    return per_pass
+
+
+def coverage(passes: list[int], z_values: list[float]) -> dict:
+    result: dict = {}
+    default_z = ee.BIAS_SIGNIFICANCE
+    try:
+        for scene, (res, photons, truth_of) in CASES.items():
+            eng = engine(scene, res, photons, seed=31)
+            truth = truth_of(eng)
+            st = Accumulators.start(0.7, eng.initial_radius())
+            for k in range(max(passes)):
+                step(eng, st)
+                if k + 1 not in passes:
+                    continue
+                for z in z_values:
+                    ee.BIAS_SIGNIFICANCE = z
+                    for conf in (0.5, 0.9):
+                        est = ee.estimate(st, conf)
+                        known = est.measured & (st.D > 0)
+                        share = float(np.mean(est.bound[known] >= np.abs(est.luminance - truth)[known]))
+                        result.setdefault(scene, []).append({"passes": k + 1, "z": z, "confidence": conf,
+                                                             "coverage": share})
+    finally:
+        ee.BIAS_SIGNIFICANCE = default_z
+    return result
+
+
+def termination(thresholds: list[float], max_passes: int) -> dict:
+    result = {}
+    for scene in ("furnace", "point-plane", "cornell-caustics"):
+        res, photons, truth_of = CASES[scene]
+        for conf in (0.5, 0.9):
+            eng = engine(scene, res, photons, seed=5)
+            truth = truth_of(eng)
+            st = Accumulators.start(0.7, eng.initial_radius())
+            pending = sorted(thresholds, reverse=True)
+            rows = []
+            while pending and st.passes < max_passes:
+                step(eng, st)
+                est = ee.estimate(st, conf)
+                while pending and est.average <= pending[0]:
+                    lum = est.luminance
+                    floor = ee.FLOOR_FRACTION * float(np.mean(truth))
+                    actual = float(np.mean((np.abs(lum - truth) / np.maximum(truth, floor))[est.measured]))
+                    rows.append({"threshold": pending.pop(0), "passes": st.passes, "estimated": est.average,
+                                 "actual": actual})
+            result[f"{scene} @ {conf}"] = rows
+    return result
+
+
+def chart(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    z = ee.BIAS_SIGNIFICANCE
+    for scene, rows in result["coverage"].items():
+        for conf, style in ((0.5, "o-"), (0.9, "s--")):
+            pts = [(r["passes"], r["coverage"]) for r in rows if r["z"] == z and r["confidence"] == conf]
+            axes[0].plot(*zip(*pts), style, label=f"{scene} {int(conf * 100)}%")
+    for conf in (0.5, 0.9):
+        axes[0].axhspan(conf - 0.05, conf + 0.05, color="grey", alpha=0.15)
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("passes")
+    axes[0].set_ylabel("share of pixels with bound >= actual error")
+    axes[0].set_title(f"coverage (Fig. 6.6), z = {z}; bands: nominal +-5 points")
+    axes[0].legend(fontsize=7)
+    last = max(r["passes"] for rows in result["coverage"].values() for r in rows)
+    for scene, rows in result["coverage"].items():
+        for conf, style in ((0.5, "o-"), (0.9, "s--")):
+            pts = sorted((r["z"], r["coverage"]) for r in rows if r["passes"] == last and r["confidence"] == conf)
+            axes[1].plot(*zip(*pts), style, label=f"{scene} {int(conf * 100)}%")
+    axes[1].axvline(z, color="k", lw=0.8)
+    axes[1].set_xlabel("bias significance z (standard errors)")
+    axes[1].set_title(f"coverage at {last} passes against z")
+    axes[1].legend(fontsize=7)
+    for name, rows in result["termination"].items():
+        if rows:
+            axes[2].loglog([r["threshold"] for r in rows], [r["passes"] for r in rows], "o-", label=name)
+    axes[2].invert_xaxis()
+    axes[2].set_xlabel("error threshold T")
+    axes[2].set_ylabel("passes to converge")
+    axes[2].set_title("termination (Table 6.2)")
+    axes[2].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--full", action="store_true")
+    args = parser.parse_args()
+    passes = [4, 8, 16, 32, 64, 128] if args.full else [4, 8, 16, 32, 64]
+    result = {
+        "overhead": overhead(40 if args.full else 12),
+        "coverage": coverage(passes, [0.0, 1.0, 1.25, 1.5, 2.0]),
+        "termination": termination([0.4, 0.2, 0.1, 0.05, 0.025], 4000 if args.full else 1500),
+        "bias_significance": ee.BIAS_SIGNIFICANCE,
+    }
+    for rows in result["termination"].values():
+        for prev, cur in zip(rows, rows[1:]):
+            cur["passes_ratio_to_previous"] = cur["passes"] / prev["passes"]
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "error_estimation.json").write_text(json.dumps(result, indent=1))
+    chart(result, OUT / "error_estimation.png")
+    o = result["overhead"]
+    print(f"per pass: {1000 * o['without']:.1f} ms without, {1000 * o['with']:.1f} ms with the estimator "
+          f"({100 * o['overhead_fraction']:.1f}%; host estimate {1000 * o['host_estimate']:.2f} ms)")
+    for name, rows in result["termination"].items():
+        print(name, [(r["threshold"], r["passes"], round(r["actual"], 4), round(r.get("passes_ratio_to_previous", 0), 2))
+                     for r in rows])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,27 @@
+"""`make bench`: every benchmark at reduced size (minutes on 2 cores); `--full` for full size.
+
+Writes JSON and PNG charts to bench/out/; bench/RESULTS.md discusses them.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+BENCHES = ("engine_speed", "peer_smallppm", "error_estimation", "service_scaling")
+
+
+def main() -> int:
+    full = ["--full"] if "--full" in sys.argv[1:] else []
+    for name in BENCHES:
+        args = [*full] if name != "peer_smallppm" else (["--sweep"] if full else [])
+        t0 = time.perf_counter()
+        print(f"== bench.{name} {' '.join(args)}", flush=True)
+        subprocess.run([sys.executable, "-m", f"bench.{name}", *args], check=True)
+        print(f"== bench.{name}: {time.perf_counter() - t0:.0f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
