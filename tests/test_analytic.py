@@ -50,3 +50,34 @@ def test_point_plane_stochastic_hash_is_unbiased_on_average(make_engine) -> None
     state = render(eng, 48)
     rel = image(eng, state)[..., 0] / point_plane(eng)[0].reshape(eng.arrays.height, eng.arrays.width) - 1.0
     assert abs(rel.mean()) < 0.015, rel.mean()
+
+
+def test_ppm_keeps_one_set_of_measurement_points(make_engine) -> None:
+    """PPM: every pass uses pass 0's points, so what the eye sees directly repeats exactly,
+    and the furnace still comes out at its analytic radiance."""
+    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=8, method="ppm")
+    r = eng.initial_radius()
+    a, b = eng.run_batch(r, 0, 1), eng.run_batch(r, 1, 1)
+    assert np.array_equal(a.H, b.H) and np.array_equal(a.Ld, b.Ld)
+    sppm = make_engine("furnace", photons_per_pass=1 << 15, seed=8, method="sppm")
+    c, d = sppm.run_batch(r, 0, 1), sppm.run_batch(r, 1, 1)
+    assert not np.array_equal(c.X1, d.X1)  # SPPM: new points every pass
+    state = render(eng, 16)
+    assert abs(image(eng, state).mean() / FURNACE_L - 1.0) < 0.02
+
+
+def test_thin_lens_camera_conserves_radiance(make_engine, tmp_path) -> None:
+    """A thin lens samples the aperture; inside the furnace every path sees L, so the image
+    mean stays analytic while the rays really start across the aperture."""
+    import json
+
+    from worker.scene import bundled_scene_path
+
+    scene = json.loads(bundled_scene_path("furnace").read_text())
+    scene["camera"].update(aperture_radius=0.3, focus_distance=0.8, position=[0.0, 0.0, 0.2])
+    path = tmp_path / "lens.json"
+    path.write_text(json.dumps(scene))
+    eng = make_engine(path, photons_per_pass=1 << 15, seed=9)
+    assert eng.arrays.camera[1, 3] == np.float32(0.3)
+    state = render(eng, 16)
+    assert abs(image(eng, state).mean() / FURNACE_L - 1.0) < 0.02

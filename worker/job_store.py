@@ -42,7 +42,8 @@ QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in 
 # A started batch must report a pass (or finish) this often, or it is taken for lost.
 LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
 QUEUED_SECONDS = 120.0  # how often the reaper looks again at a batch still waiting in a queue
-BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long
+BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long, and ...
+MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge (128 bytes a pixel each way)
 MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
 ARRAYS = ("N", *ADDITIVE)  # every per-pixel array of the state but R0
@@ -191,7 +192,10 @@ class JobStore:
                         return None
                     first = int(meta["next_pass"])
                     per_pass = pass_seconds or float(meta["pass_seconds"])
-                    n = max(1, min(MAX_BATCH_PASSES, round(BATCH_TARGET_SECONDS / per_pass))) if per_pass > 0 else 1
+                    merges = int(meta.get("merges", 0))
+                    mean_merge = float(meta.get("merge_seconds", 0.0)) / merges if merges else 0.0
+                    target = max(BATCH_TARGET_SECONDS, mean_merge / MERGE_SHARE)
+                    n = max(1, min(MAX_BATCH_PASSES, round(target / per_pass))) if per_pass > 0 else 1
                     if settings.get("max_passes"):
                         n = min(n, settings["max_passes"] - first)
                     if n <= 0:
