@@ -153,7 +153,9 @@ def test_bearer_token(tmp_path: Path) -> None:
     try:
         c.http.headers.pop("Authorization")
         assert c.http.get("/healthz").status_code == 200
-        for path in ("/v1/jobs", "/v1/scenes", "/docs", "/openapi.json"):
+        # the page and its script carry no data and load without it; data routes do not
+        assert c.http.get("/").status_code == 200 and c.http.get("/static/viewer.js").status_code == 200
+        for path in ("/v1/jobs", "/v1/scenes", "/v1/workers", "/metrics", "/docs", "/openapi.json"):
             resp = c.http.get(path)
             assert resp.status_code == 401 and resp.headers["www-authenticate"] == "Bearer", path
         assert c.http.get("/v1/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 401

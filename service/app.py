@@ -20,8 +20,11 @@ import numpy as np
 import redis
 from fastapi import FastAPI, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from prometheus_client import CONTENT_TYPE_LATEST
 
+from service.metrics import metrics_text, workers
 from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, JobLinks, JobRequest, JobView,
                             SceneSummary)
 from worker.error_estimate import estimate
@@ -32,6 +35,7 @@ from worker.scheduler import feed, reap
 
 log = logging.getLogger("photonfarm.api")
 REAP_SECONDS = 2.0
+STATIC_DIR = Path(__file__).resolve().parent / "static"
 
 
 def _iso(ts: str | None) -> str | None:
@@ -75,9 +79,9 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         while not stop.wait(REAP_SECONDS):
             try:
                 if n := reap(store):
-                    log.info("re-issued %d lost batches", n)
+                    log.info("re-issued lost batches", extra={"reissued": n})
             except redis.RedisError as exc:
-                log.warning("reaper: redis unavailable (%s)", exc)
+                log.warning("reaper: redis unavailable: %s", exc)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -92,7 +96,9 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
 
     @app.middleware("http")
     async def guard(request: Request, call_next):  # type: ignore[no-untyped-def]
-        if token and request.url.path != "/healthz" and request.headers.get("authorization") != f"Bearer {token}":
+        # The page and its script carry no data; every data route wants the token.
+        open_path = request.url.path in ("/healthz", "/") or request.url.path.startswith("/static/")
+        if token and not open_path and request.headers.get("authorization") != f"Bearer {token}":
             return JSONResponse({"detail": "missing or wrong bearer token"}, 401, headers={"WWW-Authenticate": "Bearer"})
         length = request.headers.get("content-length")
         if length is not None and length.isdigit() and int(length) > MAX_BODY_BYTES:
@@ -120,6 +126,13 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             raise HTTPException(404, detail=f"no job {job_id!r}")
         return meta
 
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        """The web viewer: submit, follow, watch the image refine, cancel, download."""
+        return FileResponse(STATIC_DIR / "index.html")
+
     @app.get("/healthz")
     def healthz() -> dict[str, Any]:
         try:
@@ -129,6 +142,17 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         if not ok:
             raise HTTPException(503, detail="redis unreachable")
         return {"status": "ok"}
+
+    @app.get("/metrics", response_class=Response)
+    def metrics() -> Response:
+        """Prometheus text format: jobs by status, batches merged, photons per second, merge
+        latency, queue depth, workers alive."""
+        return Response(metrics_text(store), media_type=CONTENT_TYPE_LATEST)
+
+    @app.get("/v1/workers")
+    def list_workers() -> list[dict[str, Any]]:
+        """Every registered worker: host, pid, state, last heartbeat, current job and batch."""
+        return workers(store)
 
     @app.get("/v1/scenes", response_model=list[SceneSummary])
     def scenes() -> list[SceneSummary]:
@@ -167,7 +191,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         job_id = store.create(scene_json, settings.model_dump(), width, height, body.scene_name)
         feed(store, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
-        log.info("job %s submitted (%s, %dx%d)", job_id, body.scene_name or "inline scene", width, height)
+        log.info(f"job submitted: {body.scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
         return job_view(store, job_id, store.meta(job_id))
 
     @app.get("/v1/jobs", response_model=list[JobView])

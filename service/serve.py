@@ -19,6 +19,7 @@ import uvicorn
 from service.app import create_app
 from service.child_process import spawn
 from service.redis_server import EmbeddedRedis
+from worker.logs import configure_logging
 
 log = logging.getLogger("photonfarm.serve")
 
@@ -62,7 +63,7 @@ class LocalWorkers:
 
 def serve(host: str, port: int, workers: int | None, redis_url: str | None, data_dir: Path,
           token: str | None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    configure_logging()
     embedded = None
     if redis_url is None:
         embedded = EmbeddedRedis(data_dir / "redis").start()
@@ -71,7 +72,7 @@ def serve(host: str, port: int, workers: int | None, redis_url: str | None, data
     count = (os.cpu_count() or 1) if workers is None else workers
     local = LocalWorkers(redis_url, count).start() if count > 0 else None
     try:
-        uvicorn.run(create_app(redis_url, token), host=host, port=port, log_level="info")
+        uvicorn.run(create_app(redis_url, token), host=host, port=port, log_level="info", log_config=None)
     finally:
         if local is not None:
             local.stop()

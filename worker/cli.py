@@ -79,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--data-dir", type=Path, default=Path(os.environ.get("PHOTONFARM_DATA", "data")),
                        help="where the embedded Redis keeps its append-only file (default: ./data)")
 
+    from service.client import add_parser as add_submit_parser  # the HTTP client lives with the API
+
+    add_submit_parser(sub, _positive(float), _positive(int), _resolution)
+
     worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
     worker.add_argument("--redis-url", default=os.environ.get("REDIS_URL"), required="REDIS_URL" not in os.environ)
     worker.add_argument("--burst", action="store_true", help="exit when the queues are empty")
@@ -126,6 +130,14 @@ def main(argv: list[str] | None = None) -> int:
         from worker.queue_worker import run_worker
 
         return run_worker(args.redis_url, burst=args.burst)
+    if args.command == "submit":
+        from service.client import ClientError, submit
+
+        try:
+            return submit(args)
+        except ClientError as exc:
+            print(f"photonfarm: {exc}", file=sys.stderr)
+            return 2
     try:
         return render(args)
     except SceneError as exc:

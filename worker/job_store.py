@@ -11,6 +11,7 @@ Layout (all keys under `pf:`):
     pf:leases                   zset   "job/first/n" -> deadline; expired and unmerged = re-issue
     pf:lease-owner              hash   "job/first/n" -> worker name
     pf:batch-rq                 hash   "job/first/n" -> id of the RQ job that carries it
+    pf:worker:{name}            hash   heartbeat: host, pid, job, batch, passes, last_seen (expires)
 
 A batch is a range of pass indices [first, first+n). Its seeds come from (job seed, pass
 index), so a re-issued batch recomputes exactly the same passes, and the merged set makes
@@ -234,13 +235,34 @@ class JobStore:
                 pass  # someone else started it
         return True
 
-    def renew_lease(self, batch: Batch) -> str:
-        """Called between passes: extends the lease and returns the job's status."""
+    def renew_lease(self, batch: Batch, worker: str) -> str:
+        """Called after every pass: extends the lease, beats the worker's heart, and
+        returns the job's status (RQ's SimpleWorker sends no heartbeat during a job)."""
         pipe = self.r.pipeline()
         pipe.zadd("pf:leases", {batch.member: time.time() + LEASE_SECONDS}, xx=True)
+        self._heartbeat(pipe, worker, batch.job_id, batch.id, passes=1)
         pipe.hget(job_key(batch.job_id), "status")
-        status = pipe.execute()[1]
+        status = pipe.execute()[-1]
         return status.decode() if status else "missing"
+
+    def _heartbeat(self, pipe: redis.client.Pipeline, worker: str, job: str, batch: str, passes: int = 0) -> None:
+        key = f"pf:worker:{worker}"
+        pipe.hset(key, mapping={"job": job, "batch": batch, "last_seen": time.time()})
+        pipe.hincrby(key, "passes", passes)
+        pipe.expire(key, int(3 * LEASE_SECONDS))
+
+    def heartbeat(self, worker: str, job: str = "", batch: str = "") -> None:
+        pipe = self.r.pipeline()
+        self._heartbeat(pipe, worker, job, batch)
+        pipe.execute()
+
+    def heartbeats(self) -> dict[str, dict[str, str]]:
+        """worker name -> its last heartbeat (job, batch, passes, last_seen)."""
+        keys = [k.decode() for k in self.r.scan_iter("pf:worker:*")]
+        pipe = self.r.pipeline()
+        for k in keys:
+            pipe.hgetall(k)
+        return {k.split(":", 2)[2]: _decode(h) for k, h in zip(keys, pipe.execute()) if h}
 
     def drop_batch(self, batch: Batch) -> None:
         """Forget a batch that will not be merged (its job ended or was cancelled)."""

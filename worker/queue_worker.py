@@ -19,12 +19,13 @@ import redis
 from rq import Queue, SimpleWorker
 
 from worker.job_store import QUEUE_NAMES
+from worker.logs import configure_logging
 
 log = logging.getLogger("photonfarm.worker")
 
 
 def run_worker(redis_url: str, burst: bool = False) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    configure_logging()
     conn = redis.Redis.from_url(redis_url)
     while True:
         try:
@@ -33,5 +34,5 @@ def run_worker(redis_url: str, burst: bool = False) -> int:
             SimpleWorker(queues, connection=conn, name=name).work(burst=burst, with_scheduler=False)
             return 0
         except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
-            log.warning("redis unavailable (%s); retrying in 1 s", exc)
+            log.warning("redis unavailable; retrying in 1 s: %s", exc)
             time.sleep(1.0)

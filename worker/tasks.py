@@ -50,14 +50,19 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     rq_job = get_current_job()
     store = JobStore(rq_job.connection)
     batch = Batch(job_id, first, n)
-    if not store.start_batch(batch, rq_job.worker_name or "worker"):
+    worker = rq_job.worker_name or "worker"
+    context = {"job": job_id, "batch": batch.id, "worker": worker}
+    if not store.start_batch(batch, worker):
+        log.info("batch skipped: merged or no longer wanted", extra=context)
         return "skipped"
+    store.heartbeat(worker, job_id, batch.id)
     meta = store.meta(job_id)
     try:
         engine = engine_for(job_id, meta)
     except (SceneError, ValueError) as exc:
         store.fail(job_id, f"cannot render this scene: {exc}")
         store.drop_batch(batch)
+        log.error("job failed: cannot render its scene", extra=context)
         return "failed"
     start = time.perf_counter()
     try:
@@ -66,17 +71,19 @@ def run_batch(job_id: str, first: int, n: int) -> str:
             r0 = store.init_radius(job_id, engine.initial_radius())
         radius, bias = store.batch_inputs(job_id, r0, meta)
         delta = engine.run_batch(radius, first, n, bias=bias,
-                                 keep_going=lambda k: store.renew_lease(batch) == "running")
+                                 keep_going=lambda k: store.renew_lease(batch, worker) == "running")
     except BatchAborted:
         store.drop_batch(batch)
+        log.info("batch aborted: the job stopped wanting it", extra=context)
         return "aborted"
     except Exception as exc:  # noqa: BLE001 - counted, then RQ records the traceback
+        log.exception("batch failed", extra=context)
         if store.record_failure(batch, f"batch {batch.id} failed: {exc!r}"):
             store.drop_batch(batch)
         raise
     seconds = time.perf_counter() - start
     outcome = store.merge(batch, delta, seconds)
-    log.info("job %s batch %s: %s (%.2f s)", job_id, batch.id, outcome, seconds)
+    log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
         feed(store, job_id, pass_seconds=seconds / n)
     return outcome

@@ -1,0 +1,80 @@
+"""Operations: Prometheus metrics, the worker list with heartbeats, structured logs, and
+`photonfarm submit` as a client of the HTTP API."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from api_tests.test_jobs import FURNACE_L
+from service.local_cluster import Cluster, finished
+from worker.image_io import read_image
+
+PHOTONFARM = [sys.executable, "-m", "worker.cli"]
+
+
+def _metric(text: str, name: str, labels: str = "") -> float:
+    for line in text.splitlines():
+        if line.startswith(f"{name}{labels} ") or (not labels and line.startswith(f"{name} ")):
+            return float(line.split()[-1])
+    raise AssertionError(f"{name}{labels} not in metrics:\n{text}")
+
+
+def test_metrics_workers_and_logs(cluster: Cluster) -> None:
+    job = cluster.submit(scene_name="furnace", settings={"max_passes": 6, "photons_per_pass": 1 << 13})
+    cluster.wait(job["id"], finished)
+    text = cluster.http.get("/metrics").text
+    assert _metric(text, "photonfarm_jobs", '{status="completed"}') >= 1
+    assert _metric(text, "photonfarm_batches_merged_total") >= 1
+    assert _metric(text, "photonfarm_passes_merged_total") >= 6
+    assert _metric(text, "photonfarm_merge_latency_seconds_count") >= 1
+    assert _metric(text, "photonfarm_merge_latency_seconds_sum") > 0
+    assert _metric(text, "photonfarm_queue_depth", '{queue="photonfarm-normal"}') >= 0
+    assert _metric(text, "photonfarm_workers_alive") == len(cluster.workers)
+
+    workers = cluster.http.get("/v1/workers").json()
+    assert {w["pid"] for w in workers} == {p.pid for p in cluster.workers}
+    assert all(w["alive"] and w["last_seen_seconds_ago"] < 60 for w in workers)
+    assert sum(w["passes"] for w in workers) >= 6  # heartbeats after every pass
+
+    lines = [json.loads(line) for line in (cluster.data_dir / "workers.log").read_text().splitlines()
+             if line.startswith("{")]
+    done = [entry for entry in lines if entry.get("job") == job["id"] and entry["msg"] == "batch done"]
+    assert done and all({"batch", "worker", "outcome", "seconds", "ts", "level"} <= set(e) for e in done)
+    assert {e["outcome"] for e in done} <= {"merged", "duplicate", "inactive"}
+
+
+def test_submit_watch_writes_the_final_image(cluster: Cluster, tmp_path: Path) -> None:
+    out = tmp_path / "furnace.exr"
+    proc = subprocess.run([*PHOTONFARM, "submit", "furnace", "--url", str(cluster.http.base_url), "--max-passes", "8",
+                           "--photons-per-pass", "16384", "--watch", "--poll", "0.2", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "completed: 8 passes" in proc.stdout and "passes" in proc.stderr  # the progress bar
+    assert abs(read_image(out).mean() / FURNACE_L - 1.0) < 0.03
+
+
+def test_submit_errors_are_one_clear_line(cluster: Cluster, tmp_path: Path) -> None:
+    bad = subprocess.run([*PHOTONFARM, "submit", "no-such-scene", "--url", str(cluster.http.base_url)],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "scene_name" in bad.stderr and "Traceback" not in bad.stderr
+    down = subprocess.run([*PHOTONFARM, "submit", "furnace", "--url", "http://127.0.0.1:9"],
+                          capture_output=True, text=True, timeout=60)
+    assert down.returncode == 2 and "cannot reach" in down.stderr and "Traceback" not in down.stderr
+    scene = json.loads(cluster.http.get("/v1/scenes/furnace").text)
+    scene["shapes"][0]["radius"] = -1
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(scene))
+    inline = subprocess.run([*PHOTONFARM, "submit", str(path), "--url", str(cluster.http.base_url)],
+                            capture_output=True, text=True, timeout=60)
+    assert inline.returncode == 2 and "scene.shapes.0.radius" in inline.stderr
+
+
+def test_image_stays_finite(cluster: Cluster) -> None:
+    job = cluster.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": 4096})
+    cluster.wait(job["id"], finished)
+    assert np.isfinite(cluster.job(job["id"])["error_estimate"]["error"])

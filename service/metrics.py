@@ -1,0 +1,76 @@
+"""GET /metrics in Prometheus format, read from Redis at scrape time (so it counts every
+worker process and survives API restarts), and the worker list behind GET /v1/workers."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Iterator
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
+from rq import Queue, Worker
+
+from worker.job_store import ACTIVE, FINAL, QUEUE_NAMES, JobStore, photons_per_second
+
+ALIVE_SECONDS = 60.0  # a worker that has not been heard from for this long counts as gone
+
+
+def workers(store: JobStore) -> list[dict[str, Any]]:
+    """Registered RQ workers with their last sign of life: RQ's own heartbeat while idle,
+    ours (after every pass) while rendering."""
+    beats = store.heartbeats()
+    now = time.time()
+    out = []
+    for w in Worker.all(connection=store.r):
+        beat = beats.get(w.name, {})
+        rq_seen = w.last_heartbeat.timestamp() if w.last_heartbeat else 0.0
+        last_seen = max(rq_seen, float(beat.get("last_seen", 0.0)))
+        out.append({"name": w.name, "hostname": w.hostname, "pid": w.pid, "state": str(w.get_state()),
+                    "last_seen_seconds_ago": round(now - last_seen, 3), "alive": now - last_seen < ALIVE_SECONDS,
+                    "job": beat.get("job") or None, "batch": beat.get("batch") or None,
+                    "passes": int(beat.get("passes", 0)), "batches_done": w.successful_job_count})
+    return sorted(out, key=lambda w: w["name"])
+
+
+class ServiceCollector:
+    def __init__(self, store: JobStore) -> None:
+        self.store = store
+
+    def collect(self) -> Iterator[Metric]:
+        by_status = dict.fromkeys(ACTIVE + FINAL, 0)
+        merges = passes = photons = 0
+        merge_seconds = rate = 0.0
+        for job_id in self.store.job_ids():
+            meta = self.store.meta(job_id)
+            if meta is None:
+                continue
+            by_status[meta["status"]] = by_status.get(meta["status"], 0) + 1
+            merges += int(meta.get("merges", 0))
+            merge_seconds += float(meta.get("merge_seconds", 0.0))
+            passes += int(meta["passes"])
+            photons += int(meta["emitted"])
+            if meta["status"] == "running":
+                rate += photons_per_second(meta)
+        jobs = GaugeMetricFamily("photonfarm_jobs", "Jobs by status", labels=["status"])
+        for status, count in by_status.items():
+            jobs.add_metric([status], count)
+        yield jobs
+        yield CounterMetricFamily("photonfarm_batches_merged", "Batches merged into job states", value=merges)
+        yield CounterMetricFamily("photonfarm_passes_merged", "Photon passes merged", value=passes)
+        yield CounterMetricFamily("photonfarm_photons_emitted", "Photon paths of merged passes", value=photons)
+        yield GaugeMetricFamily("photonfarm_photons_per_second", "Photon paths per second over running jobs",
+                                value=rate)
+        yield SummaryMetricFamily("photonfarm_merge_latency_seconds", "Time a merge takes (lock wait included)",
+                                  count_value=merges, sum_value=merge_seconds)
+        depth = GaugeMetricFamily("photonfarm_queue_depth", "Batches waiting in a queue", labels=["queue"])
+        for name in QUEUE_NAMES:
+            depth.add_metric([name], Queue(name, connection=self.store.r).count)
+        yield depth
+        alive = sum(1 for w in workers(self.store) if w["alive"])
+        yield GaugeMetricFamily("photonfarm_workers_alive", "Workers heard from in the last minute", value=alive)
+
+
+def metrics_text(store: JobStore) -> bytes:
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(ServiceCollector(store))
+    return generate_latest(registry)
