@@ -1,0 +1,33 @@
+"""Scenes that render black: no light at all, and light that never reaches what the camera
+sees. The job must end (on its budget) with a black image and a defined error estimate:
+no NaN, no hang, no failure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from api_tests.test_jobs import _decode
+from service.local_cluster import Cluster, finished
+
+
+def _furnace_variant(cluster: Cluster, dark: str) -> dict:
+    scene = cluster.http.get("/v1/scenes/furnace").json()
+    if dark == "no light":
+        scene["lights"] = []
+    else:  # the light sits outside the closed sphere the camera looks at: none gets in
+        scene["lights"][0]["position"] = [0.0, 0.0, 5.0]
+    return scene
+
+
+@pytest.mark.parametrize("dark", ["no light", "light outside"])
+def test_black_scene_ends_with_a_black_image_and_a_defined_error(cluster: Cluster, dark: str) -> None:
+    job = cluster.submit(scene=_furnace_variant(cluster, dark),
+                         settings={"max_passes": 6, "photons_per_pass": 1 << 12, "error_threshold": 0.05})
+    done = cluster.wait(job["id"], finished, timeout=60)
+    assert done["status"] == "completed" and done["passes"] == 6, done  # the threshold cannot be met
+    assert done["error_estimate"]["error"] == 1.0  # nothing was ever lit: the error is unknown, 100%
+    rgb = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
+    assert np.all(np.isfinite(rgb)) and rgb.max() == 0.0
+    err = cluster.http.get(job["links"]["error_exr"])
+    assert err.status_code == 200 and err.headers["x-average-relative-error"] == "1"
