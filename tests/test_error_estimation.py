@@ -146,7 +146,7 @@ def test_coverage_is_within_five_points_of_the_nominal_confidence(make_engine, s
 def test_coverage_with_the_stochastic_hash_after_enough_passes(make_engine) -> None:
     coverage = _coverage(make_engine, "point-plane", lambda eng: point_plane(eng)[0], "stochastic", [64, 96])
     coverage.pop("rms_error")
-    for (passes, confidence), share in coverage.items():
+    for (_, confidence), share in coverage.items():
         assert abs(share - confidence) <= 0.05, coverage
 
 

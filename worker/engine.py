@@ -124,7 +124,6 @@ class Engine:
         # Batch sums on the device, float64; rgb and vectors as double4.
         self.acc = {name: cl.Buffer(self.ctx, mf.READ_WRITE, (32 if width == 3 else 8) * n)
                     for name, width in ADDITIVE.items()}
-        self.acc_Ld = self.acc["Ld"]
         self.ph_count = cl.Buffer(self.ctx, mf.READ_WRITE, 4)
         self.capacity = 0
         self.entries = 0
@@ -161,7 +160,7 @@ class Engine:
         eye_index = 0 if self.settings.method == "ppm" else pass_index  # PPM: one fixed set of points
         ev = self.program.launch(self.queue, "eye_pass", a.n_pixels, *self.geometry, self.camera,
                                  i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                 i32(MAX_DEPTH), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc_Ld)
+                                 i32(MAX_DEPTH), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc["Ld"])
         self.times.add("eye", [ev])
 
     def _photon_pass(self, pass_index: int) -> int:

@@ -27,7 +27,6 @@ MAX_TRIANGLES = 500_000  # after quads are split and meshes loaded
 MAX_LIGHTS = 64
 MAX_COORD = 1e7  # |coordinate| bound: keeps float32 positions meaningful
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
 Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = tuple[Coord, Coord, Coord]
 Unit = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1.0)]
