@@ -1,0 +1,165 @@
+"""Error against time on six scenes, every method measured in one run on this machine:
+SPPM with the exact grid, SPPM with stochastic hashing, PPM (exact grid), and the peer,
+Mitsuba 3 (`scalar_rgb`) path tracer and particle tracer, on the same scene converted
+automatically (bench/mitsuba_peer.py).
+
+    python -m bench.error_vs_time [--full] [--make-references]
+
+Error: relative RMS per pixel, sqrt(mean(((image - reference) / max(reference, floor))^2))
+over all pixels and channels, floor = 5% of the reference's mean (as the error estimator's
+policy): every pixel counts by its relative error, so a few bright pixels (a visible lamp)
+cannot decide the comparison, and dark ones cannot dominate it. Time: wall clock from the start, set-up included, for our engine
+(every pass is a point); each Mitsuba point is a whole render at 1, 2, 4, ... samples per
+pixel. References (bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
+a long Mitsuba path-tracing run where path tracing converges (an area light reaches every
+path), otherwise a long SPPM run with the exact grid, marked `sppm` (point, spot and
+directional lights through glass: paths no unbiased tracer from the camera can sample).
+Writes bench/out/error_vs_time.json and one PNG per scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.make_reference import render as sppm_reference
+from bench.mitsuba_peer import render as mitsuba_render
+from worker.engine import Engine, RenderSettings
+from worker.error_estimate import FLOOR_FRACTION
+from worker.image_io import read_image, write_image
+from worker.scene import bundled_scene_path, load_scene_file
+from worker.stats import Accumulators
+
+OUT = Path(__file__).resolve().parent / "out"
+REFERENCES = Path(__file__).resolve().parent / "reference"
+# scene -> how its reference is made: "path" (Mitsuba path tracing converges) or "sppm"
+SCENES = {"cornell-box": "path", "cornell-caustics": "path", "gap": "path",
+          "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm"}
+OURS = {"sppm exact": ("sppm", "exact"), "sppm stochastic": ("sppm", "stochastic"), "ppm exact": ("ppm", "exact")}
+PEERS = ("mitsuba path", "mitsuba ptracer")
+TARGETS = (0.10, 0.05)
+PHOTONS = 1 << 17
+
+
+def resolution(scene: str, side: int) -> tuple[int, int]:
+    w, h = load_scene_file(bundled_scene_path(scene))[0].camera.resolution
+    return (side, max(1, round(side * h / w))) if w >= h else (max(1, round(side * w / h)), side)
+
+
+def reference_path(scene: str, res: tuple[int, int]) -> Path:
+    return REFERENCES / f"{scene}-{res[0]}x{res[1]}.exr"
+
+
+def make_reference(scene: str, res: tuple[int, int], seconds: float) -> None:
+    parsed, base = load_scene_file(bundled_scene_path(scene))
+    if SCENES[scene] == "path":
+        halves = []
+        for half in (1, 2):  # two independent halves: half their difference estimates the error
+            total, renders, used = np.zeros((res[1], res[0], 3)), 0, 0.0
+            while used < seconds / 2:
+                img, t = mitsuba_render(parsed, base, res, 256, "path", seed=100_000 * half + renders)
+                total, renders, used = total + img, renders + 1, used + t
+            halves.append(total / renders)
+        a, b = halves
+        how = {"method": "mitsuba path tracer (scalar_rgb), independent of photonfarm"}
+    else:
+        (a, pa), (b, pb) = (sppm_reference(scene, res, 1 << 18, seed, seconds / 2, photon_only=False)
+                            for seed in (101, 102))
+        how = {"method": "sppm (photonfarm, exact grid): no unbiased method converges here", "passes": [pa, pb]}
+    ref = 0.5 * (a + b)
+    path = reference_path(scene, res)
+    write_image(path, ref)
+    own = rel_rms(a, b) / 2  # half the difference of two independent halves
+    path.with_suffix(".json").write_text(json.dumps({"scene": scene, "resolution": list(res), **how,
+                                                     "seconds": seconds, "own_relative_rms_error": own}, indent=1))
+    print(f"reference {path.name}: {how['method']}, own relative RMS error {own:.4f}", flush=True)
+
+
+def rel_rms(img: np.ndarray, ref: np.ndarray) -> float:
+    floor = FLOOR_FRACTION * float(ref.mean())
+    return float(np.sqrt(np.mean(((img - ref) / np.maximum(ref, floor)) ** 2)))
+
+
+def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, method: str, gather: str, budget: float) -> list:
+    t0 = time.perf_counter()
+    parsed, base = load_scene_file(bundled_scene_path(scene))
+    eng = Engine(parsed, base, RenderSettings(method=method, gather=gather, photons_per_pass=PHOTONS, seed=7),
+                 resolution=res)
+    st = Accumulators.start(0.7, eng.initial_radius())
+    curve = []
+    while time.perf_counter() - t0 < budget:
+        st.merge(eng.run_batch(st.radius(), st.passes, 1))
+        curve.append((time.perf_counter() - t0, rel_rms(st.radiance().reshape(res[1], res[0], 3), ref)))
+    return curve
+
+
+def run_peer(scene: str, res: tuple[int, int], ref: np.ndarray, integrator: str, budget: float) -> list:
+    parsed, base = load_scene_file(bundled_scene_path(scene))
+    curve, spp = [], 1
+    while True:
+        img, seconds = mitsuba_render(parsed, base, res, spp, integrator, seed=7)
+        curve.append((seconds, rel_rms(img, ref)))
+        if seconds * 2 > budget:  # the next doubling would overrun the budget
+            return curve
+        spp *= 2
+
+
+def time_to(curve: list, target: float) -> float | None:
+    return next((t for t, e in curve if e <= target), None)
+
+
+def chart(scene: str, curves: dict[str, list], ref_method: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    for name, curve in curves.items():
+        if curve:
+            ax.loglog(*zip(*curve), "-" if name in OURS else "--o", ms=3, label=name)
+    for target in TARGETS:
+        ax.axhline(target, color="grey", lw=0.6, ls=":")
+    ax.set_xlabel("wall time, s")
+    ax.set_ylabel("relative RMS error")
+    ax.set_title(f"{scene} (reference: {ref_method})")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--full", action="store_true", help="128-pixel images and 60 s per method")
+    parser.add_argument("--make-references", action="store_true")
+    parser.add_argument("--reference-seconds", type=float, default=120.0)
+    args = parser.parse_args()
+    side, budget = (128, 60.0) if args.full else (64, 12.0)
+    OUT.mkdir(parents=True, exist_ok=True)
+    report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget, "photons_per_pass": PHOTONS,
+              "scenes": {}}
+    for scene, ref_method in SCENES.items():
+        res = resolution(scene, side)
+        if args.make_references or not reference_path(scene, res).exists():
+            make_reference(scene, res, args.reference_seconds)
+        ref = read_image(reference_path(scene, res))[..., :3].astype(np.float64)
+        curves = {name: run_ours(scene, res, ref, m, g, budget) for name, (m, g) in OURS.items()}
+        curves.update({name: run_peer(scene, res, ref, name.split()[1], budget) for name in PEERS})
+        times = {name: {f"{t:.2f}": time_to(c, t) for t in TARGETS} for name, c in curves.items()}
+        best_peer = {f"{t:.2f}": min((times[p][f"{t:.2f}"] for p in PEERS if times[p][f"{t:.2f}"] is not None),
+                                     default=None) for t in TARGETS}
+        report["scenes"][scene] = {"resolution": list(res), "reference": json.loads(
+            reference_path(scene, res).with_suffix(".json").read_text()), "time_to_error": times,
+            "best_peer": best_peer, "final_error": {n: c[-1][1] for n, c in curves.items() if c}, "curves": curves}
+        chart(scene, curves, ref_method, OUT / f"error_vs_time_{scene}.png")
+        print(scene, {n: (v["0.10"], v["0.05"]) for n, v in times.items()}, flush=True)
+    (OUT / "error_vs_time.json").write_text(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()

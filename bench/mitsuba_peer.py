@@ -1,0 +1,137 @@
+"""A peer renderer: our scene format converted to Mitsuba 3 (`scalar_rgb`), rendered with its
+path tracer (`path`) or particle tracer (`ptracer`).
+
+The conversion is exact but for one material: Mitsuba 3 has no modified Phong, so `glossy`
+becomes a Beckmann rough conductor with alpha = sqrt(2 / (n + 2)) (Walter et al. 2007's
+Phong-Beckmann correspondence) and no Fresnel falloff: close, not identical, so on the
+`glossy` scene the peer converges to a slightly different image. Units match ours:
+emission is radiance, point and spot `power` is flux (intensity = power / solid angle),
+directional `irradiance` is irradiance. Pixels are box-filtered, as SPPM averages them.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from worker.scene import (DirectionalLight, Glass, Glossy, Mesh, Mirror, PointLight, Quad, Scene, Sphere, SpotLight,
+                          shape_triangles)
+
+_mi: Any = None
+
+
+def mitsuba() -> Any:
+    """The mitsuba module, with the CPU variant that works here (llvm variants crash in
+    this machine's LLVM; stack notes)."""
+    global _mi
+    if _mi is None:
+        import mitsuba as mi
+
+        mi.set_variant("scalar_rgb")
+        mi.set_log_level(mi.LogLevel.Warn)  # no progress bars in logs
+        _mi = mi
+    return _mi
+
+
+def _rgb(value: tuple[float, float, float] | np.ndarray) -> dict[str, Any]:
+    return {"type": "rgb", "value": [float(v) for v in value]}
+
+
+def _bsdf(material: Any) -> dict[str, Any]:
+    """Our opaque surfaces reflect on both sides (the furnace is seen from inside); Mitsuba's
+    are one-sided unless wrapped in `twosided`. Glass is two-sided by nature."""
+    if isinstance(material, Glass):
+        return {"type": "dielectric", "int_ior": material.ior, "ext_ior": 1.0,
+                "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(material.albedo)}
+    if isinstance(material, Mirror):
+        inner = {"type": "conductor", "material": "none", "specular_reflectance": _rgb(material.albedo)}
+    elif isinstance(material, Glossy):
+        inner = {"type": "roughconductor", "material": "none", "distribution": "beckmann",
+                 "alpha": math.sqrt(2.0 / (material.exponent + 2.0)), "specular_reflectance": _rgb(material.albedo)}
+    else:
+        inner = {"type": "diffuse", "reflectance": _rgb(material.albedo)}
+    return {"type": "twosided", "bsdf": inner}
+
+
+def _frame(axis: np.ndarray) -> np.ndarray:
+    """Any vector not parallel to `axis` (an up vector for look_at)."""
+    return np.array([0.0, 1.0, 0.0]) if abs(axis[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+
+
+def scene_dict(scene: Scene, base_dir: Path, resolution: tuple[int, int], spp: int,
+               integrator: Literal["path", "ptracer"], workdir: Path) -> dict[str, Any]:
+    mi = mitsuba()
+    T = mi.ScalarTransform4f
+    cam = scene.camera
+    width, height = resolution
+    sensor: dict[str, Any] = {
+        "type": "thinlens" if cam.aperture_radius > 0 else "perspective",
+        "fov": cam.fov, "fov_axis": "y", "near_clip": max(cam.near_clip, 1e-4), "far_clip": 1e7,
+        "to_world": T().look_at(origin=list(cam.position), target=list(cam.look_at), up=list(cam.up)),
+        "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+                 "pixel_format": "rgb"},
+        "sampler": {"type": "independent", "sample_count": spp},
+    }
+    if cam.aperture_radius > 0:
+        forward = np.subtract(cam.look_at, cam.position)
+        sensor.update(aperture_radius=cam.aperture_radius,
+                      focus_distance=cam.focus_distance or float(np.linalg.norm(forward)))
+    out: dict[str, Any] = {"type": "scene", "integrator": {"type": integrator, "max_depth": -1}, "sensor": sensor}
+    triangles = shape_triangles(scene, base_dir)
+    for i, shape in enumerate(scene.shapes):
+        entry: dict[str, Any]
+        if isinstance(shape, Sphere):
+            entry = {"type": "sphere", "center": list(shape.center), "radius": shape.radius}
+        elif isinstance(shape, Quad):
+            e1, e2 = np.array(shape.edge1), np.array(shape.edge2)
+            n = np.cross(e1, e2)
+            n /= np.linalg.norm(n)
+            matrix = np.eye(4)
+            matrix[:3, 0], matrix[:3, 1], matrix[:3, 2] = e1 / 2, e2 / 2, n
+            matrix[:3, 3] = np.array(shape.corner) + (e1 + e2) / 2  # rectangle is [-1, 1]^2, normal +z
+            entry = {"type": "rectangle", "to_world": T(matrix.tolist())}
+        else:
+            assert isinstance(shape, Mesh)
+            tris = triangles[i]
+            path = workdir / f"mesh{i}.obj"
+            lines = [f"v {x} {y} {z}" for x, y, z in tris.reshape(-1, 3)]
+            lines += [f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}" for k in range(len(tris))]
+            path.write_text("\n".join(lines) + "\n")
+            entry = {"type": "obj", "filename": str(path), "face_normals": True}
+        entry["bsdf"] = _bsdf(scene.materials[shape.material])
+        if shape.emission is not None and max(shape.emission) > 0:
+            entry["emitter"] = {"type": "area", "radiance": _rgb(shape.emission)}
+        out[f"shape{i}"] = entry
+    for i, light in enumerate(scene.lights):
+        if isinstance(light, PointLight):
+            out[f"light{i}"] = {"type": "point", "position": list(light.position),
+                                "intensity": _rgb(np.array(light.power) / (4 * math.pi))}
+        elif isinstance(light, SpotLight):
+            axis = np.array(light.direction) / np.linalg.norm(light.direction)
+            solid_angle = 2 * math.pi * (1 - math.cos(math.radians(light.cone_angle)))
+            out[f"light{i}"] = {"type": "spot", "intensity": _rgb(np.array(light.power) / solid_angle),
+                                "cutoff_angle": light.cone_angle, "beam_width": light.cone_angle * 0.9999,
+                                "to_world": T().look_at(origin=list(light.position),
+                                                        target=list(np.array(light.position) + axis),
+                                                        up=list(_frame(axis)))}
+        else:
+            assert isinstance(light, DirectionalLight)
+            out[f"light{i}"] = {"type": "directional", "direction": list(light.direction),
+                                "irradiance": _rgb(light.irradiance)}
+    return out
+
+
+def render(scene: Scene, base_dir: Path, resolution: tuple[int, int], spp: int,
+           integrator: Literal["path", "ptracer"], seed: int = 0) -> tuple[np.ndarray, float]:
+    """(H, W, 3) linear image and the seconds the render took (scene loading excluded)."""
+    mi = mitsuba()
+    with tempfile.TemporaryDirectory() as tmp:
+        loaded = mi.load_dict(scene_dict(scene, base_dir, resolution, spp, integrator, Path(tmp)))
+        t0 = time.perf_counter()
+        image = np.array(mi.render(loaded, spp=spp, seed=seed), dtype=np.float64)
+        return image[..., :3], time.perf_counter() - t0
