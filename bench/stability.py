@@ -72,13 +72,16 @@ def alpha_sweep(seeds: int, passes: int) -> dict:
         variance = (var / truth ** 2).mean(axis=1)
         # (mean - truth)^2 also holds the seed mean's own noise, var / seeds, which falls
         # like passes^-alpha and would pass for bias: subtract it (unbiased for bias^2)
-        bias2 = ((est.mean(axis=0) - truth) ** 2 - var / seeds) / truth ** 2
-        bias = np.sqrt(np.maximum(bias2.mean(axis=1), 1e-12))
+        bias2 = (((est.mean(axis=0) - truth) ** 2 - var / seeds) / truth ** 2).mean(axis=1)
+        # where the estimate of bias^2 is not positive, the bias is below what the seeds resolve
+        bias = np.where(bias2 > 0, np.sqrt(np.abs(bias2)), np.nan)
         half = len(checkpoints) // 2
+        resolved = [(c, b) for c, b in zip(checkpoints[half:], bias[half:]) if np.isfinite(b)]
         out[f"{alpha:.3f}"] = {"checkpoints": checkpoints, "relative_variance": variance.tolist(),
-                               "relative_bias": bias.tolist(),
+                               "relative_bias": [None if not np.isfinite(b) else float(b) for b in bias],
                                "variance_slope": slope(checkpoints[half:], variance[half:].tolist()),
-                               "bias_slope": slope(checkpoints[half:], bias[half:].tolist()),
+                               "bias_slope": slope(*zip(*resolved)) if len(resolved) >= 3 and
+                               len(resolved) == len(checkpoints[half:]) else None,
                                "predicted_variance_slope": -alpha, "predicted_bias_slope": -(1 - alpha)}
     return out
 
@@ -210,7 +213,9 @@ def chart(result: dict, path: Path) -> None:
     ax.legend(fontsize=7)
     ax = axes[0, 1]
     for a, r in result["alpha_sweep"].items():
-        ax.loglog(r["checkpoints"], r["relative_bias"], label=f"a={float(a):.2f} ({r['bias_slope']:.2f})")
+        fit = f"{r['bias_slope']:.2f}" if r["bias_slope"] is not None else "below noise"
+        ys = [np.nan if b is None else b for b in r["relative_bias"]]
+        ax.loglog(r["checkpoints"], ys, label=f"a={float(a):.2f} ({fit})")
     ax.set_title("RMS bias vs passes (fitted slope; predicted -(1-alpha))")
     ax.legend(fontsize=7)
     ax = axes[0, 2]
@@ -261,8 +266,9 @@ def main() -> None:
     (OUT / "stability.json").write_text(json.dumps(result, indent=1))
     chart(result, OUT / "stability.png")
     for a, r in result["alpha_sweep"].items():
+        fit = f"{r['bias_slope']:.2f}" if r["bias_slope"] is not None else "not resolvable"
         print(f"alpha {a}: variance slope {r['variance_slope']:.2f} (pred {-float(a):.2f}), "
-              f"bias slope {r['bias_slope']:.2f} (pred {-(1 - float(a)):.2f})")
+              f"bias slope {fit} (pred {-(1 - float(a)):.2f})")
     print("hash", {k: round(v["mean_difference_over_seeds_relative"] / max(v["standard_error_relative"], 1e-12), 2)
                    for k, v in result["hash_table"].items()}, "(mean difference in standard errors)")
     print("long run", result["long_run"]["curve"][-1], result["long_run"]["seconds"])
