@@ -35,7 +35,7 @@ from worker.image_io import read_image
 from worker.stats import Accumulators
 
 CANDIDATES = (1 << 18, 1 << 19, 1 << 20)
-DEFAULT_PHOTONS_PER_PASS = 1 << 19
+DEFAULT_PHOTONS_PER_PASS = RenderSettings.photons_per_pass  # the engine default (2^18), best in the sweep
 ALPHA = 0.7
 CAP_FACTOR = 3.0  # give up at this multiple of smallppm's time
 GOAL_RATIO = 5.0
