@@ -79,26 +79,20 @@ def overhead(passes: int) -> dict:
 
 def coverage(passes: list[int], z_values: list[float]) -> dict:
     result: dict = {}
-    default_z = ee.BIAS_SIGNIFICANCE
-    try:
-        for scene, (res, photons, truth_of) in CASES.items():
-            eng = engine(scene, res, photons, seed=31)
-            truth = truth_of(eng)
-            st = Accumulators.start(0.7, eng.initial_radius())
-            for k in range(max(passes)):
-                step(eng, st)
-                if k + 1 not in passes:
-                    continue
-                for z in z_values:
-                    ee.BIAS_SIGNIFICANCE = z
-                    for conf in (0.5, 0.9):
-                        est = ee.estimate(st, conf)
-                        known = est.measured & (st.D > 0)
-                        share = float(np.mean(est.bound[known] >= np.abs(est.luminance - truth)[known]))
-                        result.setdefault(scene, []).append({"passes": k + 1, "z": z, "confidence": conf,
-                                                             "coverage": share})
-    finally:
-        ee.BIAS_SIGNIFICANCE = default_z
+    for scene, (res, photons, truth_of) in CASES.items():
+        eng = engine(scene, res, photons, seed=31)
+        truth = truth_of(eng)
+        st = Accumulators.start(0.7, eng.initial_radius())
+        for k in range(max(passes)):
+            step(eng, st)
+            if k + 1 not in passes:
+                continue
+            for z in z_values:
+                for conf in (0.5, 0.9):
+                    est = ee.estimate(st, conf, significance=z)
+                    covered = est.bound >= np.abs(est.luminance - truth)
+                    result.setdefault(scene, []).append({"passes": k + 1, "z": z, "confidence": conf,
+                                                         "coverage": float(covered[est.known].mean())})
     return result
 
 

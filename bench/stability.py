@@ -193,9 +193,8 @@ def estimator_failures() -> dict:
         if k + 1 in (2, 3, 8, 32):
             est = ee.estimate(st, 0.9)
             covered = est.bound >= np.abs(est.luminance - truth)
-            known = est.measured & (st.D > 0)
-            out.append({"passes": k + 1, "coverage_90_at_edges": float(covered[known & near_edge].mean()),
-                        "coverage_90_elsewhere": float(covered[known & ~near_edge].mean())})
+            out.append({"passes": k + 1, "coverage_90_at_edges": float(covered[est.known & near_edge].mean()),
+                        "coverage_90_elsewhere": float(covered[est.known & ~near_edge].mean())})
     return {"directional-caustic": out}
 
 

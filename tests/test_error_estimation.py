@@ -112,7 +112,7 @@ def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[
         if k + 1 in checkpoints:
             for confidence in (0.5, 0.9):
                 est = estimate(st, confidence)
-                known = est.measured & (st.D > 0)
+                known = est.known
                 out[k + 1, confidence] = float(np.mean(est.bound[known] >= np.abs(est.luminance - truth)[known]))
     out["rms_error"] = float(np.sqrt(np.mean((est.luminance - truth)[known] ** 2)))  # at the last checkpoint
     return out
@@ -169,6 +169,7 @@ def test_guards_fewer_than_two_passes_and_unlit_pixels() -> None:
     assert est.relative[1] == 0.0  # exactly black and known: no error
     assert est.relative[2] == 1.0  # never lit: unknown, counts as 100%
     assert est.measured.tolist() == [True, True, True, False]
+    assert est.known.tolist() == [True, True, False, False]
     assert est.average == pytest.approx((est.relative[0] + 0.0 + 1.0) / 3)
 
 

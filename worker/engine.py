@@ -154,6 +154,11 @@ class Engine:
     def _fill(self, buf: cl.Buffer, value: np.generic, count: int) -> cl.Event:
         return cl.enqueue_fill_buffer(self.queue, buf, value, 0, value.nbytes * count)
 
+    def _zero_sums(self) -> None:
+        """Start a batch: every device sum back to zero (rgb and vectors are double4)."""
+        for name, width in ADDITIVE.items():
+            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * self.arrays.n_pixels)
+
     # ------------------------------------------------------------------- passes
     def _eye_pass(self, pass_index: int) -> None:
         a = self.arrays
@@ -241,8 +246,7 @@ class Engine:
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
             cl.enqueue_copy(self.queue, buf, host)
         cl.enqueue_copy(self.queue, self.ph_key, np.arange(m, dtype=np.uint64))
-        for name, width in ADDITIVE.items():
-            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * n)
+        self._zero_sums()
         self._build_and_gather(m, float(np.max(radius)))
         return self._read_sums(0, 1)
 
@@ -270,8 +274,7 @@ class Engine:
         footprint = float(np.median(dist[hit])) * self.arrays.pixel_angle if hit.any() \
             else self.arrays.scene_diagonal / max(self.arrays.width, self.arrays.height)
         probe = PROBE_FOOTPRINTS * footprint
-        for name, width in ADDITIVE.items():
-            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * n)
+        self._zero_sums()
         cl.enqueue_copy(self.queue, self.radius, np.full(n, probe, np.float32))
         cl.enqueue_copy(self.queue, self.bias, np.zeros(n, np.float32))
         self._build_and_gather(self._photon_pass(0), probe, gather="exact")  # every photon counted
@@ -298,8 +301,7 @@ class Engine:
         b32 = np.zeros(n, np.float32) if bias is None else np.ascontiguousarray(bias, np.float32)
         cl.enqueue_copy(self.queue, self.radius, r32)
         cl.enqueue_copy(self.queue, self.bias, b32)
-        for name, width in ADDITIVE.items():
-            self._fill(self.acc[name], np.float64(0.0), (4 if width == 3 else 1) * n)
+        self._zero_sums()
         for k in range(first_pass, first_pass + n_passes):
             self._eye_pass(k)
             self.photons_stored = self._photon_pass(k)

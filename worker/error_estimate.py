@@ -64,6 +64,7 @@ class ErrorEstimate:
     bound: np.ndarray  # noise + |B|
     relative: np.ndarray  # bound / max(L, floor); 1 where unknown
     measured: np.ndarray  # pixels that had a measurement point
+    known: np.ndarray  # measured pixels that ever found a photon: their error has an estimate
     average: float  # mean relative error over measured pixels (eq. 6.33)
     confidence: float
 
@@ -80,7 +81,9 @@ def student_t(confidence: float, dof: int) -> float:
     return float(scipy_stats.t.ppf(0.5 + 0.5 * confidence, dof))
 
 
-def estimate(state: Accumulators, confidence: float, constant: str = "taylor") -> ErrorEstimate:
+def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
+             significance: float = BIAS_SIGNIFICANCE) -> ErrorEstimate:
+    """The error bound per pixel and its image average; `significance` is z above."""
     if not 0.0 < confidence < 1.0:
         raise ValueError("confidence must lie in (0, 1)")
     i = state.passes
@@ -93,16 +96,17 @@ def estimate(state: Accumulators, confidence: float, constant: str = "taylor") -
         noise = t * np.sqrt(var / i)
         lap_sum = state.G / (state.emitted / i)  # sum over passes of each pass's lap L
         lap_var = np.maximum(state.L2 - lap_sum ** 2 / i, 0.0) / (i - 1)
-        bias_noise = BIAS_SIGNIFICANCE * 0.5 * r2 * BIAS_CONSTANTS[constant] * np.sqrt(lap_var / i)
+        bias_noise = significance * 0.5 * r2 * BIAS_CONSTANTS[constant] * np.sqrt(lap_var / i)
     else:
         noise = bias_noise = np.full_like(lum, np.inf)
     significant_bias = np.maximum(np.abs(bias) - bias_noise, 0.0)
     bound = noise + significant_bias
     measured = state.H > 0
+    known = measured & (state.D > 0.0)
     lit = measured & (lum > 0.0)
     floor = FLOOR_FRACTION * float(lum[lit].mean()) if lit.any() else 1.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where((state.D > 0.0) & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
+        relative = np.where(known & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
     average = float(relative[measured].mean()) if measured.any() else 1.0
     return ErrorEstimate(luminance=lum, bias=bias, noise=noise, bound=bound, relative=relative,
-                         measured=measured, average=average, confidence=confidence)
+                         measured=measured, known=known, average=average, confidence=confidence)

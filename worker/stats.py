@@ -78,10 +78,6 @@ class Delta:
     emitted: int  # photon paths emitted over the batch
     sums: dict[str, np.ndarray]  # every name of ADDITIVE, float64
 
-    @property
-    def pass_ids(self) -> range:
-        return range(self.first_pass, self.first_pass + self.n_passes)
-
     def __getattr__(self, name: str) -> np.ndarray:
         return _sum_attribute(self, name)
 
