@@ -17,6 +17,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated, Any, AsyncIterator, Literal
 
+import cachetools
 import numpy as np
 import redis
 from fastapi import FastAPI, HTTPException, Query, Request, Response, Security
@@ -42,6 +43,9 @@ from worker.scheduler import feed, reap
 
 log = logging.getLogger("photonfarm.api")
 REAP_SECONDS = 2.0
+# Repeated reads come from memory, so pollers do not take CPU from the workers on a shared host:
+ENCODED_CACHE_BYTES = 64 * 1024 * 1024  # encoded images and error maps, by (job, passes merged, format)
+METRICS_SECONDS = 1.0  # a /metrics scrape reads every job from Redis at most this often
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 DOCS_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files, served from the fastapi-offline package
 # Paths without data, open without the token: the viewer page, the API description and its viewers.
@@ -162,6 +166,42 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                                 422)
         return await http_exception_handler(request, exc)
 
+    # Encoded bodies keyed by the passes merged: a new merge makes a new key, so nothing stale
+    # is served; concurrent misses of one key wait for a single encode (the condition).
+    encoded = cachetools.LRUCache(maxsize=ENCODED_CACHE_BYTES, getsizeof=lambda value: len(value[0]))
+    encoding = threading.Condition()
+
+    def by_passes(kind: str):  # type: ignore[no-untyped-def]
+        return cachetools.cached(encoded, key=lambda job_id, meta, fmt: (kind, job_id, meta["passes"], fmt),
+                                 condition=encoding)
+
+    @by_passes("image")
+    def image_body(job_id: str, meta: dict[str, str], fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
+        w, h = int(meta["width"]), int(meta["height"])
+        state = store.accumulators(job_id, meta)
+        rgb = state.radiance().reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
+        return encode_image(rgb, fmt), {"X-Passes": meta["passes"], "X-Photons": meta["emitted"]}
+
+    @by_passes("error")
+    def error_body(job_id: str, meta: dict[str, str], fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
+        w, h = int(meta["width"]), int(meta["height"])
+        state = store.accumulators(job_id, meta)
+        if state is None:
+            raise HTTPException(409, detail="no pass merged yet")
+        settings = json.loads(meta["settings"])
+        est = estimate(state, settings["confidence"], settings["bias_constant"])
+        if fmt == "png":
+            body = encode_image(error_colours(est.relative, est.measured).reshape(h, w, 3), "png", display=True)
+        else:
+            channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
+            body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
+        return body, {"X-Passes": meta["passes"], "X-Average-Relative-Error": f"{est.average:.6g}"}
+
+    @cachetools.cached(cachetools.TTLCache(maxsize=1, ttl=METRICS_SECONDS), key=lambda: "metrics",
+                       condition=threading.Condition())
+    def metrics_body() -> bytes:
+        return metrics_text(store)
+
     def existing(job_id: str) -> dict[str, str]:
         meta = store.meta(job_id)
         if meta is None:
@@ -189,7 +229,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     def metrics() -> Response:
         """Prometheus text format: jobs by status, batches merged, photons per second, merge
         latency, queue depth, workers alive."""
-        return Response(metrics_text(store), media_type=CONTENT_TYPE_LATEST)
+        return Response(metrics_body(), media_type=CONTENT_TYPE_LATEST)
 
     @app.get("/v1/workers", dependencies=secured, responses=errors(*auth))
     def list_workers() -> list[dict[str, Any]]:
@@ -263,32 +303,16 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.get("/v1/jobs/{job_id}/image", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 422)})
     def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
-        meta = existing(job_id)
-        w, h = int(meta["width"]), int(meta["height"])
-        state = store.accumulators(job_id, meta)
-        rgb = state.radiance().reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
-        return Response(encode_image(rgb, format), media_type=MEDIA[format],
-                        headers={"X-Passes": meta["passes"], "X-Photons": meta["emitted"]})
+        body, headers = image_body(job_id, existing(job_id), format)
+        return Response(body, media_type=MEDIA[format], headers=headers)
 
     @app.get("/v1/jobs/{job_id}/error", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 409, 422)})
     def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
         """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
-        meta = existing(job_id)
-        w, h = int(meta["width"]), int(meta["height"])
-        state = store.accumulators(job_id, meta)
-        if state is None:
-            raise HTTPException(409, detail="no pass merged yet")
-        settings = json.loads(meta["settings"])
-        est = estimate(state, settings["confidence"], settings["bias_constant"])
-        if format == "png":
-            body = encode_image(error_colours(est.relative, est.measured).reshape(h, w, 3), "png", display=True)
-        else:
-            channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
-            body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
-        return Response(body, media_type=MEDIA[format], headers={"X-Passes": meta["passes"],
-                                                                 "X-Average-Relative-Error": f"{est.average:.6g}"})
+        body, headers = error_body(job_id, existing(job_id), format)
+        return Response(body, media_type=MEDIA[format], headers=headers)
 
     return app
 

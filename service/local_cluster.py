@@ -25,8 +25,9 @@ class Cluster:
                  redis_bind: str = "127.0.0.1", threads_per_worker: int = 1) -> None:
         self.data_dir = data_dir
         self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind).start(supervise=False)
+        # REDIS_URL carries the password: the environment, never a command line.
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
-                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1"}
+                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", "REDIS_URL": self.redis.url}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()
@@ -47,14 +48,13 @@ class Cluster:
 
     def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:
         """A worker process; `prefix` runs it elsewhere (e.g. `ip netns exec NS`)."""
-        cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis.url]
+        cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker"]
         proc = subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
         self.workers.append(proc)
         return proc
 
     def start_api(self) -> None:
-        cmd = [sys.executable, "-m", "worker.cli", "serve", "--port", str(self.port), "--workers", "0",
-               "--redis-url", self.redis.url]
+        cmd = [sys.executable, "-m", "worker.cli", "serve", "--port", str(self.port), "--workers", "0"]
         self.api = subprocess.Popen(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
         deadline = time.time() + 60
         while time.time() < deadline:

@@ -19,6 +19,7 @@ import redis
 from rq import Queue, Worker
 from rq.exceptions import NoSuchJobError
 from rq.job import Job, JobStatus
+from rq.serializers import JSONSerializer
 
 from worker.job_store import ACTIVE, PRIORITIES, QUEUE_NAMES, Batch, JobStore
 
@@ -27,7 +28,7 @@ RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
 
 
 def queue_for(conn: redis.Redis, priority: str) -> Queue:
-    return Queue(QUEUE_NAMES[PRIORITIES.index(priority)], connection=conn)
+    return Queue(QUEUE_NAMES[PRIORITIES.index(priority)], connection=conn, serializer=JSONSerializer)
 
 
 def enqueue(store: JobStore, batch: Batch, priority: str) -> None:
@@ -69,7 +70,7 @@ def reap(store: JobStore) -> int:
         status = None
         if rq_id is not None:
             try:
-                status = Job.fetch(rq_id.decode(), connection=store.r).get_status()
+                status = Job.fetch(rq_id.decode(), connection=store.r, serializer=JSONSerializer).get_status()
             except NoSuchJobError:
                 status = None
         if status == JobStatus.QUEUED:
