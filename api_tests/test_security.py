@@ -281,3 +281,58 @@ def test_serve_takes_every_child_with_it(how: str, tmp_path: Path) -> None:
         http.close()
         for pid in _session_members(proc.pid):
             os.kill(pid, signal.SIGKILL)
+
+
+# --------------------------------------------------------------- 13: repeated reads from memory
+def test_repeated_image_reads_are_served_from_memory(secured: Cluster) -> None:
+    job = secured.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P,
+                                                         "resolution": [512, 512]})
+    _assert_exact(secured, job["id"], 2)
+    url = job["links"]["image_png"]
+    t0 = time.perf_counter()
+    first = secured.http.get(url)  # reads the job's state (512 x 512 pixels) and encodes it
+    miss = time.perf_counter() - t0
+    hits = []
+    for _ in range(9):
+        t0 = time.perf_counter()
+        again = secured.http.get(url)
+        hits.append(time.perf_counter() - t0)
+        assert again.content == first.content and again.headers["x-passes"] == "2"
+    assert sorted(hits)[4] < miss / 4, (miss, hits)  # the median repeat costs a fraction of an encode
+
+
+def test_cached_images_follow_every_merge(secured: Cluster) -> None:
+    job = secured.submit(scene_name="furnace", settings={"max_passes": 60, "photons_per_pass": P})
+    seen: dict[str, set[bytes]] = {}  # X-Passes -> the images served with it
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        done = finished(secured.job(job["id"]))
+        resp = secured.http.get(job["links"]["image_png"])
+        seen.setdefault(resp.headers["x-passes"], set()).add(resp.content)
+        if done:
+            break
+    assert "60" in seen and len(seen) > 1, sorted(seen)
+    assert all(len(images) == 1 for images in seen.values())  # one image per merge count
+    assert len(set().union(*seen.values())) == len(seen)  # a new merge, a new image
+    _assert_exact(secured, job["id"], 60)
+
+
+def test_metrics_scrapes_do_not_each_read_every_job(secured: Cluster) -> None:
+    r = secured.redis_client
+
+    def hgetalls() -> int:
+        return r.info("commandstats").get("cmdstat_hgetall", {}).get("calls", 0)
+
+    for _ in range(3):  # a few finished jobs for a scrape to read
+        job = secured.submit(scene_name="furnace", settings={"max_passes": 1, "photons_per_pass": P})
+        secured.wait(job["id"], finished)
+    time.sleep(1.5)
+    before = hgetalls()
+    assert secured.http.get("/metrics").status_code == 200
+    one = hgetalls() - before
+    assert one >= len(secured.http.get("/v1/jobs").json())  # a scrape that reads does read every job
+    before = hgetalls()
+    texts = {secured.http.get("/metrics").text for _ in range(10)}
+    burst = hgetalls() - before
+    assert burst < 5 * one, (one, burst)  # ten scrapes within a second: not ten reads of every job
+    assert all("photonfarm_jobs" in t for t in texts)
