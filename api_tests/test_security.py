@@ -262,7 +262,7 @@ def _wait_empty(sid: int, seconds: float) -> set[int]:
     return _session_members(sid)
 
 
-@pytest.mark.parametrize("how", ["sigterm", "sigkill-group"])
+@pytest.mark.parametrize("how", ["sigterm", "sigkill-group", "sigkill-serve"])
 def test_serve_takes_every_child_with_it(how: str, tmp_path: Path) -> None:
     proc, http, _ = _serve_mid_batch(tmp_path)
     children = _session_members(proc.pid) - {proc.pid}
@@ -272,8 +272,11 @@ def test_serve_takes_every_child_with_it(how: str, tmp_path: Path) -> None:
         if how == "sigterm":
             proc.send_signal(signal.SIGTERM)  # what docker stop and systemd send
             assert proc.wait(timeout=30) == 0
-        else:
+        elif how == "sigkill-group":
             os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        else:  # serve alone, no cleanup: the kernel's parent-death signal must do it
+            proc.kill()
             proc.wait(timeout=10)
         left = _wait_empty(proc.pid, 15.0)
         assert not left, f"{how}: still running {time.time() - start:.1f} s later: {left}"
