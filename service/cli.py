@@ -116,7 +116,7 @@ def render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from worker.engine import Engine
-    from worker.image_io import write_image
+    from worker.outputs import write_render
     from worker.render_loop import render as render_passes
 
     path = Path(args.scene) if args.scene.endswith(".json") else bundled_scene_path(args.scene)
@@ -128,8 +128,12 @@ def render(args: argparse.Namespace) -> int:
         err = exc.errors()[0]
         raise ValueError(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from None
     _check_output(args.out)
-    engine = Engine(scene, base_dir, settings)
-    state = engine.start()
+    try:
+        engine = Engine(scene, base_dir, settings)
+        state = engine.start()
+    except KeyboardInterrupt:
+        print("interrupted before the first pass: nothing written", file=sys.stderr)
+        return 130
     start = time.perf_counter()
     total = args.passes or args.seconds
     with tqdm(total=total, unit="pass" if args.passes else "s", disable=None, file=sys.stderr,
@@ -143,8 +147,7 @@ def render(args: argparse.Namespace) -> int:
             render_passes(engine, passes=args.passes, seconds=args.seconds, progress=progress, state=state)
         except KeyboardInterrupt:
             interrupted = True
-    a = engine.arrays
-    write_image(args.out, engine.integrator.image(state).reshape(a.height, a.width, 3))
+    write_render(args.out, engine.integrator, state, engine.arrays.width, engine.arrays.height)
     note = " (interrupted: the image so far)" if interrupted else ""
     print(f"wrote {args.out}{note}: {state.passes} passes, {state.emitted} photons, "
           f"{time.perf_counter() - start:.1f} s")

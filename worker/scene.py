@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
@@ -26,6 +27,9 @@ MAX_SHAPES = 10_000
 MAX_TRIANGLES = 500_000  # after quads are split and meshes loaded
 MAX_LIGHTS = 64
 MAX_COORD = 1e7  # |coordinate| bound: keeps float32 positions meaningful
+MAX_PATH_CHARS = 255  # a mesh file name: what a file system accepts for one name
+SCENE_NAME_PATTERN = r"^[a-z0-9][a-z0-9-]*$"  # a bundled scene's name: never a path
+MAX_SCENE_NAME = 64
 
 Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = tuple[Coord, Coord, Coord]
@@ -132,7 +136,7 @@ class Mesh(_Shape):
     type: Literal["mesh"]
     vertices: list[Vec3] | None = None
     triangles: list[tuple[int, int, int]] | None = None
-    obj: str | None = None
+    obj: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> "Mesh":
@@ -270,7 +274,11 @@ def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> li
             path = (base_dir / shape.obj).resolve()
             if not path.is_relative_to(root):
                 raise SceneError(f"shapes.{i}.obj", "mesh path leaves the scenes directory")
-            if path.suffix.lower() != ".obj" or not path.is_file():
+            try:
+                found = path.suffix.lower() == ".obj" and path.is_file()
+            except (OSError, ValueError):  # a name the file system refuses (too long in bytes, ...)
+                found = False
+            if not found:
                 raise SceneError(f"shapes.{i}.obj", f"mesh file {shape.obj!r} not found")
             try:
                 v, f = _load_obj(path)
@@ -334,10 +342,16 @@ def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
     return parse_scene(data), path.resolve().parent
 
 
+def bundled_scene_names() -> list[str]:
+    """The names of the scenes in scenes/, the only names a scene may be asked for by."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.json") if re.match(SCENE_NAME_PATTERN, p.stem))
+
+
 def bundled_scene_path(name: str) -> Path:
-    """The file of a bundled scene, by name (e.g. 'cornell-box')."""
-    path = SCENES_DIR / f"{name}.json"
-    if not path.is_file():
-        names = ", ".join(sorted(p.stem for p in SCENES_DIR.glob("*.json")))
-        raise SceneError("scene", f"no bundled scene {name!r} (have: {names})")
-    return path
+    """The file of a bundled scene, by name (e.g. 'cornell-box'). The name is looked up
+    among the bundled scenes, never joined into a path, so no name reads another file."""
+    names = bundled_scene_names()
+    if name not in names:
+        shown = name if len(name) <= MAX_SCENE_NAME else name[:MAX_SCENE_NAME] + "..."
+        raise SceneError("scene", f"no bundled scene {shown!r} (have: {', '.join(names)})")
+    return SCENES_DIR / f"{name}.json"
