@@ -117,13 +117,15 @@ def test_openapi_declares_errors_and_the_bearer_scheme(secured: Cluster) -> None
 
 def test_docs_load_from_the_service_alone(secured: Cluster) -> None:
     base = str(secured.http.base_url)
-    html = httpx.get(f"{base}/docs").text
-    assert not re.search(r"https?://", html), "the docs page names an outside host"
-    assets = re.findall(r'(?:src|href)="([^"]+)"', html)
-    assert any(a.endswith(".js") for a in assets) and any(a.endswith(".css") for a in assets), assets
-    for asset in assets:
-        resp = httpx.get(base + asset)
-        assert resp.status_code == 200 and len(resp.content) > 1000, asset
+    for page in ("/docs", "/redoc"):
+        html = httpx.get(f"{base}{page}").text
+        assert not re.search(r"https?://", html), f"{page} names an outside host"
+        assets = re.findall(r'(?:src|href)="([^"]+)"', html)
+        assert any(a.endswith(".js") for a in assets), assets
+        for asset in assets:
+            resp = httpx.get(base + asset)
+            assert resp.status_code == 200 and len(resp.content) > 1000, asset
+    assert any(a.endswith(".css") for a in re.findall(r'href="([^"]+)"', httpx.get(f"{base}/docs").text))
 
     chromium = shutil.which("chromium")
     if chromium is None:
