@@ -259,7 +259,7 @@ def _serve_mid_batch(data_dir: Path) -> tuple[subprocess.Popen, httpx.Client, st
 
 def _wait_empty(sid: int, seconds: float) -> set[int]:
     deadline = time.time() + seconds
-    while time.time() < deadline and (left := _session_members(sid)):
+    while time.time() < deadline and _session_members(sid):
         time.sleep(0.1)
     return _session_members(sid)
 
