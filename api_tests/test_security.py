@@ -164,6 +164,7 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     payloads: list[bytes] = []
     while not payloads and not finished(secured.job(job["id"])):
         payloads = [p for p in (r.hget(k, "data") for k in r.scan_iter("rq:job:pf-*")) if p]
+        time.sleep(0.05)
     assert payloads and all(json.loads(zlib.decompress(p))[0] == "worker.tasks.run_batch" for p in payloads)
     _assert_exact(secured, job["id"], 40)
 
