@@ -121,7 +121,7 @@ def chart(result: dict, path: Path) -> None:
     for i, r in enumerate(runs):
         axes[0].text(i, r["photons_per_second"] / 1e3, f"{r['photons_per_second'] / 1e3:.0f}k", ha="center",
                      va="bottom", fontsize=8)
-    axes[0].set_xticks(x, names, fontsize=7)
+    axes[0].set_xticks(x, names, fontsize=7, rotation=30, ha="right")
     axes[0].set_ylabel("k photon paths / s (job view)")
     axes[0].set_title(f"{SCENE} {RESOLUTION[0]}x{RESOLUTION[1]}, {result['workers']} workers, {CORES} cores (shared host)",
                       fontsize=9)
@@ -130,7 +130,7 @@ def chart(result: dict, path: Path) -> None:
         share = np.array([100 * r["cpu_share"][part] for r in runs])
         axes[1].bar(x, share, bottom=bottom, color=colour, label=part)
         bottom += share
-    axes[1].set_xticks(x, names, fontsize=7)
+    axes[1].set_xticks(x, names, fontsize=7, rotation=30, ha="right")
     axes[1].set_ylabel("% of the machine's CPU while rendering")
     axes[1].set_title("where the CPU went (the rest: other processes on the host)", fontsize=9)
     axes[1].legend(fontsize=8)
@@ -193,7 +193,7 @@ def main() -> None:
               "host_load_average": os.getloadavg(), "summary": summary, "runs": runs}
     for label, v in summary.items():
         print(f"{label:>22}: mean {v['photons_per_second_mean'] / 1e3:.1f} k photons/s, "
-              f"{100 * v['loss_vs_quiet']:+.1f}% vs quiet, API + pollers {100 * v['api_plus_pollers_cpu_share']:.1f}% "
+              f"loss {100 * v['loss_vs_quiet']:.1f}% against quiet, API + pollers {100 * v['api_plus_pollers_cpu_share']:.1f}% "
               f"of the machine", flush=True)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "polling_load.json").write_text(json.dumps(result, indent=2))
