@@ -107,8 +107,8 @@ class Engine:
                 arr = np.zeros(4, arr.dtype)
             return cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr)
 
-        self.geometry = [const(a.tri_v0), const(a.tri_e1), const(a.tri_e2), const(a.node_lo), const(a.node_hi),
-                         i32(len(a.node_lo)), const(a.spheres), const(a.sphere_surf), i32(len(a.spheres)),
+        self.geometry = [const(a.tri_v0), const(a.tri_e1), const(a.tri_e2), const(a.tri_nrm), const(a.node_lo),
+                         const(a.node_hi), i32(len(a.node_lo)), const(a.spheres), const(a.sphere_surf), i32(len(a.spheres)),
                          const(a.surf_a), const(a.surf_b)]
         self.n_emitters = len(a.emitters) // 4 if a.emitters.any() else 0
         self.emitter_args = [const(a.emitters), const(a.emitter_cdf), i32(self.n_emitters)]
