@@ -10,7 +10,7 @@ import pytest
 
 from kernels.program import create_context
 from worker.engine import Engine, RenderSettings
-from worker.scene import bundled_scene_path, load_scene_file
+from worker.scene import bundled_scene_path, load_any_scene
 from worker.stats import Accumulators
 
 
@@ -21,11 +21,11 @@ def ctx() -> cl.Context:
 
 @pytest.fixture(scope="session")
 def make_engine(ctx: cl.Context):
-    """Engine for a bundled scene (by name) or a scene file (Path)."""
+    """Engine for a bundled scene (by name) or a scene file (Path: our JSON or Mitsuba XML)."""
 
     def make(scene: str | Path, resolution: tuple[int, int] | None = None, **settings: object) -> Engine:
         path = scene if isinstance(scene, Path) else bundled_scene_path(scene)
-        parsed, base = load_scene_file(path)
+        parsed, base = load_any_scene(path)
         return Engine(parsed, base, RenderSettings(**settings), resolution=resolution, ctx=ctx)
 
     return make

@@ -354,6 +354,22 @@ def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
     return parse_scene(data), path.resolve().parent
 
 
+def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
+                   root: Path | None = None) -> tuple[Scene, Path]:
+    """A scene from our JSON or a Mitsuba 3 XML file (by suffix), and the directory its
+    mesh files are relative to. `params` override the XML's <default>s; `root` confines
+    every file an XML scene names (default: its folder). JSON mesh files are checked when
+    the scene is compiled, against the root the caller passes there."""
+    path = Path(path)
+    if path.suffix.lower() == ".xml":
+        from worker.mitsuba_scene import convert_mitsuba  # it builds on this module
+
+        return parse_scene(convert_mitsuba(path, params, root)), path.resolve().parent
+    if params:
+        raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
+    return load_scene_file(path)
+
+
 def bundled_scene_path(name: str) -> Path:
     """The file of a bundled scene, by name (e.g. 'cornell-box')."""
     path = SCENES_DIR / f"{name}.json"
