@@ -117,7 +117,7 @@ def _xyz(node: Node, default: float) -> np.ndarray:
 
 def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
     """Rotation about `axis` (right-handed, degrees), as a 4x4 matrix (Rodrigues)."""
-    a = axis / np.linalg.norm(axis)
+    a = axis / np.linalg.norm(axis)  # removes the rounding of a unit axis written in decimals
     th = math.radians(degrees)
     k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
     m = np.eye(4)
@@ -147,8 +147,10 @@ def _transform_op(node: Node) -> np.ndarray:
         return np.diag([*_xyz(node, 1.0), 1.0])
     if node.tag == "rotate":
         axis = _xyz(node, 0.0)
-        if "angle" not in a or not np.linalg.norm(axis) > 0:
-            raise _error(node, "rotate needs a non-zero axis and an angle")
+        if "angle" not in a:
+            raise _error(node, "rotate needs an axis and an angle")
+        if abs(np.linalg.norm(axis) - 1.0) > 1e-5:  # Mitsuba uses the axis as given: no rotation then
+            raise _error(node, f"the rotation axis must have unit length (has {np.linalg.norm(axis):g})")
         return _rotation(axis, _floats(node, a["angle"], 1)[0])
     if node.tag == "matrix":
         values = _floats(node, a.get("value", ""))
@@ -454,8 +456,13 @@ class Converter:
         return {"type": "mirror", "albedo": self._albedo(p, "specular_reflectance", 1.0)}
 
     def _exponent(self, p: Props) -> float:
-        """Phong exponent from a microfacet alpha: alpha = sqrt(2 / (n + 2)) inverted, n = 2/alpha^2 - 2
-        (Walter et al. 2007; bench/mitsuba_peer.py maps the other way)."""
+        """Our Phong exponent n for a microfacet roughness alpha: n = (2 / alpha^2 - 2) / 4.
+
+        Walter et al. 2007 match Beckmann's alpha to the exponent m of a Phong lobe about
+        the half vector, m = 2 / alpha^2 - 2 (bench/mitsuba_peer.py uses that correspondence
+        for n, the other way). Our lobe is about the mirror direction, which moves twice as
+        fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so n = m / 4.
+        """
         distribution = p.string("distribution", "beckmann")
         if distribution not in ("beckmann", "ggx"):
             raise _error(p.node_of("distribution"), "distribution must be beckmann or ggx")
@@ -467,7 +474,7 @@ class Converter:
         n = (2.0 / alpha_u ** 2 - 2.0) / 4.0 if alpha_u > 0 else math.inf
         if not 1.0 <= n <= GLOSSY_EXPONENT_MAX:
             raise _error(p.node_of("alpha"), f"alpha {alpha_u:g} maps to Phong exponent {n:g}, outside "
-                                             f"[1, {GLOSSY_EXPONENT_MAX:g}] (alpha in [0.0045, 0.816])")
+                                             f"[1, {GLOSSY_EXPONENT_MAX:g}] (alpha in [0.0023, 0.577])")
         return n
 
     def _roughconductor(self, p: Props) -> dict:
