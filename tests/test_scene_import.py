@@ -312,6 +312,19 @@ def test_invalid_value_names_the_element(tmp_path: Path) -> None:
     assert "shapes.0.emission" in str(err)
 
 
+def test_singular_transform(tmp_path: Path) -> None:
+    err = convert_error(tmp_path, '<shape type="cube"><transform name="to_world"><scale x="0"/></transform></shape>')
+    assert "singular" in str(err) and f"line {line_of(tmp_path / 'scene.xml', 'scale')}" in str(err)
+
+
+def test_triangle_limit_applies_while_converting(tmp_path: Path, monkeypatch) -> None:
+    import worker.mitsuba_scene as mitsuba_scene
+
+    monkeypatch.setattr(mitsuba_scene, "MAX_TRIANGLES", 20)
+    err = convert_error(tmp_path, '<shape type="cube"/>\n<shape type="cube"/>')  # 12 triangles each
+    assert "more than 20 triangles" in str(err) and f"line {line_of(tmp_path / 'scene.xml', 'cube') + 1}" in str(err)
+
+
 def test_malformed_xml(tmp_path: Path) -> None:
     err = convert_error(tmp_path, '<shape type="sphere">\n<float name="radius" value="1">\n</shape>')
     assert "malformed XML" in str(err) and "line" in str(err)

@@ -21,7 +21,7 @@ from xml.parsers import expat
 import numpy as np
 
 from worker.meshes import MeshError, load_mesh
-from worker.scene import SceneError, parse_scene
+from worker.scene import MAX_TRIANGLES, SceneError, parse_scene
 
 # Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
 NAMED_IOR = {
@@ -207,7 +207,7 @@ class Props:
             raise _error(node, f"{name} must be one of <{'>, <'.join(sorted(tags))}>")
         return node
 
-    def float(self, name: str, default: float | None = None) -> float | None:
+    def number(self, name: str, default: float | None = None) -> float | None:
         node = self._take(name, {"float", "integer"})
         return default if node is None else _floats(node, node.attrs.get("value", ""), 1)[0]
 
@@ -277,6 +277,7 @@ class Converter:
     shapes: list[dict] = field(default_factory=list)
     lights: list[dict] = field(default_factory=list)
     camera: dict | None = None
+    triangles: int = 0  # so far, against MAX_TRIANGLES before the JSON grows past it
     origin: dict[str, Node] = field(default_factory=dict)  # our JSON path -> XML element
 
     # -------------------------------------------------------------- scene walk
@@ -358,7 +359,7 @@ class Converter:
                 raise _error(obj, f"<{obj.tag}> is not supported in a sensor")
         if p.values.get("focal_length") is not None:
             raise _error(p.values["focal_length"], "focal_length is not supported: give fov")
-        fov = p.float("fov", 39.597755335771296)  # Mitsuba's default: a 50 mm lens on 36 mm film
+        fov = p.number("fov", 39.597755335771296)  # Mitsuba's default: a 50 mm lens on 36 mm film
         axis = p.string("fov_axis", "x")
         if not 0 < fov < 180:
             raise _error(p.node_of("fov"), "fov must lie in (0, 180) degrees")
@@ -369,12 +370,12 @@ class Converter:
         if axis not in scale:
             raise _error(p.node_of("fov_axis"), f"fov_axis {axis!r} (have: {', '.join(scale)})")
         fov_y = math.degrees(2 * math.atan(tan * scale[axis]))
-        near = p.float("near_clip", 0.01)
-        p.float("far_clip")  # not applied: everything in front of the camera is visible (README)
+        near = p.number("near_clip", 0.01)
+        p.number("far_clip")  # not applied: everything in front of the camera is visible (README)
         cam: dict[str, Any] = {"fov": fov_y, "resolution": [width, height], "near_clip": near}
         if kind == "thinlens":
-            cam["aperture_radius"] = p.float("aperture_radius", 0.0)
-            focus = p.float("focus_distance")
+            cam["aperture_radius"] = p.number("aperture_radius", 0.0)
+            focus = p.number("focus_distance")
             if focus is None:
                 raise _error(node, "a thinlens sensor needs focus_distance")
             cam["focus_distance"] = focus
@@ -466,8 +467,8 @@ class Converter:
         distribution = p.string("distribution", "beckmann")
         if distribution not in ("beckmann", "ggx"):
             raise _error(p.node_of("distribution"), "distribution must be beckmann or ggx")
-        alpha = p.float("alpha", 0.1)
-        alpha_u, alpha_v = p.float("alpha_u", alpha), p.float("alpha_v", alpha)
+        alpha = p.number("alpha", 0.1)
+        alpha_u, alpha_v = p.number("alpha_u", alpha), p.number("alpha_v", alpha)
         if alpha_u != alpha_v:
             raise _error(p.owner, "anisotropic roughness is not supported")
         p.boolean("sample_visible", True)  # sampling strategy only
@@ -500,7 +501,7 @@ class Converter:
             if key not in NAMED_IOR:
                 raise _error(node, f"unknown IOR name {key!r}")
             return NAMED_IOR[key]
-        value = p.float(name)
+        value = p.number(name)
         return NAMED_IOR[default] if value is None else value
 
     def _dielectric(self, p: Props) -> dict:
@@ -518,6 +519,8 @@ class Converter:
         kind = node.attrs.get("type")
         p = Props(node)
         m = p.transform()
+        if not abs(np.linalg.det(m[:3, :3])) > 1e-300:
+            raise _error(p.node_of("to_world"), "the shape's to_world is singular")
         builders = {"rectangle": self._rectangle, "cube": self._cube, "sphere": self._sphere, "disk": self._disk,
                     "obj": self._file_mesh, "ply": self._file_mesh}
         if kind not in builders:
@@ -548,6 +551,9 @@ class Converter:
         flip = p.boolean("flip_normals", False)
         shape = builders[kind](p, m, flip)
         p.done()
+        self.triangles += len(shape.get("triangles", ()))
+        if self.triangles > MAX_TRIANGLES:
+            raise _error(node, f"the scene has more than {MAX_TRIANGLES} triangles")
         shape["material"] = material
         if emission is not None:
             shape["emission"] = emission
@@ -592,7 +598,7 @@ class Converter:
 
     def _sphere(self, p: Props, m: np.ndarray, flip: bool) -> dict:
         center = p.vector("center", "point")
-        radius = p.float("radius", 1.0)
+        radius = p.number("radius", 1.0)
         r = m[:3, :3]
         s = np.cbrt(abs(np.linalg.det(r)))
         if not np.allclose(r.T @ r, s * s * np.eye(3), rtol=1e-6, atol=1e-9 * max(s * s, 1e-300)):
@@ -633,19 +639,19 @@ class Converter:
             m = p.transform()
             pos = p.vector("position", "point")
             position = _apply(m, (pos if pos is not None else np.zeros(3))[None])[0]
-            power = 4 * math.pi * np.array(self._intensity(p))
+            power = 4 * math.pi * np.array(p.color("intensity", 1.0))
             light = {"type": "point", "position": position.tolist(), "power": power.tolist()}
         elif kind == "spot":
             m = p.transform()
-            cutoff = p.float("cutoff_angle", 20.0)
-            beam = p.float("beam_width", 0.75 * cutoff)
+            cutoff = p.number("cutoff_angle", 20.0)
+            beam = p.number("beam_width", 0.75 * cutoff)
             if beam < cutoff * (1 - 1e-3):
                 raise _error(p.node_of("beam_width"), "our spot light is uniform inside its cone: beam_width "
                                                        "must equal cutoff_angle (no falloff)")
             if not 0 < cutoff <= 90:
                 raise _error(p.node_of("cutoff_angle"), "cutoff_angle must lie in (0, 90]")
             solid_angle = 2 * math.pi * (1 - math.cos(math.radians(cutoff)))
-            power = solid_angle * np.array(self._intensity(p))
+            power = solid_angle * np.array(p.color("intensity", 1.0))
             light = {"type": "spot", "position": m[:3, 3].tolist(), "direction": m[:3, 2].tolist(),
                      "cone_angle": cutoff, "power": power.tolist()}
         elif kind == "directional":
@@ -661,9 +667,6 @@ class Converter:
         p.done()
         self.origin[f"lights.{len(self.lights)}"] = node
         self.lights.append(light)
-
-    def _intensity(self, p: Props) -> tuple[float, float, float]:
-        return p.color("intensity", 1.0)
 
     # -------------------------------------------------------------- result
     def result(self, top: Node) -> dict:
