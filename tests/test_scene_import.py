@@ -318,7 +318,7 @@ def test_singular_transform(tmp_path: Path) -> None:
 
 
 def test_triangle_limit_applies_while_converting(tmp_path: Path, monkeypatch) -> None:
-    import worker.mitsuba_scene as mitsuba_scene
+    from worker import mitsuba_scene
 
     monkeypatch.setattr(mitsuba_scene, "MAX_TRIANGLES", 20)
     err = convert_error(tmp_path, '<shape type="cube"/>\n<shape type="cube"/>')  # 12 triangles each
