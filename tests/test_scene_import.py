@@ -194,6 +194,25 @@ def test_camera_fov_axis_and_thin_lens(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.subtract(cam["look_at"], cam["position"]), [0, 0, -1])
 
 
+@pytest.mark.parametrize("fov, size", [
+    ('<float name="fov" value="60"/><string name="fov_axis" value="y"/>', (40, 20)),
+    ('<float name="fov" value="50"/><string name="fov_axis" value="diagonal"/>', (30, 20)),
+    ('<float name="fov" value="50"/><string name="fov_axis" value="smaller"/>', (20, 30)),
+    ('<float name="fov" value="50"/><string name="fov_axis" value="larger"/>', (20, 30)),
+    ('<float name="fov" value="45"/>', (32, 24)),
+    ('<string name="focal_length" value="35mm"/>', (32, 24)),
+    ("", (32, 24)),  # Mitsuba's default: a 50 mm lens
+], ids=["y", "diagonal", "smaller", "larger", "x", "focal-length", "default"])
+def test_field_of_view_matches_mitsuba(tmp_path: Path, mi, fov: str, size: tuple[int, int]) -> None:
+    text = xml(f"""<sensor type="perspective">{fov}<film type="hdrfilm"><integer name="width" value="{size[0]}"/>
+    <integer name="height" value="{size[1]}"/></film></sensor>""")
+    (tmp_path / "s.xml").write_text(text)
+    ours = convert_mitsuba(tmp_path / "s.xml")["camera"]["fov"]
+    x_fov = float(mi.traverse(mi.load_string(text).sensors()[0])["x_fov"])
+    ours_x = math.degrees(2 * math.atan(math.tan(math.radians(ours) / 2) * size[0] / size[1]))
+    assert ours_x == pytest.approx(x_fov, rel=1e-5)
+
+
 def test_materials(tmp_path: Path) -> None:
     data = convert(tmp_path, """
     <bsdf type="dielectric" id="glass"><float name="int_ior" value="1.6"/><float name="ext_ior" value="1.2"/></bsdf>

@@ -357,10 +357,21 @@ class Converter:
                 width, height = self.film(obj)
             elif obj.tag not in RENDER_SETTING_TAGS:
                 raise _error(obj, f"<{obj.tag}> is not supported in a sensor")
-        if p.values.get("focal_length") is not None:
-            raise _error(p.values["focal_length"], "focal_length is not supported: give fov")
-        fov = p.number("fov", 39.597755335771296)  # Mitsuba's default: a 50 mm lens on 36 mm film
-        axis = p.string("fov_axis", "x")
+        # Field of view: `fov` along `fov_axis`, or a `focal_length` on 36 x 24 mm film (the
+        # diagonal's; Mitsuba's default is 50 mm), turned into our vertical angle.
+        if "fov" in p.values:
+            if "focal_length" in p.values:
+                raise _error(p.values["focal_length"], "give fov or focal_length, not both")
+            fov, axis = p.number("fov"), p.string("fov_axis", "x")
+        else:
+            text = p.string("focal_length", "50mm")
+            try:
+                focal = float(text.removesuffix("mm"))
+            except ValueError:
+                raise _error(p.node_of("focal_length"), f"focal_length {text!r} is not in mm") from None
+            if not focal > 0:
+                raise _error(p.node_of("focal_length"), "focal_length must be positive")
+            fov, axis = math.degrees(2 * math.atan(math.hypot(36.0, 24.0) / (2 * focal))), "diagonal"
         if not 0 < fov < 180:
             raise _error(p.node_of("fov"), "fov must lie in (0, 180) degrees")
         tan = math.tan(math.radians(fov) / 2)
@@ -374,11 +385,10 @@ class Converter:
         p.number("far_clip")  # not applied: everything in front of the camera is visible (README)
         cam: dict[str, Any] = {"fov": fov_y, "resolution": [width, height], "near_clip": near}
         if kind == "thinlens":
-            cam["aperture_radius"] = p.number("aperture_radius", 0.0)
-            focus = p.number("focus_distance")
-            if focus is None:
-                raise _error(node, "a thinlens sensor needs focus_distance")
-            cam["focus_distance"] = focus
+            aperture, focus = p.number("aperture_radius"), p.number("focus_distance")
+            if aperture is None or focus is None:
+                raise _error(node, "a thinlens sensor needs aperture_radius and focus_distance")
+            cam["aperture_radius"], cam["focus_distance"] = aperture, focus
         p.done()
 
         # The camera frame: Mitsuba looks along local +z with local +x to the image's left.
