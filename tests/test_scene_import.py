@@ -283,6 +283,56 @@ def test_shapes(tmp_path: Path) -> None:
     assert np.all(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])[:, 2] > 0)
 
 
+def triangle_normal_at(t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The unit winding normal of the triangle that holds the surface point p."""
+    e1, e2, v = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], p - t[:, 0]
+    d00, d01, d11 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    d20, d21 = (v * e1).sum(1), (v * e2).sum(1)
+    b1, b2 = (d11 * d20 - d01 * d21) / (d00 * d11 - d01 ** 2), (d00 * d21 - d01 * d20) / (d00 * d11 - d01 ** 2)
+    n = np.cross(e1, e2)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    inside = (b1 > -1e-4) & (b2 > -1e-4) & (b1 + b2 < 1 + 1e-4)
+    distance = np.where(inside, np.abs((v * n).sum(1)), np.inf)
+    return n[np.argmin(distance)]
+
+
+@pytest.mark.parametrize("shape", [
+    '<shape type="rectangle"><transform name="to_world"><scale x="2" y="0.5"/><rotate x="0.6" y="0" z="0.8" angle="30"/>'
+    '<translate x="1" y="2" z="3"/></transform></shape>',
+    '<shape type="cube"><transform name="to_world"><scale x="0.5" y="1" z="2"/><rotate y="1" angle="20"/></transform></shape>',
+    '<shape type="sphere"><point name="center" value="1, 0, 0"/><float name="radius" value="0.5"/>'
+    '<transform name="to_world"><scale value="2"/><translate z="1"/></transform></shape>',
+    '<shape type="disk"><transform name="to_world"><scale value="1.5"/><rotate x="1" angle="70"/></transform></shape>',
+    '<shape type="ply"><string name="filename" value="meshes/icosphere.ply"/>'
+    '<transform name="to_world"><matrix value="1 0.2 0 1  0 1 0 0  0 0 0.5 2  0 0 0 1"/></transform></shape>',
+    '<shape type="obj"><string name="filename" value="meshes/gem.obj"/>'
+    '<transform name="to_world"><lookat origin="1, 1, 1" target="0, 0, 0" up="0, 1, 0"/></transform></shape>',
+], ids=["rectangle", "cube", "sphere", "disk", "ply", "obj"])
+def test_shape_placement_matches_mitsuba(tmp_path: Path, mi, shape: str) -> None:
+    """Where each shape ends up, and how large it is, against Mitsuba's own loader."""
+    shutil.copytree(MITSUBA_SCENES / "meshes", tmp_path / "meshes")
+    data = convert(tmp_path, shape)
+    mesh = mi.load_file(str(tmp_path / "scene.xml")).shapes()[0]
+    box = mesh.bbox()
+    geometry = shape_geometry(parse_scene(data), tmp_path, tmp_path)[0]
+    if geometry is None:
+        sphere = data["shapes"][0]
+        points = np.array([np.subtract(sphere["center"], sphere["radius"]), np.add(sphere["center"], sphere["radius"])])
+        area = 4 * math.pi * sphere["radius"] ** 2
+    else:
+        t = geometry.triangles
+        points = t.reshape(-1, 3)
+        area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+    np.testing.assert_allclose(points.min(axis=0), np.array(box.min), atol=2e-3 * float(np.max(np.abs(points))))
+    np.testing.assert_allclose(points.max(axis=0), np.array(box.max), atol=2e-3 * float(np.max(np.abs(points))))
+    assert area == pytest.approx(float(mesh.surface_area()), rel=1e-3)
+    if geometry is not None:  # the front side: our winding's normal where Mitsuba's faces
+        for u in (0.1, 0.4, 0.8):
+            sample = mesh.sample_position(0.0, mi.Point2f(u, 1.0 - 0.7 * u))
+            normal = triangle_normal_at(geometry.triangles, np.array(sample.p, dtype=np.float64))
+            assert float(np.dot(normal, np.array(sample.n))) > 0.5  # its n is the shading normal where smooth
+
+
 def test_default_params_and_overrides(tmp_path: Path) -> None:
     body = """<default name="r" value="0.25"/>
     <shape type="sphere"><float name="radius" value="$r"/></shape>"""
