@@ -297,16 +297,16 @@ def triangle_normal_at(t: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("shape", [
-    '<shape type="rectangle"><transform name="to_world"><scale x="2" y="0.5"/><rotate x="0.6" y="0" z="0.8" angle="30"/>'
-    '<translate x="1" y="2" z="3"/></transform></shape>',
+    ('<shape type="rectangle"><transform name="to_world"><scale x="2" y="0.5"/><rotate x="0.6" y="0" z="0.8" angle="30"/>'
+    '<translate x="1" y="2" z="3"/></transform></shape>'),
     '<shape type="cube"><transform name="to_world"><scale x="0.5" y="1" z="2"/><rotate y="1" angle="20"/></transform></shape>',
-    '<shape type="sphere"><point name="center" value="1, 0, 0"/><float name="radius" value="0.5"/>'
-    '<transform name="to_world"><scale value="2"/><translate z="1"/></transform></shape>',
+    ('<shape type="sphere"><point name="center" value="1, 0, 0"/><float name="radius" value="0.5"/>'
+    '<transform name="to_world"><scale value="2"/><translate z="1"/></transform></shape>'),
     '<shape type="disk"><transform name="to_world"><scale value="1.5"/><rotate x="1" angle="70"/></transform></shape>',
-    '<shape type="ply"><string name="filename" value="meshes/icosphere.ply"/>'
-    '<transform name="to_world"><matrix value="1 0.2 0 1  0 1 0 0  0 0 0.5 2  0 0 0 1"/></transform></shape>',
-    '<shape type="obj"><string name="filename" value="meshes/gem.obj"/>'
-    '<transform name="to_world"><lookat origin="1, 1, 1" target="0, 0, 0" up="0, 1, 0"/></transform></shape>',
+    ('<shape type="ply"><string name="filename" value="meshes/icosphere.ply"/>'
+    '<transform name="to_world"><matrix value="1 0.2 0 1  0 1 0 0  0 0 0.5 2  0 0 0 1"/></transform></shape>'),
+    ('<shape type="obj"><string name="filename" value="meshes/gem.obj"/>'
+    '<transform name="to_world"><lookat origin="1, 1, 1" target="0, 0, 0" up="0, 1, 0"/></transform></shape>'),
 ], ids=["rectangle", "cube", "sphere", "disk", "ply", "obj"])
 def test_shape_placement_matches_mitsuba(tmp_path: Path, mi, shape: str) -> None:
     """Where each shape ends up, and how large it is, against Mitsuba's own loader."""
