@@ -262,7 +262,8 @@ class Props:
 
     def done(self) -> None:
         """Refuse properties the conversion did not use."""
-        for name, node in self.values.items():
+        if self.values:
+            name, node = next(iter(self.values.items()))
             raise _error(node, f"property {name!r} is not supported on <{self.owner.tag} "
                                f"type=\"{self.owner.attrs.get('type', '')}\">")
 
@@ -273,7 +274,6 @@ class Converter:
     root: Path
     params: dict[str, str]
     materials: dict[str, dict] = field(default_factory=dict)
-    material_nodes: dict[str, Node] = field(default_factory=dict)  # bsdf id -> element
     shapes: list[dict] = field(default_factory=list)
     lights: list[dict] = field(default_factory=list)
     camera: dict | None = None
@@ -282,13 +282,15 @@ class Converter:
 
     # -------------------------------------------------------------- scene walk
     def substitute(self, node: Node) -> None:
-        """Replace $name in every attribute (Mitsuba's parameters), recursively."""
+        """Replace $name in every attribute of node and its children (Mitsuba's parameters)."""
         def repl(match: re.Match) -> str:
             if match.group(1) not in self.params:
                 raise _error(node, f"undefined parameter ${match.group(1)}")
             return self.params[match.group(1)]
 
         node.attrs = {k: re.sub(r"\$(\w+)", repl, v) for k, v in node.attrs.items()}
+        for child in node.children:
+            self.substitute(child)
 
     def scene(self, node: Node, depth: int = 0) -> None:
         if node.tag != "scene":
@@ -302,7 +304,7 @@ class Converter:
                     raise _error(child, "a default needs name and value")
                 self.params.setdefault(child.attrs["name"], child.attrs["value"])
                 continue
-            self.substitute_tree(child)
+            self.substitute(child)
             if child.tag == "include":
                 self.include(child, depth)
             elif child.tag == "sensor":
@@ -317,11 +319,6 @@ class Converter:
                 continue
             else:
                 raise _error(child, f"<{child.tag}> is not supported at scene level")
-
-    def substitute_tree(self, node: Node) -> None:
-        self.substitute(node)
-        for child in node.children:
-            self.substitute_tree(child)
 
     def resolve(self, node: Node, name: str) -> Path:
         """A file named by the scene, relative to the XML file that names it, inside root."""
@@ -422,7 +419,6 @@ class Converter:
         if name in self.materials:
             raise _error(node, f"bsdf id {name!r} defined twice")
         self.materials[name] = self.material(node)
-        self.material_nodes[name] = node
         self.origin[f"materials.{name}"] = node
         return name
 
@@ -535,6 +531,7 @@ class Converter:
                     "obj": self._file_mesh, "ply": self._file_mesh}
         if kind not in builders:
             raise _error(node, f"unknown shape plugin {kind!r} (have: {', '.join(builders)})")
+        # Its bsdf (nested, referenced, or Mitsuba's default) and its area emitter.
         material, emission = None, None
         for obj in p.objects:
             if obj.tag == "bsdf":
@@ -558,6 +555,7 @@ class Converter:
         if material is None:  # Mitsuba's default bsdf
             material = "default-diffuse"
             self.materials.setdefault(material, {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]})
+        # Its geometry, counted against the triangle limit as the scene grows.
         flip = p.boolean("flip_normals", False)
         shape = builders[kind](p, m, flip)
         p.done()
