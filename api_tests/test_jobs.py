@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.local_cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster, finished, merged_passes
 from service.models import MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PHOTONS_PER_PASS
 from worker.image_io import read_image
 

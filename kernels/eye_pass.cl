@@ -3,8 +3,9 @@
 // A jittered sub-pixel sample (and lens sample) is followed through mirror, glass and
 // glossy bounces to the first diffuse hit, which becomes this pass's measurement point
 // with weight = path throughput * f_r. Emission seen along the way is accumulated
-// separately (digest 5.1: directly visible emission is averaged over passes). In PPM
-// mode the host always passes pass index 0, so every pass sees the same points.
+// separately into the batch's per-pixel sums (SUM_LD; digest 5.1: directly visible
+// emission is averaged over passes). In PPM mode the host always passes pass index 0, so
+// every pass sees the same points.
 
 typedef struct {
     float4 position;   // w: near clip distance along the view axis
@@ -25,7 +26,7 @@ __kernel void eye_pass(
     __global float4* mp_nrm,       // normal facing the eye path
     __global float4* mp_wgt,       // throughput * albedo / pi
     __global float* mp_dist,       // eye path length to the point (initial radius)
-    __global double4* acc_direct)  // += directly seen emission, per batch
+    __global double* batch_sums)   // per-pixel records (kernels/contract.py); += directly seen emission
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
@@ -78,5 +79,8 @@ __kernel void eye_pass(
     mp_nrm[gid] = nrm;
     mp_wgt[gid] = wgt;
     mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
-    acc_direct[gid] += (double4)(convert_double3(direct), 0.0);
+    __global double* ld = batch_sums + (size_t)gid * SUM_STRIDE + SUM_LD;
+    ld[0] += direct.x;
+    ld[1] += direct.y;
+    ld[2] += direct.z;
 }

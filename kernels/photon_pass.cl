@@ -7,13 +7,8 @@
 // when it misses everything: the estimate is normalised by emitted photons (digest 11.1).
 // Each stored photon gets a 64-bit selection key, (random 32 bits << 32) | (path, bounce):
 // a pure function of (seed, pass, path), so the stochastic hash picks the same photons
-// whatever order the atomic slot counter hands out slots in.
-
-#define EMIT_TRIANGLE 0
-#define EMIT_SPHERE 1
-#define EMIT_POINT 2
-#define EMIT_SPOT 3
-#define EMIT_DIRECTIONAL 4
+// whatever order the atomic slot counter hands out slots in. Emitter kinds EMIT_* come from
+// kernels/contract.py as build options.
 
 __kernel void photon_pass(
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,

@@ -9,9 +9,11 @@ import pyopencl as cl
 import pytest
 
 from kernels.program import create_context
-from worker.engine import Engine, RenderSettings
+from worker.engine import Engine
+from worker.integrators.base import State
+from worker.render_loop import render as render_passes
 from worker.scene import bundled_scene_path, load_any_scene
-from worker.stats import Accumulators
+from worker.settings import Settings
 
 
 @pytest.fixture(scope="session")
@@ -21,23 +23,21 @@ def ctx() -> cl.Context:
 
 @pytest.fixture(scope="session")
 def make_engine(ctx: cl.Context):
-    """Engine for a bundled scene (by name) or a scene file (Path: our JSON or Mitsuba XML)."""
+    """Engine for a bundled scene (by name) or a scene file (Path: our JSON or Mitsuba XML),
+    with settings fields."""
 
     def make(scene: str | Path, resolution: tuple[int, int] | None = None, **settings: object) -> Engine:
         path = scene if isinstance(scene, Path) else bundled_scene_path(scene)
         parsed, base = load_any_scene(path)
-        return Engine(parsed, base, RenderSettings(**settings), resolution=resolution, ctx=ctx)
+        return Engine(parsed, base, Settings(resolution=resolution, **settings), ctx=ctx)
 
     return make
 
 
-def render(engine: Engine, passes: int, alpha: float = 0.7) -> Accumulators:
-    """Sequential progressive render: one pass per batch, each at the current radii."""
-    state = Accumulators.start(alpha, engine.initial_radius())
-    for k in range(passes):
-        state.merge(engine.run_batch(state.radius(), k, 1))
-    return state
+def render(engine: Engine, passes: int) -> State:
+    """Sequential progressive render (worker/render_loop.py): one pass per batch."""
+    return render_passes(engine, passes=passes)
 
 
-def image(engine: Engine, state: Accumulators) -> np.ndarray:
-    return state.radiance().reshape(engine.arrays.height, engine.arrays.width, 3)
+def image(engine: Engine, state: State) -> np.ndarray:
+    return engine.integrator.image(state).reshape(engine.arrays.height, engine.arrays.width, 3)

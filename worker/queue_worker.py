@@ -18,7 +18,7 @@ import uuid
 import redis
 from rq import Queue, SimpleWorker
 
-from worker.job_store import QUEUE_NAMES
+from worker.scheduler import QUEUE_NAMES
 from worker.logs import configure_logging
 
 log = logging.getLogger("photonfarm.worker")
