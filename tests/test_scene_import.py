@@ -349,6 +349,27 @@ def test_include_and_ref(tmp_path: Path) -> None:
     assert data["materials"]["grey"]["albedo"] == [0.3, 0.3, 0.3]
 
 
+def test_json_scene_with_meshes_beside_it_is_self_contained(tmp_path: Path) -> None:
+    """A user's JSON scene and its mesh, anywhere: load_any_scene reads the file (inside the
+    scene's folder) and inlines it, so the scene compiles with no file at hand."""
+    import json
+
+    (tmp_path / "meshes").mkdir()
+    shutil.copy(MITSUBA_SCENES / "meshes" / "icosphere.ply", tmp_path / "meshes" / "ball.ply")
+    data = {"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "resolution": [8, 8]},
+            "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+            "shapes": [{"type": "mesh", "file": "meshes/ball.ply", "material": "m"}]}
+    (tmp_path / "scene.json").write_text(json.dumps(data))
+    scene, _ = load_any_scene(tmp_path / "scene.json")
+    arrays = compile_scene(scene, SCENES_DIR)  # no file is read here any more
+    assert len(arrays.tri_v0) == 320 and len(arrays.tri_nrm) == 3 * 320
+    data["shapes"][0]["file"] = "../elsewhere.ply"
+    (tmp_path / "scene.json").write_text(json.dumps(data))
+    with pytest.raises(SceneError) as info:
+        load_any_scene(tmp_path / "scene.json")
+    assert info.value.field == "shapes.0.file"
+
+
 def test_load_any_scene_reads_both_formats(tmp_path: Path) -> None:
     scene, base = load_any_scene(MITSUBA_SCENES / "obj-mesh.xml")
     assert base == MITSUBA_SCENES and len(scene.shapes) == 5

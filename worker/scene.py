@@ -356,18 +356,23 @@ def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
 
 def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
                    root: Path | None = None) -> tuple[Scene, Path]:
-    """A scene from our JSON or a Mitsuba 3 XML file (by suffix), and the directory its
-    mesh files are relative to. `params` override the XML's <default>s; `root` confines
-    every file an XML scene names (default: its folder). JSON mesh files are checked when
-    the scene is compiled, against the root the caller passes there."""
+    """A scene from our JSON or a Mitsuba 3 XML file (by suffix), and its directory.
+
+    The scene comes back self-contained: every mesh file it names is read now, confined
+    to `root` (default: the scene file's folder; the service passes its upload), and
+    inlined, so it renders wherever it is sent. `params` override the XML's <default>s."""
     path = Path(path)
+    base_dir = path.resolve().parent
     if path.suffix.lower() == ".xml":
         from worker.mitsuba_scene import convert_mitsuba  # it builds on this module
 
-        return parse_scene(convert_mitsuba(path, params, root)), path.resolve().parent
+        return parse_scene(convert_mitsuba(path, params, root)), base_dir
     if params:
         raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
-    return load_scene_file(path)
+    scene, base_dir = load_scene_file(path)
+    if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+        scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir))
+    return scene, base_dir
 
 
 def bundled_scene_path(name: str) -> Path:
