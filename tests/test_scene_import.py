@@ -517,7 +517,7 @@ def test_json_scene_with_ply_file(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------ smooth normals
-def ball_scene(normals: str) -> dict:
+def ball_scene(normals: str, material: dict | None = None) -> dict:
     """A coarse icosphere (80 faces) in mirror or diffuse, lit by a quad light, with the given
     vertex normals: none (flat), the face normals (flat again, through the smooth path), or
     the true sphere's."""
@@ -534,10 +534,12 @@ def ball_scene(normals: str) -> dict:
     elif normals == "sphere":
         shape["normals"] = (tris / np.linalg.norm(tris, axis=1, keepdims=True)).tolist()
     return {"camera": {"position": [0, 0, 4], "look_at": [0, 0, 0], "fov": 35, "resolution": [24, 24]},
-            "materials": {"ball": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]},
+            "materials": {"ball": material or {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]},
                           "wall": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
             "shapes": [shape, {"type": "quad", "corner": [-3, -3, -2], "edge1": [6, 0, 0], "edge2": [0, 6, 0],
-                               "material": "wall"}],
+                               "material": "wall"},
+                       {"type": "quad", "corner": [-6, -6, 6], "edge1": [0, 12, 0], "edge2": [12, 0, 0],
+                        "material": "wall"}],  # behind the camera: what the ball reflects
             "lights": [{"type": "point", "position": [2, 2, 3], "power": [300, 300, 300]}]}
 
 
@@ -566,13 +568,17 @@ def test_face_normals_render_as_flat(make_engine, tmp_path: Path) -> None:
     assert np.mean(np.abs(face - flat)) < 0.01 * np.mean(flat)
 
 
-def test_sphere_normals_hide_the_facets(make_engine, tmp_path: Path) -> None:
-    """Under a point light, a flat icosphere shows its facets; with the sphere's normals its
-    shading is that of a true sphere. Compared inside the silhouette (the outlines differ)."""
-    sphere = ball_scene("none")
+@pytest.mark.parametrize("material", [{"type": "diffuse", "albedo": [0.8, 0.8, 0.8]},
+                                      {"type": "mirror", "albedo": [0.9, 0.9, 0.9]}], ids=["diffuse", "mirror"])
+def test_sphere_normals_hide_the_facets(make_engine, tmp_path: Path, material: dict) -> None:
+    """A flat icosphere shows its facets (in its shading, or in what it reflects); with the
+    sphere's normals it looks like a true sphere. Compared inside the silhouette (the
+    outlines differ). Not glass: through a ball this coarse, refraction depends on where
+    the facets really are, and smooth normals cannot hide that."""
+    sphere = ball_scene("none", material)
     sphere["shapes"][0] = {"type": "sphere", "center": [0, 0, 0], "radius": 1.0, "material": "ball"}
-    images = {k: render_dict(make_engine, tmp_path, d, passes=64).mean(axis=2)
-              for k, d in {"flat": ball_scene("none"), "smooth": ball_scene("sphere"), "true": sphere}.items()}
+    scenes = {"flat": ball_scene("none", material), "smooth": ball_scene("sphere", material), "true": sphere}
+    images = {k: render_dict(make_engine, tmp_path, d, passes=64).mean(axis=2) for k, d in scenes.items()}
     inner = slice(7, 17), slice(7, 17)  # well inside the ball's silhouette
     error = {k: float(np.mean(np.abs(images[k][inner] - images["true"][inner]))) for k in ("flat", "smooth")}
-    assert error["smooth"] < 0.6 * error["flat"], error
+    assert error["smooth"] < 0.7 * error["flat"], error  # both include the three renders' noise
