@@ -8,6 +8,7 @@ means agree within 2%. Each bad scene file gives one SceneError naming what is w
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 from pathlib import Path
@@ -103,6 +104,8 @@ def test_scenes_use_what_they_claim() -> None:
     assert glossy["camera"]["aperture_radius"] > 0
     assert any(m["type"] == "glossy" for m in glossy["materials"].values())
     assert (MITSUBA_SCENES / "meshes" / "icosphere.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
+    for data in (obj, glossy):  # what `photonfarm convert` writes is plain JSON that reads back
+        assert parse_scene(json.loads(json.dumps(data))) == parse_scene(data)
 
 
 # ----------------------------------------------------------- transforms against numpy
@@ -352,8 +355,6 @@ def test_include_and_ref(tmp_path: Path) -> None:
 def test_json_scene_with_meshes_beside_it_is_self_contained(tmp_path: Path) -> None:
     """A user's JSON scene and its mesh, anywhere: load_any_scene reads the file (inside the
     scene's folder) and inlines it, so the scene compiles with no file at hand."""
-    import json
-
     (tmp_path / "meshes").mkdir()
     shutil.copy(MITSUBA_SCENES / "meshes" / "icosphere.ply", tmp_path / "meshes" / "ball.ply")
     data = {"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "resolution": [8, 8]},
@@ -544,8 +545,6 @@ def ball_scene(normals: str, material: dict | None = None) -> dict:
 
 
 def render_dict(make_engine, tmp_path: Path, data: dict, passes: int = 8) -> np.ndarray:
-    import json
-
     path = tmp_path / "scene.json"
     path.write_text(json.dumps(data))
     engine = make_engine(path, photons_per_pass=1 << 15, seed=5)
