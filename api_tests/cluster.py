@@ -24,11 +24,11 @@ LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's pati
 
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
-                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1) -> None:
+                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None) -> None:
         self.data_dir = data_dir
         self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind).start(supervise=False)
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
-                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1"}
+                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", **(env or {})}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()

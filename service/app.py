@@ -30,8 +30,9 @@ from worker.image_io import error_colours, write_image
 from worker.scene import SCENES_DIR, SceneError, bundled_scene_path, inline_meshes, load_scene_file, parse_scene
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
-from worker.store import JobRecord, Jobs, Status
+from worker.store import JobRecord, Jobs
 from worker.store.policy import FINAL
+from worker.store.record import JobLimitReached
 
 log = logging.getLogger("photonfarm.api")
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -174,28 +175,37 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         if width * height > MAX_SERVICE_PIXELS:
             raise _unprocessable(["body", "scene", "camera", "resolution"],
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
-        if jobs.active_count() >= MAX_ACTIVE_JOBS:
-            raise _unprocessable(["body"], f"at most {MAX_ACTIVE_JOBS} jobs may be active at once")
-        job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, body.scene_name)
+        try:
+            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, body.scene_name,
+                                 max_active=MAX_ACTIVE_JOBS)
+        except JobLimitReached as exc:
+            raise _unprocessable(["body"], str(exc)) from None
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
         log.info(f"job submitted: {body.scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
         return job_view(jobs, jobs.get(job_id))
 
     @app.get("/v1/jobs", response_model=list[JobView])
-    def list_jobs() -> list[JobView]:
-        records = (jobs.get(job_id) for job_id in reversed(jobs.ids()))
+    def list_jobs(response: Response, offset: int = Query(0, ge=0),
+                  limit: int = Query(50, ge=1, le=500)) -> list[JobView]:
+        """Jobs, newest first, a page at a time; X-Total-Count says how many there are."""
+        records = (jobs.get(job_id) for job_id in jobs.ids(offset, limit, newest_first=True))
+        response.headers["X-Total-Count"] = str(jobs.count())
         return [job_view(jobs, record) for record in records if record is not None]
 
     @app.get("/v1/jobs/{job_id}", response_model=JobView)
     def job(job_id: str) -> JobView:
         return job_view(jobs, existing(job_id), history=True)
 
-    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202)
-    def cancel(job_id: str) -> JobView:
+    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202,
+                responses={204: {"description": "the finished job and its images were deleted"}})
+    def cancel_or_delete(job_id: str) -> Response | JobView:
+        """An active job is cancelled (202: it stops within a pass and keeps its image); a
+        finished one is deleted with its state and images (204)."""
         record = existing(job_id)
-        if record.status in FINAL and record.status != Status.CANCELLED:
-            raise HTTPException(409, detail=f"job already {record.status.value}")
+        if record.status in FINAL:
+            jobs.delete(job_id)
+            return Response(status_code=204)
         jobs.cancel(job_id)
         return job_view(jobs, jobs.get(job_id))
 

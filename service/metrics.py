@@ -13,12 +13,9 @@ from rq import Queue, Worker
 from worker.scheduler import QUEUE_NAMES
 from worker.store import Jobs, Status
 
-ALIVE_SECONDS = 60.0  # a worker that has not been heard from for this long counts as gone
-
-
 def workers(jobs: Jobs) -> list[dict[str, Any]]:
-    """Registered RQ workers with their last sign of life: RQ's own heartbeat while idle,
-    ours (after every pass) while rendering."""
+    """Registered RQ workers with their last sign of life (our heartbeat thread's, every
+    LEASE_SECONDS / 3 while the process lives; worker/heartbeat.py)."""
     beats = jobs.leases.heartbeats()
     now = time.time()
     out = []
@@ -27,7 +24,7 @@ def workers(jobs: Jobs) -> list[dict[str, Any]]:
         rq_seen = w.last_heartbeat.timestamp() if w.last_heartbeat else 0.0
         last_seen = max(rq_seen, float(beat.get("last_seen", 0.0)))
         out.append({"name": w.name, "hostname": w.hostname, "pid": w.pid, "state": str(w.get_state()),
-                    "last_seen_seconds_ago": round(now - last_seen, 3), "alive": now - last_seen < ALIVE_SECONDS,
+                    "last_seen_seconds_ago": round(now - last_seen, 3), "alive": w.name in beats,
                     "job": beat.get("job") or None, "batch": beat.get("batch") or None,
                     "passes": int(beat.get("passes", 0)), "batches_done": w.successful_job_count})
     return sorted(out, key=lambda w: w["name"])
@@ -68,7 +65,7 @@ class ServiceCollector:
             depth.add_metric([name], Queue(name, connection=self.jobs.r).count)
         yield depth
         alive = sum(1 for w in workers(self.jobs) if w["alive"])
-        yield GaugeMetricFamily("photonfarm_workers_alive", "Workers heard from in the last minute", value=alive)
+        yield GaugeMetricFamily("photonfarm_workers_alive", "Workers whose heartbeat is current", value=alive)
 
 
 def metrics_text(jobs: Jobs) -> bytes:

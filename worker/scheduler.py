@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 import uuid
 
 import redis
@@ -29,6 +30,7 @@ from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
 REAP_SECONDS = 2.0
+PRUNE_SECONDS = 60.0
 
 log = logging.getLogger("photonfarm.scheduler")
 
@@ -45,8 +47,10 @@ def enqueue(jobs: Jobs, batch: Batch, priority: Priority) -> None:
         result_ttl=0, failure_ttl=86_400, job_id=rq_id)
 
 
-def target_inflight(conn: redis.Redis) -> int:
-    return max(1, min(MAX_INFLIGHT_PER_JOB, Worker.count(connection=conn)))
+def target_inflight(jobs: Jobs) -> int:
+    """Batches a job keeps in flight: one per live worker (dead registrations count for
+    nothing), within MAX_INFLIGHT_PER_JOB."""
+    return max(1, min(MAX_INFLIGHT_PER_JOB, jobs.leases.live_workers()))
 
 
 def feed(jobs: Jobs, job_id: str, pass_seconds: float | None = None) -> int:
@@ -55,7 +59,7 @@ def feed(jobs: Jobs, job_id: str, pass_seconds: float | None = None) -> int:
     if record is None:
         return 0
     issued = 0
-    target = target_inflight(jobs.r)
+    target = target_inflight(jobs)
     while jobs.leases.inflight(job_id) < target:
         batch = jobs.allocate(job_id, pass_seconds)
         if batch is None:
@@ -66,13 +70,29 @@ def feed(jobs: Jobs, job_id: str, pass_seconds: float | None = None) -> int:
 
 
 def _still_queued(jobs: Jobs, batch: Batch) -> bool:
+    """The batch's RQ job is waiting in its queue. A job RQ marks queued but that is in no
+    queue list was taken by a worker that died before starting it: lost, not waiting."""
     rq_id = jobs.leases.carrier(batch)
     if rq_id is None:
         return False
     try:
-        return Job.fetch(rq_id, connection=jobs.r).get_status() == JobStatus.QUEUED
+        job = Job.fetch(rq_id, connection=jobs.r)
     except NoSuchJobError:
         return False
+    return job.get_status() == JobStatus.QUEUED and \
+        jobs.r.lpos(Queue(job.origin, connection=jobs.r).key, rq_id) is not None
+
+
+def forget_dead_workers(jobs: Jobs) -> int:
+    """Unregister from RQ the workers our heartbeat no longer hears (RQ keeps a worker that
+    died mid-job registered until the job's timeout): they are no capacity."""
+    dead = set(jobs.leases.dead_workers())
+    if not dead:
+        return 0
+    for w in Worker.all(connection=jobs.r):
+        if w.name in dead:
+            w.register_death()
+    return len(dead)
 
 
 def reap(jobs: Jobs) -> int:
@@ -89,7 +109,8 @@ def reap(jobs: Jobs) -> int:
         jobs.leases.reissue(batch)
         enqueue(jobs, batch, record.settings.priority if record else "normal")
         reissued += 1
-    for job_id in jobs.ids():
+    forget_dead_workers(jobs)
+    for job_id in jobs.active_ids():
         record = jobs.get(job_id)
         if record is None or record.status not in ACTIVE:
             continue
@@ -110,10 +131,14 @@ class Reaper:
         self._thread = threading.Thread(target=self._run, name="reaper", daemon=True)
 
     def _run(self) -> None:
+        last_prune = 0.0
         while not self._stop.wait(self.interval):
             try:
                 if n := reap(self.jobs):
                     log.info("re-issued lost batches", extra={"reissued": n})
+                if time.monotonic() - last_prune > PRUNE_SECONDS:
+                    self.jobs.prune()  # ids of jobs past their retention
+                    last_prune = time.monotonic()
             except redis.RedisError as exc:
                 log.warning("reaper: redis unavailable: %s", exc)
 

@@ -16,6 +16,7 @@ from rq import get_current_job
 
 from kernels.program import create_context
 from worker.engine import Engine
+from worker.heartbeat import holding
 from worker.integrators.base import BatchAborted
 from worker.scene import SCENES_DIR, SceneError, parse_scene
 from worker.scheduler import feed
@@ -63,10 +64,11 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     # Render: the job's first batch fixes its setup arrays (e.g. R0, from pass 0).
     start = time.perf_counter()
     try:
-        if not jobs.has_setup(record):
-            jobs.init_setup(record, engine.passes.setup())
-        delta = engine.run_batch(jobs.batch_inputs(record), first, n,
-                                 keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
+        with holding(batch):
+            if not jobs.has_setup(record):
+                jobs.init_setup(record, engine.passes.setup())
+            delta = engine.run_batch(jobs.batch_inputs(record), first, n,
+                                     keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
     except BatchAborted:
         jobs.drop(batch)
         log.info("batch aborted: the job stopped wanting it", extra=context)

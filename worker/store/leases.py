@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import redis
 
 from worker.store import keys
-from worker.store.policy import LEASE_SECONDS, QUEUED_SECONDS
+from worker.store.policy import ALIVE_SECONDS, LEASE_SECONDS, QUEUED_SECONDS
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,14 @@ class Leases:
     def is_inflight(self, batch: Batch) -> bool:
         return bool(self.r.sismember(keys.inflight(batch.job_id), batch.id))
 
+    def unowned(self, job_id: str) -> list[Batch]:
+        """The job's in-flight batches that no worker has taken."""
+        batches = [Batch.from_id(job_id, b.decode()) for b in self.r.smembers(keys.inflight(job_id))]
+        pipe = self.r.pipeline()
+        for batch in batches:
+            pipe.hexists(keys.LEASE_OWNER, batch.member)
+        return [batch for batch, owned in zip(batches, pipe.execute()) if not owned]
+
     def set_carrier(self, batch: Batch, rq_id: str) -> None:
         self.r.hset(keys.BATCH_RQ, batch.member, rq_id)
 
@@ -96,6 +104,18 @@ class Leases:
         """Queue a lease extension and a heartbeat (after every pass)."""
         pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS}, xx=True)
         self._beat(pipe, worker, batch.job_id, batch.id, passes=1)
+
+    def keep_alive(self, worker: str, batch: Batch | None) -> None:
+        """The worker process's periodic beat (worker/heartbeat.py), with the lease of the
+        batch it renders: a pass may take longer than a lease, a dead process beats no more."""
+        pipe = self.r.pipeline()
+        now = time.time()
+        pipe.hset(keys.worker(worker), "last_seen", now)
+        pipe.expire(keys.worker(worker), int(ALIVE_SECONDS))
+        pipe.zadd(keys.WORKER_SEEN, {worker: now})
+        if batch is not None:
+            pipe.zadd(keys.LEASES, {batch.member: now + LEASE_SECONDS}, xx=True)
+        pipe.execute()
 
     def expired(self, now: float | None = None) -> list[Batch]:
         now = time.time() if now is None else now
@@ -128,9 +148,23 @@ class Leases:
     @staticmethod
     def _beat(pipe: redis.client.Pipeline, worker: str, job: str, batch: str, passes: int = 0) -> None:
         key = keys.worker(worker)
-        pipe.hset(key, mapping={"job": job, "batch": batch, "last_seen": time.time()})
+        now = time.time()
+        pipe.hset(key, mapping={"job": job, "batch": batch, "last_seen": now})
         pipe.hincrby(key, "passes", passes)
-        pipe.expire(key, int(3 * LEASE_SECONDS))
+        pipe.expire(key, int(ALIVE_SECONDS))
+        pipe.zadd(keys.WORKER_SEEN, {worker: now})
+
+    def live_workers(self) -> int:
+        """Workers heard from within ALIVE_SECONDS: the capacity batches are issued for."""
+        return self.r.zcount(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")
+
+    def dead_workers(self) -> list[str]:
+        """Forget workers not heard from within ALIVE_SECONDS; returns their names."""
+        cutoff = time.time() - ALIVE_SECONDS
+        names = [n.decode() for n in self.r.zrangebyscore(keys.WORKER_SEEN, "-inf", cutoff)]
+        if names:
+            self.r.zrem(keys.WORKER_SEEN, *names)
+        return names
 
     def heartbeat(self, worker: str, job: str = "", batch: str = "") -> None:
         pipe = self.r.pipeline()
@@ -138,9 +172,9 @@ class Leases:
         pipe.execute()
 
     def heartbeats(self) -> dict[str, dict[str, str]]:
-        """worker name -> its last heartbeat (job, batch, passes, last_seen)."""
-        names = [k.decode() for k in self.r.scan_iter(keys.WORKERS)]
+        """Live worker name -> its last heartbeat (job, batch, passes, last_seen)."""
+        names = [n.decode() for n in self.r.zrangebyscore(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")]
         pipe = self.r.pipeline()
-        for k in names:
-            pipe.hgetall(k)
-        return {keys.worker_name(k): _decode(h) for k, h in zip(names, pipe.execute()) if h}
+        for name in names:
+            pipe.hgetall(keys.worker(name))
+        return {name: _decode(h) for name, h in zip(names, pipe.execute()) if h}

@@ -29,12 +29,17 @@ FINAL = frozenset(Status) - ACTIVE
 
 # A started batch must report a pass (or finish) this often, or it is taken for lost.
 LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
-QUEUED_SECONDS = 120.0  # how often the reaper looks again at a batch still waiting in a queue
+QUEUED_SECONDS = LEASE_SECONDS  # how often the reaper checks that a waiting batch is still in its queue
 BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long, and ...
 MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
 MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
 MAX_INFLIGHT_PER_JOB = 8
+# A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
+# not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
+ALIVE_SECONDS = 3 * LEASE_SECONDS
+# Finished jobs (and their images) are kept this long, then deleted.
+RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 * 86_400)))
 
 
 def batch_passes(pass_seconds: float, mean_merge_seconds: float) -> int:

@@ -6,6 +6,10 @@ the same passes, and the merged set makes sure they count once. The merge is one
 MULTI/EXEC under WATCH of the job's version key and record: a worker that dies before EXEC
 leaves nothing behind, two concurrent merges cannot both apply, and a cancel landing
 between a merge's read and its write makes the merge retry and see it.
+
+Active jobs are a set (`pf:active`) changed in the same transaction as the status: a job
+is created only if the set is below the limit (checked and added atomically), and every
+move to a final status removes it and gives all the job's keys their retention time.
 """
 
 from __future__ import annotations
@@ -24,7 +28,11 @@ from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
 from worker.store.leases import Batch, Leases
-from worker.store.policy import Status
+from worker.store.policy import RETENTION_SECONDS, Status
+
+
+class JobLimitReached(Exception):
+    """The service holds as many active jobs as it allows."""
 
 
 @dataclass(frozen=True)
@@ -97,17 +105,27 @@ class Jobs:
 
     # ------------------------------------------------------------------ records
     def create(self, scene: dict[str, Any], settings: Settings, width: int, height: int,
-               scene_name: str | None) -> str:
+               scene_name: str | None, max_active: int | None = None) -> str:
+        """A new queued job; raises JobLimitReached if `max_active` jobs are active."""
         job_id = uuid.uuid4().hex[:16]
         now = time.time()
         fields = {"status": Status.QUEUED.value, "scene": json.dumps(scene), "settings": settings.model_dump_json(),
                   "scene_name": scene_name or "", "width": width, "height": height, "created": now,
                   "passes": 0, "emitted": 0, "next_pass": 0, "pass_seconds": 0.0, "attempts": "{}"}
-        pipe = self.r.pipeline()
-        pipe.hset(keys.job(job_id), mapping=fields)
-        pipe.zadd(keys.JOBS, {job_id: now})
-        pipe.execute()
-        return job_id
+        with self.r.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(keys.ACTIVE)
+                    if max_active is not None and pipe.scard(keys.ACTIVE) >= max_active:
+                        raise JobLimitReached(f"at most {max_active} jobs may be active at once")
+                    pipe.multi()
+                    pipe.hset(keys.job(job_id), mapping=fields)
+                    pipe.zadd(keys.JOBS, {job_id: now})
+                    pipe.sadd(keys.ACTIVE, job_id)
+                    pipe.execute()
+                    return job_id
+                except redis.WatchError:
+                    continue
 
     def get(self, job_id: str) -> JobRecord | None:
         h = self.r.hgetall(keys.job(job_id))
@@ -120,14 +138,55 @@ class Jobs:
         s = self.r.hget(keys.job(job_id), "status")
         return Status(s.decode()) if s else None
 
-    def ids(self) -> list[str]:
-        return [j.decode() for j in self.r.zrange(keys.JOBS, 0, -1)]
+    def ids(self, offset: int = 0, limit: int | None = None, newest_first: bool = False) -> list[str]:
+        end = -1 if limit is None else offset + limit - 1
+        ids = self.r.zrevrange(keys.JOBS, offset, end) if newest_first else self.r.zrange(keys.JOBS, offset, end)
+        return [j.decode() for j in ids]
+
+    def count(self) -> int:
+        return self.r.zcard(keys.JOBS)
 
     def active_count(self) -> int:
+        return self.r.scard(keys.ACTIVE)
+
+    def active_ids(self) -> list[str]:
+        return sorted(j.decode() for j in self.r.smembers(keys.ACTIVE))
+
+    def _arrays_of(self, job_id: str) -> tuple[str, ...]:
+        """The names of a job's state arrays (from its settings; all possible ones if unknown)."""
+        settings = self.r.hget(keys.job(job_id), "settings")
+        record_settings = Settings.model_validate_json(settings) if settings else Settings(error_estimation=True)
+        return tuple(integrator_for(record_settings).state_widths)
+
+    def _finish(self, pipe: redis.client.Pipeline, job_id: str, status: Status, arrays: tuple[str, ...],
+                now: float) -> None:
+        """Queue a move to a final status: the slot is freed and every key of the job gets
+        its retention time."""
+        pipe.hset(keys.job(job_id), mapping={"status": status.value, "finished": now})
+        pipe.srem(keys.ACTIVE, job_id)
+        for key in keys.job_keys(job_id, arrays):
+            pipe.expire(key, int(RETENTION_SECONDS))
+
+    def delete(self, job_id: str) -> None:
+        """Remove a job and every key it has."""
+        arrays = self._arrays_of(job_id)
         pipe = self.r.pipeline()
-        for job_id in self.ids():
-            pipe.hget(keys.job(job_id), "status")
-        return sum(1 for s in pipe.execute() if s is not None and Status(s.decode()) in policy.ACTIVE)
+        pipe.delete(*keys.job_keys(job_id, arrays))
+        pipe.zrem(keys.JOBS, job_id)
+        pipe.srem(keys.ACTIVE, job_id)
+        pipe.execute()
+
+    def prune(self) -> int:
+        """Forget ids of jobs whose records expired (retention); returns how many."""
+        ids = self.ids()
+        pipe = self.r.pipeline()
+        for job_id in ids:
+            pipe.exists(keys.job(job_id))
+        gone = [job_id for job_id, exists in zip(ids, pipe.execute()) if not exists]
+        if gone:
+            self.r.zrem(keys.JOBS, *gone)
+            self.r.srem(keys.ACTIVE, *gone)
+        return len(gone)
 
     def history(self, job_id: str) -> list[dict[str, float]]:
         return [json.loads(x) for x in self.r.lrange(keys.history(job_id), 0, -1)]
@@ -197,6 +256,9 @@ class Jobs:
         batch to start moves the job from queued to running and starts its clock."""
         if self.r.sismember(keys.merged(batch.job_id), batch.id) or not self.leases.is_inflight(batch):
             return False
+        if self.status(batch.job_id) not in policy.RENDERING:  # cancelled, failed or gone meanwhile
+            self.drop(batch)
+            return False
         self.leases.take(batch, worker)
         self.leases.heartbeat(worker, batch.job_id, batch.id)
         key = keys.job(batch.job_id)
@@ -244,23 +306,39 @@ class Jobs:
     def settle(self, job_id: str, status: Status, final: Status) -> None:
         """A job in `status` with nothing in flight ends as `final` (atomically)."""
         key = keys.job(job_id)
+        arrays = self._arrays_of(job_id)
         with self.r.pipeline() as pipe:
             try:
                 pipe.watch(key, keys.inflight(job_id))
                 if pipe.hget(key, "status") == status.value.encode() and pipe.scard(keys.inflight(job_id)) == 0:
                     pipe.multi()
-                    pipe.hset(key, mapping={"status": final.value, "finished": time.time()})
+                    self._finish(pipe, job_id, final, arrays, time.time())
                     pipe.execute()
             except redis.WatchError:
                 pass  # something changed meanwhile: the next merge or reap decides
 
     def fail(self, job_id: str, message: str) -> None:
         key = keys.job(job_id)
-        if self.status(job_id) in policy.ACTIVE:
-            self.r.hset(key, mapping={"status": Status.FAILED.value, "error": message[:2000], "finished": time.time()})
+        arrays = self._arrays_of(job_id)
+        with self.r.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(key)
+                    status = pipe.hget(key, "status")
+                    if status is None or Status(status.decode()) not in policy.ACTIVE:
+                        return
+                    pipe.multi()
+                    pipe.hset(key, "error", message[:2000])
+                    self._finish(pipe, job_id, Status.FAILED, arrays, time.time())
+                    pipe.execute()
+                    return
+                except redis.WatchError:
+                    continue
 
     def cancel(self, job_id: str) -> Status | None:
-        """Request cancellation; returns the resulting status."""
+        """Request cancellation; returns the resulting status. Batches no worker has taken
+        are dropped at once, so a job with nothing rendering ends (and frees its slot) now;
+        a worker that takes one of them later finds the job no longer rendering."""
         key = keys.job(job_id)
         with self.r.pipeline() as pipe:
             while True:
@@ -274,6 +352,8 @@ class Jobs:
                     break
                 except redis.WatchError:
                     continue
+        for batch in self.leases.unowned(job_id):
+            self.leases.drop(batch)
         self.settle(job_id, Status.CANCEL_REQUESTED, Status.CANCELLED)
         return self.status(job_id)
 
@@ -326,6 +406,8 @@ class Jobs:
                         pipe.sadd(keys.merged(batch.job_id), batch.id)
                         Leases.release(pipe, batch)
                         pipe.incr(keys.version(batch.job_id))
+                        if status in policy.FINAL:  # last: SET clears a key's time to live
+                            self._finish(pipe, batch.job_id, status, tuple(integrator.state_widths), now)
                         pipe.execute()
                         outcome = "merged"
                         break
