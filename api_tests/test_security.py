@@ -74,8 +74,8 @@ def test_scene_name_is_never_a_path(secured: Cluster, tmp_path: Path) -> None:
 def test_mesh_file_names_the_file_system_refuses_are_422(secured: Cluster) -> None:
     scene = _furnace(secured)
     for obj in ("m" * 300 + ".obj", "x\x00.obj", "\u00e9" * 200 + ".obj"):  # the last: 200 chars, 400 bytes
-        scene["shapes"] = [scene["shapes"][0], {"type": "mesh", "obj": obj, "material": "wall"}]
-        _names_field(secured.http.post("/v1/jobs", json={"scene": scene}), "body", "scene", "shapes", 1, "obj")
+        scene["shapes"] = [scene["shapes"][0], {"type": "mesh", "file": obj, "material": "wall"}]
+        _names_field(secured.http.post("/v1/jobs", json={"scene": scene}), "body", "scene", "shapes", 1, "file")
 
 
 def test_undecodable_and_deeply_nested_bodies_are_422(secured: Cluster) -> None:

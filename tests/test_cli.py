@@ -83,3 +83,21 @@ def test_submit_eta_from_the_error_slope() -> None:
     assert abs(eta_seconds(job) - (400.0 - 64.0)) < 1.0
     job["settings"] = {"max_seconds": 100.0}
     assert eta_seconds(job) == 36.0
+
+
+def test_convert_and_render_a_mitsuba_scene_from_anywhere(tmp_path: Path) -> None:
+    out = tmp_path / "conv" / "obj-mesh.json"
+    proc = subprocess.run([str(PHOTONFARM), "convert", "scenes/mitsuba/obj-mesh.xml", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parent.parent)
+    assert proc.returncode == 0, proc.stderr
+    from worker.scene import parse_scene
+
+    assert parse_scene(json.loads(out.read_text())).camera  # our JSON, meshes inlined
+    image = tmp_path / "xml.png"
+    proc = run(str(Path(__file__).resolve().parent.parent / "scenes" / "mitsuba" / "ply-mesh.xml"), "--passes", "1",
+               *SMALL, "--out", str(image))
+    assert proc.returncode == 0 and read_image(image).shape == (16, 16, 3), proc.stderr
+    bad = tmp_path / "bad.xml"
+    bad.write_text('<scene version="3.0.0">\n  <bsdf type="hair"/>\n</scene>\n')
+    proc = subprocess.run([str(PHOTONFARM), "convert", str(bad)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "line 2" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
