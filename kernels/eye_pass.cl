@@ -19,7 +19,7 @@ __kernel void eye_pass(
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
     __global const float4* surf_a, __global const float4* surf_b,
     __global const CameraDesc* cam, int width, int height,
-    ulong seed, uint pass, int max_depth,
+    ulong seed, uint pass, int max_bounces,
     __global float4* mp_pos,       // xyz; w: 1 if the pixel has a measurement point
     __global float4* mp_nrm,       // normal facing the eye path
     __global float4* mp_wgt,       // throughput * albedo / pi
@@ -51,7 +51,7 @@ __kernel void eye_pass(
     float3 thr = (float3)(1.0f);
     float3 direct = (float3)(0.0f);
     float4 pos = (float4)(0.0f), nrm = (float4)(0.0f), wgt = (float4)(0.0f);
-    for (int depth = 0; depth < max_depth; ++depth) {
+    for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (worker/engine.py)
         Hit h = intersect(&g, origin, d);
         if (h.surf == SURF_NONE) break;
         float3 p = origin + h.t * d;

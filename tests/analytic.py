@@ -21,7 +21,14 @@ import numpy as np
 from worker.engine import Engine
 
 FURNACE_RHO, FURNACE_PHI, FURNACE_R = 0.5, 4.0 * math.pi, 1.0
-FURNACE_L = FURNACE_RHO * FURNACE_PHI / (4.0 * math.pi ** 2 * FURNACE_R ** 2 * (1.0 - FURNACE_RHO))
+
+
+def furnace_radiance(rho: float | np.ndarray, power: float = FURNACE_PHI, r: float = FURNACE_R) -> float | np.ndarray:
+    """rho Phi / (4 pi^2 r^2 (1 - rho)), per channel for an rgb albedo."""
+    return rho * power / (4.0 * math.pi ** 2 * r ** 2 * (1.0 - np.asarray(rho)))
+
+
+FURNACE_L = float(furnace_radiance(FURNACE_RHO))
 PLANE_RHO, PLANE_I, PLANE_H = 0.5, 1.0, 1.0
 
 

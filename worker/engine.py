@@ -24,7 +24,19 @@ from worker.scene_arrays import SceneArrays, compile_scene
 from worker.stats import ADDITIVE, Delta
 
 MAX_PHOTONS_PER_PASS = 1 << 24
-MAX_DEPTH = 16  # bounces per photon path and specular bounces per eye path
+# Photon paths end by Russian roulette and eye paths at their first diffuse hit; this cap
+# on bounces per photon path and specular bounces per eye path is only a safety net.
+# Russian roulette keeps the expected throughput, so the energy the cap cuts is the true
+# throughput still carried after MAX_BOUNCES bounces: at most a^MAX_BOUNCES of the emitted
+# (or seen) energy where every surface reflects at most a. For a = 0.99 that is
+# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2; the 16 bounces of old lost 0.99^16 = 15%.
+# Lossless surfaces (albedo 1: ideal mirrors and glass) absorb nothing, so there the cut is
+# the share of paths still trapped among them after 4096 bounces: zero in any scene where
+# such a chain ends at a diffuse surface or escapes (glass: each internal hit stays inside
+# only with the Fresnel reflectance), and the radiance of a closed lossless cavity with no
+# diffuse surface is not defined at all. 4096 = 2^12 is what the photon key holds
+# (kernels/photon_pass.cl).
+MAX_BOUNCES = 4096
 R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at the median lit pixel ...
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
 PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
@@ -39,6 +51,7 @@ class RenderSettings:
     initial_radius: float | None = None  # world units; default: see Engine.initial_radius
     hash_entries_per_photon: float = 1.0  # stochastic hash table size / photons stored per pass
     error_estimation: bool = True  # accumulate the error estimator's sums (G, Gr, X1, X2, L2)
+    max_bounces: int = MAX_BOUNCES  # safety cap on path length (lower only to study what it cuts)
 
     def __post_init__(self) -> None:
         if not 1 <= self.photons_per_pass <= MAX_PHOTONS_PER_PASS:
@@ -49,6 +62,8 @@ class RenderSettings:
             raise ValueError("initial_radius must be positive and finite")
         if not 0.0 < self.hash_entries_per_photon <= 64.0:
             raise ValueError("hash_entries_per_photon must lie in (0, 64]")
+        if not 1 <= self.max_bounces <= MAX_BOUNCES:
+            raise ValueError(f"max_bounces must lie in [1, {MAX_BOUNCES}]")
 
 
 STAGES = ("eye", "trace", "build", "gather", "readback")
@@ -165,7 +180,7 @@ class Engine:
         eye_index = 0 if self.settings.method == "ppm" else pass_index  # PPM: one fixed set of points
         ev = self.program.launch(self.queue, "eye_pass", a.n_pixels, *self.geometry, self.camera,
                                  i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                 i32(MAX_DEPTH), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc["Ld"])
+                                 i32(self.settings.max_bounces), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc["Ld"])
         self.times.add("eye", [ev])
 
     def _photon_pass(self, pass_index: int) -> int:
@@ -174,7 +189,7 @@ class Engine:
             events = [self._fill(self.ph_count, np.uint32(0), 1)]
             events.append(self.program.launch(
                 self.queue, "photon_pass", self.settings.photons_per_pass, *self.geometry, *self.emitter_args,
-                u64(self.settings.seed), u32(pass_index), i32(MAX_DEPTH), u32(self.capacity),
+                u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
                 self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(self.queue, stored, self.ph_count)
@@ -224,10 +239,13 @@ class Engine:
         self.times.add("gather", [gather])
 
     def gather_photons(self, points: np.ndarray, normals: np.ndarray, radius: np.ndarray, photon_pos: np.ndarray,
-                       photon_flux: np.ndarray, photon_dir: np.ndarray) -> Delta:
+                       photon_flux: np.ndarray, photon_dir: np.ndarray,
+                       photon_normal: np.ndarray | None = None) -> Delta:
         """Gather given photons at given points with the real kernels, no eye or photon pass:
         a probe of the density and derivative estimates (e.g. noise-free on a photon grid).
-        Needs an Engine whose resolution has exactly len(points) pixels; unit weights."""
+        Needs an Engine whose resolution has exactly len(points) pixels; unit weights.
+        `photon_normal` is each photon's surface normal facing it (default: photon_dir,
+        photons that arrived along their surface's normal)."""
         n, m = self.arrays.n_pixels, len(photon_pos)
         if len(points) != n:
             raise ValueError(f"this engine gathers at exactly {n} points")
@@ -240,9 +258,12 @@ class Engine:
             out[:, 3] = w
             return out
 
-        packed = np.array([_pack_dir(d) for d in photon_dir], np.uint32).view(np.float32)
+        def packed(dirs: np.ndarray) -> np.ndarray:
+            return np.array([_pack_dir(d) for d in dirs], np.uint32).view(np.float32)
+
+        nrm = packed(photon_dir if photon_normal is None else photon_normal)
         for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)), (self.mp_wgt, f4(np.ones((n, 3)))),
-                          (self.ph_pos, f4(photon_pos)), (self.ph_flux, f4(photon_flux, packed)),
+                          (self.ph_pos, f4(photon_pos, nrm)), (self.ph_flux, f4(photon_flux, packed(photon_dir))),
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
             cl.enqueue_copy(self.queue, buf, host)
         cl.enqueue_copy(self.queue, self.ph_key, np.arange(m, dtype=np.uint64))
