@@ -10,6 +10,7 @@ import pytest
 
 from kernels.program import create_context
 from worker.engine import Engine, RenderSettings
+from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
 from worker.scene import bundled_scene_path, load_scene_file
 from worker.stats import Accumulators
 
@@ -41,3 +42,17 @@ def render(engine: Engine, passes: int, alpha: float = 0.7) -> Accumulators:
 
 def image(engine: Engine, state: Accumulators) -> np.ndarray:
     return state.radiance().reshape(engine.arrays.height, engine.arrays.width, 3)
+
+
+def render_until(engine: Engine, threshold: float, confidence: float = 0.9, max_passes: int = 1000,
+                 alpha: float = 0.7) -> tuple[Accumulators, ErrorEstimate]:
+    """The progressive loop with termination: one pass per batch, the variance samples
+    bias-corrected (eq. 6.22), until the estimated average relative error is at most
+    `threshold` or `max_passes` ran."""
+    state = Accumulators.start(alpha, engine.initial_radius())
+    est = estimate(state, confidence)
+    while est.average > threshold and state.passes < max_passes:
+        r = state.radius()
+        state.merge(engine.run_batch(r, state.passes, 1, bias=bias_estimate(r, state.G, state.emitted, "taylor")))
+        est = estimate(state, confidence)
+    return state, est
