@@ -180,7 +180,7 @@ class Engine:
         eye_index = 0 if self.settings.method == "ppm" else pass_index  # PPM: one fixed set of points
         ev = self.program.launch(self.queue, "eye_pass", a.n_pixels, *self.geometry, self.camera,
                                  i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                 i32(self.settings.max_bounces), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc["Ld"])
+                                 i32(self.settings.max_bounces), self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.acc["Ld"])
         self.times.add("eye", [ev])
 
     def _photon_pass(self, pass_index: int) -> int:
@@ -262,7 +262,8 @@ class Engine:
             return np.array([_pack_dir(d) for d in dirs], np.uint32).view(np.float32)
 
         nrm = packed(photon_dir if photon_normal is None else photon_normal)
-        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)), (self.mp_wgt, f4(np.ones((n, 3)))),
+        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)),
+                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)),  # the whole disc on the plane
                           (self.ph_pos, f4(photon_pos, nrm)), (self.ph_flux, f4(photon_flux, packed(photon_dir))),
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
             cl.enqueue_copy(self.queue, buf, host)
@@ -288,6 +289,7 @@ class Engine:
         n = self.arrays.n_pixels
         if self.settings.initial_radius is not None:
             return np.full(n, self.settings.initial_radius)
+        cl.enqueue_copy(self.queue, self.radius, np.zeros(n, np.float32))  # no disc coverage: the probe is rough
         self._eye_pass(0)
         dist = np.empty(n, np.float32)
         cl.enqueue_copy(self.queue, dist, self.mp_dist)
