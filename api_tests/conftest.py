@@ -1,4 +1,4 @@
-"""Each test module gets its own real cluster (service/local_cluster.py)."""
+"""Each test module gets its own real cluster (api_tests/cluster.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import Iterator
 
 import pytest
 
-from service.local_cluster import Cluster
+from api_tests.cluster import Cluster
 
 
 @pytest.fixture(scope="module")

@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 import redis
 
-from service.models import JobSettings
 from service.redis_server import EmbeddedRedis
-from worker.engine import Engine, RenderSettings
-from worker.job_store import Batch, JobStore
+from worker.engine import Engine
+from worker.integrators.base import Delta
+from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
-from worker.stats import ADDITIVE, Delta
+from worker.settings import Settings
+from worker.store import Batch, Jobs, keys
 
 BATCHES = 12
 PROCESSES = 4
@@ -25,16 +26,17 @@ PROCESSES = 4
 
 def _merge_all(url: str, job_id: str, deltas_file: str, order_seed: int) -> list[str]:
     deltas: list[Delta] = pickle.loads(Path(deltas_file).read_bytes())
-    store = JobStore(redis.Redis.from_url(url))
+    store = Jobs(redis.Redis.from_url(url))
     order = list(range(len(deltas)))
     random.Random(order_seed).shuffle(order)
     return [store.merge(Batch(job_id, deltas[i].first_pass, deltas[i].n_passes), deltas[i], 0.1) for i in order]
 
 
-def _job(store: JobStore, scene: dict, r0: np.ndarray, w: int, h: int) -> str:
-    job_id = store.create(scene, JobSettings(max_passes=1000).model_dump(), w, h, "cornell-caustics")
-    store.init_radius(job_id, r0)
-    store.r.hset(f"pf:job:{job_id}", mapping={"status": "running", "started": 1.0})
+def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray, w: int, h: int) -> str:
+    job_id = store.create(scene, settings.model_copy(update={"max_passes": 1000, "max_seconds": None}), w, h,
+                          "cornell-caustics")
+    store.init_setup(store.get(job_id), {"R0": r0})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
     return job_id
 
 
@@ -43,27 +45,28 @@ def test_concurrent_shuffled_merges_give_one_state(tmp_path: Path) -> None:
     try:
         parsed, base = load_scene_file(bundled_scene_path("cornell-caustics"))
         w, h = 64, 48
-        engine = Engine(parsed, base, RenderSettings(photons_per_pass=1 << 14, seed=21), resolution=(w, h))
-        r0 = engine.initial_radius()
-        deltas = [engine.run_batch(r0 * (1.0 - 0.03 * i), 2 * i, 2) for i in range(BATCHES)]
+        settings = Settings(photons_per_pass=1 << 14, seed=21, resolution=(w, h))
+        engine = Engine(parsed, base, settings)
+        r0 = engine.start().R0
+        deltas = [engine.run_batch(GatherInputs(r0 * (1.0 - 0.03 * i)), 2 * i, 2) for i in range(BATCHES)]
         deltas_file = tmp_path / "deltas.pkl"
         deltas_file.write_bytes(pickle.dumps(deltas))
-        store = JobStore(redis.Redis.from_url(server.url))
+        store = Jobs(redis.Redis.from_url(server.url))
         scene = inline_meshes(parsed, base)
         states = []
         for trial in range(2):
-            job_id = _job(store, scene, r0, w, h)
+            job_id = _job(store, scene, settings, r0, w, h)
             with mp.get_context("spawn").Pool(PROCESSES) as pool:
                 outcomes = pool.starmap(_merge_all, [(server.url, job_id, str(deltas_file), 100 * trial + p)
                                                       for p in range(PROCESSES)])
             flat = [o for per_process in outcomes for o in per_process]
             assert flat.count("merged") == BATCHES and flat.count("duplicate") == (PROCESSES - 1) * BATCHES
-            meta = store.meta(job_id)
-            assert int(meta["passes"]) == 2 * BATCHES
-            assert int(meta["emitted"]) == sum(d.emitted for d in deltas)
-            states.append(store.accumulators(job_id))
+            record = store.get(job_id)
+            assert record.passes == 2 * BATCHES
+            assert record.emitted == sum(d.emitted for d in deltas)
+            states.append(store.state(record))
         a, b = states
-        for name in ADDITIVE:  # rounding of a reordered sum scales with its largest term
+        for name in engine.integrator.sums.names:  # rounding of a reordered sum scales with its largest term
             expected = sum(getattr(d, name) for d in deltas)
             atol = 1e-12 * np.abs(expected).max()
             np.testing.assert_allclose(getattr(a, name), expected, rtol=1e-12, atol=atol)

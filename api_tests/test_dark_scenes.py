@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from api_tests.test_jobs import _decode
-from service.local_cluster import Cluster, finished
+from api_tests.cluster import Cluster, finished
 
 
 def _furnace_variant(cluster: Cluster, dark: str) -> dict:

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from service.local_cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster, finished, merged_passes
 
 P = 1 << 16
 PASSES = 40

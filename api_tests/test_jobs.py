@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.local_cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster, finished, merged_passes
 from service.models import MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PHOTONS_PER_PASS
 from worker.image_io import read_image
 
@@ -74,7 +74,10 @@ def test_cancel_stops_quickly_and_keeps_the_image(cluster: Cluster) -> None:
     assert sorted(set(merged_passes(cluster.redis_client, job["id"]))) == merged_passes(cluster.redis_client, job["id"])
     rgb = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
     assert rgb.mean() > 0.0  # the image of the merged passes is kept
-    assert cluster.http.delete(f"/v1/jobs/{job['id']}").status_code == 202  # cancelling again is harmless
+    # a finished job is deleted, state and images with it
+    assert cluster.http.delete(f"/v1/jobs/{job['id']}").status_code == 204
+    assert cluster.http.get(f"/v1/jobs/{job['id']}").status_code == 404
+    assert not cluster.redis_client.keys(f"pf:job:{job['id']}*")
 
 
 def _bad(cluster: Cluster, body: dict, loc: list) -> None:

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from api_tests.test_jobs import FURNACE_L
-from service.local_cluster import Cluster, finished
+from api_tests.cluster import Cluster, finished
 from worker.image_io import read_image
 
-PHOTONFARM = [sys.executable, "-m", "worker.cli"]
+PHOTONFARM = [sys.executable, "-m", "service.cli"]
 
 
 def _metric(text: str, name: str, labels: str = "") -> float:

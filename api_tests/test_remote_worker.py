@@ -12,7 +12,7 @@ from typing import Iterator
 
 import pytest
 
-from service.local_cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster, finished, merged_passes
 from api_tests.test_jobs import _decode
 
 

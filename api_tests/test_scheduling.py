@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.local_cluster import Cluster, finished
+from api_tests.cluster import Cluster, finished
 
 
 def test_small_job_is_not_stuck_behind_a_large_one(cluster: Cluster) -> None:

@@ -1,4 +1,5 @@
-"""Shared by the benchmarks: the smallppm peer's scene and the image error metric.
+"""Shared by the benchmarks: engines, output files, the smallppm peer's scene and the image
+error metric.
 
 The error metric compares images in smallppm's display space: v = (1 - exp(-x))^(1/2.2)
 for linear radiance x (smallppm's own 8-bit output is read as v = byte / 255), then the
@@ -7,21 +8,22 @@ RMS of v_img - v_ref over all pixels and channels.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 
-from worker.scene import Scene, bundled_scene_path, load_scene_file
+from worker.engine import Engine
+from worker.scene import bundled_scene_path, load_scene_file
+from worker.settings import Settings
+
+matplotlib.use("Agg")  # charts are files
 
 BENCH_DIR = Path(__file__).resolve().parent
 OUT_DIR = BENCH_DIR / "out"
 PEERS_FILE = BENCH_DIR / "peers.json"
 REFERENCE_FILE = BENCH_DIR / "reference" / "smallppm-ref.exr"
-
-def smallppm_scene() -> tuple[Scene, Path]:
-    """The bundled smallppm scene (smallppm's camera: position y = 48)."""
-    return load_scene_file(bundled_scene_path("smallppm"))
-
 
 def display(rgb: np.ndarray) -> np.ndarray:
     """smallppm's tone curve without 8-bit quantisation: (1 - exp(-x))^(1/2.2)."""
@@ -52,3 +54,28 @@ def read_ppm(path: Path | str) -> np.ndarray:
         w, h, maxval = int(tokens[1]), int(tokens[2]), int(tokens[3])
         pix = np.array(tokens[4 : 4 + w * h * 3], dtype=np.float64)
     return pix.reshape(h, w, 3).astype(np.float64) / maxval
+
+
+def bench_engine(scene: str, resolution: tuple[int, int] | None = None, **settings: object) -> Engine:
+    """An Engine for a bundled scene with the given settings fields (the rest default)."""
+    parsed, base = load_scene_file(bundled_scene_path(scene))
+    return Engine(parsed, base, Settings(resolution=resolution, **settings))
+
+
+def write_json(name: str, report: object) -> Path:
+    """bench/out/NAME.json."""
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    path = OUT_DIR / f"{name}.json"
+    path.write_text(json.dumps(report, indent=1) + "\n")
+    return path
+
+
+def save_figure(fig: object, name: str) -> Path:
+    """bench/out/NAME.png (a matplotlib figure), then closes it."""
+    import matplotlib.pyplot as plt
+
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    path = OUT_DIR / f"{name}.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -14,38 +14,26 @@ Writes bench/out/error_estimation.json and .png.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 import worker.error_estimate as ee
+from bench.common import BENCH_DIR, bench_engine, save_figure, write_json
+from kernels.contract import LUMINANCE
 from tests.analytic import FURNACE_L, point_plane
-from worker.engine import Engine, RenderSettings
+from worker.engine import Engine
 from worker.image_io import read_image
-from worker.scene import bundled_scene_path, load_scene_file
-from worker.stats import Accumulators
+from worker.render_loop import render
 
-OUT = Path(__file__).resolve().parent / "out"
-REFERENCE = Path(__file__).resolve().parent / "reference" / "cornell-caustics-48x48.exr"
+REFERENCE = BENCH_DIR / "reference" / "cornell-caustics-48x48.exr"
 Truth = Callable[[Engine], np.ndarray | float]
 CASES: dict[str, tuple[tuple[int, int] | None, int, Truth]] = {
     "furnace": (None, 1 << 15, lambda eng: FURNACE_L),
     "point-plane": (None, 1 << 15, lambda eng: point_plane(eng)[0]),
-    "cornell-caustics": ((48, 48), 1 << 12, lambda eng: read_image(REFERENCE).reshape(-1, 3) @ ee.LUMINANCE),
+    "cornell-caustics": ((48, 48), 1 << 12, lambda eng: read_image(REFERENCE).reshape(-1, 3) @ LUMINANCE),
 }
-
-
-def engine(scene: str, resolution: tuple[int, int] | None, photons: int, **settings: object) -> Engine:
-    parsed, base = load_scene_file(bundled_scene_path(scene))
-    return Engine(parsed, base, RenderSettings(photons_per_pass=photons, **settings), resolution=resolution)
-
-
-def step(eng: Engine, st: Accumulators) -> None:
-    r = st.radius()
-    st.merge(eng.run_batch(r, st.passes, 1, bias=ee.bias_estimate(r, st.G, st.emitted, "taylor")))
 
 
 def overhead(passes: int) -> dict:
@@ -54,23 +42,24 @@ def overhead(passes: int) -> dict:
     against the wall time of a pass. Wall times alone differ by more than that from run to run."""
     out: dict[str, list[float]] = {}
     for on in (False, True, False, True):  # interleaved, to spread any drift of the machine
-        eng = engine("cornell-caustics", (256, 256), 1 << 18, seed=3, error_estimation=on)
-        st = Accumulators.start(0.7, eng.initial_radius())
-        step(eng, st)  # warm-up
+        eng = bench_engine("cornell-caustics", (256, 256), photons_per_pass=1 << 18, seed=3, error_estimation=on)
+        st = render(eng, passes=1)  # warm-up
         gather0 = eng.times.seconds["gather"]
-        t0 = time.perf_counter()
-        host = 0.0
-        for _ in range(passes):
-            step(eng, st)
+        host = [0.0]
+
+        def observe(state: object, _: float, on: bool = on) -> None:
             if on:
                 h0 = time.perf_counter()
-                ee.estimate(st, 0.9)
-                host += time.perf_counter() - h0
+                ee.estimate(state, 0.9)
+                host[0] += time.perf_counter() - h0
+
+        t0 = time.perf_counter()
+        render(eng, passes=passes + 1, progress=observe, state=st)
         key = "with" if on else "without"
-        out.setdefault(f"wall_{key}", []).append((time.perf_counter() - t0) / passes)
+        out.setdefault(f"wall_{key}", []).append((time.perf_counter() - t0 - host[0]) / passes)
         out.setdefault(f"gather_{key}", []).append((eng.times.seconds["gather"] - gather0) / passes)
         if on:
-            out.setdefault("host_estimate", []).append(host / passes)
+            out.setdefault("host_estimate", []).append(host[0] / passes)
     per_pass = {k: float(np.median(v)) for k, v in out.items()}
     per_pass["overhead_fraction"] = (per_pass["gather_with"] - per_pass["gather_without"]
                                      + per_pass["host_estimate"]) / per_pass["wall_without"]
@@ -80,19 +69,20 @@ def overhead(passes: int) -> dict:
 def coverage(passes: list[int], z_values: list[float]) -> dict:
     result: dict = {}
     for scene, (res, photons, truth_of) in CASES.items():
-        eng = engine(scene, res, photons, seed=31)
+        eng = bench_engine(scene, res, photons_per_pass=photons, seed=31)
         truth = truth_of(eng)
-        st = Accumulators.start(0.7, eng.initial_radius())
-        for k in range(max(passes)):
-            step(eng, st)
-            if k + 1 not in passes:
-                continue
+
+        def observe(st: object, _: float, scene: str = scene, truth: object = truth) -> None:
+            if st.passes not in passes:
+                return
             for z in z_values:
                 for conf in (0.5, 0.9):
                     est = ee.estimate(st, conf, significance=z)
                     covered = est.bound >= np.abs(est.luminance - truth)
-                    result.setdefault(scene, []).append({"passes": k + 1, "z": z, "confidence": conf,
+                    result.setdefault(scene, []).append({"passes": st.passes, "z": z, "confidence": conf,
                                                          "coverage": float(covered[est.known].mean())})
+
+        render(eng, passes=max(passes), progress=observe)
     return result
 
 
@@ -101,28 +91,28 @@ def termination(thresholds: list[float], max_passes: int) -> dict:
     for scene in ("furnace", "point-plane", "cornell-caustics"):
         res, photons, truth_of = CASES[scene]
         for conf in (0.5, 0.9):
-            eng = engine(scene, res, photons, seed=5)
+            eng = bench_engine(scene, res, photons_per_pass=photons, seed=5, confidence=conf)
             truth = truth_of(eng)
-            st = Accumulators.start(0.7, eng.initial_radius())
             pending = sorted(thresholds, reverse=True)
-            rows = []
-            while pending and st.passes < max_passes:
-                step(eng, st)
-                est = ee.estimate(st, conf)
+            rows: list[dict] = []
+
+            def observe(st: object, _: float, truth: object = truth, pending: list = pending,
+                        rows: list = rows, eng: Engine = eng) -> bool:
+                est = eng.integrator.estimate(st)
                 while pending and est.average <= pending[0]:
                     lum = est.luminance
                     floor = ee.FLOOR_FRACTION * float(np.mean(truth))
                     actual = float(np.mean((np.abs(lum - truth) / np.maximum(truth, floor))[est.measured]))
                     rows.append({"threshold": pending.pop(0), "passes": st.passes, "estimated": est.average,
                                  "actual": actual})
+                return not pending
+
+            render(eng, passes=max_passes, progress=observe)
             result[f"{scene} @ {conf}"] = rows
     return result
 
 
-def chart(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def chart(result: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
@@ -156,7 +146,7 @@ def chart(result: dict, path: Path) -> None:
     axes[2].set_title("termination (Table 6.2)")
     axes[2].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, "error_estimation")
 
 
 def main() -> None:
@@ -173,9 +163,8 @@ def main() -> None:
     for rows in result["termination"].values():
         for prev, cur in zip(rows, rows[1:]):
             cur["passes_ratio_to_previous"] = cur["passes"] / prev["passes"]
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "error_estimation.json").write_text(json.dumps(result, indent=1))
-    chart(result, OUT / "error_estimation.png")
+    write_json("error_estimation", result)
+    chart(result)
     o = result["overhead"]
     print(f"per pass: gather {1000 * o['gather_without']:.1f} ms without the error sums, "
           f"{1000 * o['gather_with']:.1f} ms with; host estimate {1000 * o['host_estimate']:.2f} ms; "

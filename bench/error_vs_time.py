@@ -26,16 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.common import BENCH_DIR, bench_engine, save_figure, write_json
 from bench.make_reference import render as sppm_reference
 from bench.mitsuba_peer import render as mitsuba_render
-from worker.engine import Engine, RenderSettings
 from worker.error_estimate import FLOOR_FRACTION
 from worker.image_io import read_image, write_image
+from worker.render_loop import render
 from worker.scene import bundled_scene_path, load_scene_file
-from worker.stats import Accumulators
 
-OUT = Path(__file__).resolve().parent / "out"
-REFERENCES = Path(__file__).resolve().parent / "reference"
+REFERENCES = BENCH_DIR / "reference"
 # scene -> how its reference is made: "path" (Mitsuba path tracing converges) or "sppm"
 SCENES = {"cornell-box": "path", "cornell-caustics": "path", "gap": "path",
           "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm"}
@@ -86,14 +85,15 @@ def rel_rms(img: np.ndarray, ref: np.ndarray) -> float:
 
 def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, method: str, gather: str, budget: float) -> list:
     t0 = time.perf_counter()
-    parsed, base = load_scene_file(bundled_scene_path(scene))
-    eng = Engine(parsed, base, RenderSettings(method=method, gather=gather, photons_per_pass=PHOTONS, seed=7),
-                 resolution=res)
-    st = Accumulators.start(0.7, eng.initial_radius())
+    eng = bench_engine(scene, res, method=method, gather=gather, photons_per_pass=PHOTONS, seed=7)
+    state = eng.start()
+    setup = time.perf_counter() - t0
     curve = []
-    while time.perf_counter() - t0 < budget:
-        st.merge(eng.run_batch(st.radius(), st.passes, 1))
-        curve.append((time.perf_counter() - t0, rel_rms(st.radiance().reshape(res[1], res[0], 3), ref)))
+
+    def observe(st: object, seconds: float) -> None:  # the clock: set-up and rendering, not this
+        curve.append((setup + seconds, rel_rms(eng.integrator.image(st).reshape(res[1], res[0], 3), ref)))
+
+    render(eng, seconds=budget - setup, progress=observe, state=state)
     return curve
 
 
@@ -112,10 +112,7 @@ def time_to(curve: list, target: float) -> float | None:
     return next((t for t, e in curve if e <= target), None)
 
 
-def chart(scene: str, curves: dict[str, list], ref_method: str, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def chart(scene: str, curves: dict[str, list], ref_method: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
@@ -129,8 +126,7 @@ def chart(scene: str, curves: dict[str, list], ref_method: str, path: Path) -> N
     ax.set_title(f"{scene} (reference: {ref_method})")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, f"error_vs_time_{scene}")
 
 
 def main() -> None:
@@ -140,7 +136,6 @@ def main() -> None:
     parser.add_argument("--reference-seconds", type=float, default=120.0)
     args = parser.parse_args()
     side, budget = (128, 60.0) if args.full else (64, 12.0)
-    OUT.mkdir(parents=True, exist_ok=True)
     report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget, "photons_per_pass": PHOTONS,
               "scenes": {}}
     for scene, ref_method in SCENES.items():
@@ -156,9 +151,9 @@ def main() -> None:
         report["scenes"][scene] = {"resolution": list(res), "reference": json.loads(
             reference_path(scene, res).with_suffix(".json").read_text()), "time_to_error": times,
             "best_peer": best_peer, "final_error": {n: c[-1][1] for n, c in curves.items() if c}, "curves": curves}
-        chart(scene, curves, ref_method, OUT / f"error_vs_time_{scene}.png")
+        chart(scene, curves, ref_method)
         print(scene, {n: (v["0.10"], v["0.05"]) for n, v in times.items()}, flush=True)
-    (OUT / "error_vs_time.json").write_text(json.dumps(report, indent=1))
+    write_json("error_vs_time", report)
 
 
 if __name__ == "__main__":

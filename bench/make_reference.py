@@ -20,28 +20,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import numpy as np
 
-from bench.common import BENCH_DIR
+from bench.common import BENCH_DIR, bench_engine
 from bench.mitsuba_peer import render as mitsuba_render
-from worker.cli import _resolution
-from worker.engine import Engine, RenderSettings
-from worker.error_estimate import LUMINANCE
+from kernels.contract import LUMINANCE
+from service.cli import _resolution
 from worker.image_io import write_image
+from worker.render_loop import render as render_passes
 from worker.scene import bundled_scene_path, load_scene_file
-from worker.stats import Accumulators
 
 
 def render(scene: str, resolution: tuple[int, int] | None, photons: int, seed: int, seconds: float,
            photon_only: bool) -> tuple[np.ndarray, int]:
-    parsed, base = load_scene_file(bundled_scene_path(scene))
-    eng = Engine(parsed, base, RenderSettings(gather="exact", photons_per_pass=photons, seed=seed), resolution)
-    st = Accumulators.start(0.7, eng.initial_radius())
-    start = time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        st.merge(eng.run_batch(st.radius(), st.passes, 1))
+    eng = bench_engine(scene, resolution, gather="exact", photons_per_pass=photons, seed=seed, alpha=0.7)
+    st = render_passes(eng, seconds=seconds)
     rgb = st.photon_radiance() if photon_only else st.radiance()
     return rgb.reshape(eng.arrays.height, eng.arrays.width, 3), st.passes
 

@@ -28,15 +28,14 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from bench.common import (OUT_DIR, PEERS_FILE, REFERENCE_FILE, box2x2, display, display_rms, read_ppm,
-                          smallppm_scene)
-from worker.engine import Engine, RenderSettings
+from bench.common import (PEERS_FILE, REFERENCE_FILE, bench_engine, box2x2, display, display_rms, read_ppm,
+                          save_figure, write_json)
 from worker.image_io import read_image
-from worker.stats import Accumulators
+from worker.render_loop import render
+from worker.settings import DEFAULTS
 
 CANDIDATES = (1 << 18, 1 << 19, 1 << 20)
-DEFAULT_PHOTONS_PER_PASS = RenderSettings.photons_per_pass  # the engine default (2^18), best in the sweep
-ALPHA = 0.7
+DEFAULT_PHOTONS_PER_PASS = DEFAULTS.photons_per_pass  # the engine default (2^18), best in the sweep
 CAP_FACTOR = 3.0  # give up at this multiple of smallppm's time
 GOAL_RATIO = 5.0
 
@@ -78,24 +77,24 @@ def render_until(photons_per_pass: int, ref: np.ndarray, target: float, peer_sec
     ref_display = display(ref)
     ref_norm = float(np.sqrt(np.mean(ref ** 2)))
     t0 = time.perf_counter()
-    scene, base = smallppm_scene()
-    eng = Engine(scene, base, RenderSettings(gather=gather, photons_per_pass=photons_per_pass, seed=seed))
-    acc = Accumulators.start(ALPHA, eng.initial_radius())
-    clock = time.perf_counter() - t0
-    run = Run(photons_per_pass=photons_per_pass, gather=gather, setup_seconds=clock)
+    eng = bench_engine("smallppm", gather=gather, photons_per_pass=photons_per_pass, seed=seed)
+    state = eng.start()
+    setup = time.perf_counter() - t0
+    run = Run(photons_per_pass=photons_per_pass, gather=gather, setup_seconds=setup)
     h, w = eng.arrays.height, eng.arrays.width
-    while clock < CAP_FACTOR * peer_seconds:
-        t = time.perf_counter()
-        acc.merge(eng.run_batch(acc.radius(), acc.passes, 1))
-        clock += time.perf_counter() - t
-        img = to_reference_size(acc.radiance().reshape(h, w, 3), ref)
+
+    def observe(st: object, seconds: float) -> bool:
+        clock = setup + seconds
+        img = to_reference_size(eng.integrator.image(st).reshape(h, w, 3), ref)
         err = display_rms(img, ref_display)
         rel = float(np.sqrt(np.mean((img - ref) ** 2))) / ref_norm
-        run.curve.append((clock, acc.emitted, err, rel))
+        run.curve.append((clock, st.emitted, err, rel))
         if err <= target:
-            run.reached, run.seconds_to_reach, run.paths_to_reach = True, clock, acc.emitted
+            run.reached, run.seconds_to_reach, run.paths_to_reach = True, clock, st.emitted
             run.ratio = peer_seconds / clock
-            break
+        return run.reached
+
+    render(eng, seconds=CAP_FACTOR * peer_seconds - setup, progress=observe, state=state)
     summarize(run, target, peer_seconds)
     return run
 
@@ -113,10 +112,8 @@ def summarize(run: Run, target: float, peer_seconds: float) -> None:
             run.extrapolated_seconds_to_reach = float(np.exp((np.log(target) - intercept) / slope))
 
 
-def chart(runs: list[Run], peer: dict, path: str) -> None:
+def chart(runs: list[Run], peer: dict) -> None:
     """Error vs render time for our runs, smallppm's (time, error) marked."""
-    import matplotlib
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 5))
@@ -139,14 +136,13 @@ def chart(runs: list[Run], peer: dict, path: str) -> None:
     ax.legend(fontsize=8)
     ax.grid(True, which="both", lw=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, "peer_smallppm")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description="Time to reach smallppm's image error, and the speed ratio.")
     parser.add_argument("--photons-per-pass", type=int, default=DEFAULT_PHOTONS_PER_PASS)
-    parser.add_argument("--gather", choices=("exact", "stochastic"), default=RenderSettings.gather)
+    parser.add_argument("--gather", choices=("exact", "stochastic"), default=DEFAULTS.gather)
     parser.add_argument("--sweep", action="store_true",
                         help=f"both gathers, each with every photons_per_pass in {CANDIDATES}")
     parser.add_argument("--peer-image", help="instead: print a smallppm image.ppm's display RMS vs the reference")
@@ -173,7 +169,6 @@ def main() -> None:
                   f"extrapolated {run.extrapolated_seconds_to_reach or float('nan'):.0f} s")
         print(f"{gather} gather, photons_per_pass {ppp}: {status}", flush=True)
         runs.append(run)
-    OUT_DIR.mkdir(parents=True, exist_ok=True)
     report = {
         "measured": time.strftime("%Y-%m-%d %H:%M:%S"),
         "smallppm": peer,
@@ -182,12 +177,12 @@ def main() -> None:
         "goal_ratio": GOAL_RATIO,
         "reference": str(REFERENCE_FILE.relative_to(REFERENCE_FILE.parents[2])),
         "reference_resolution": [ref.shape[1], ref.shape[0]],
-        "settings": {"method": "sppm", "alpha": ALPHA, "seed": 0},
+        "settings": {"method": "sppm", "alpha": DEFAULTS.alpha, "seed": 0},
         "runs": [asdict(r) for r in runs],
     }
-    (OUT_DIR / "peer_smallppm.json").write_text(json.dumps(report, indent=1) + "\n")
-    chart(runs, peer, str(OUT_DIR / "peer_smallppm.png"))
-    print(f"wrote {OUT_DIR / 'peer_smallppm.json'} and peer_smallppm.png")
+    path = write_json("peer_smallppm", report)
+    chart(runs, peer)
+    print(f"wrote {path} and peer_smallppm.png")
 
 
 if __name__ == "__main__":

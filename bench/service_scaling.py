@@ -14,7 +14,6 @@ and bench/out/service_scaling.png.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import tempfile
@@ -25,30 +24,26 @@ from pathlib import Path
 import numpy as np
 import redis
 
-from service.local_cluster import Cluster, finished
-from service.models import JobSettings
+from api_tests.cluster import Cluster, finished
+from bench.common import bench_engine, save_figure, write_json
 from service.redis_server import EmbeddedRedis
-from worker.engine import Engine, RenderSettings
-from worker.job_store import Batch, JobStore
-from worker.scene import bundled_scene_path, load_scene_file
-from worker.stats import ADDITIVE, Accumulators, Delta, zeros
+from worker.integrators.base import Delta
+from worker.render_loop import render
+from worker.settings import Settings
+from worker.store import Batch, Jobs, keys
 
-OUT = Path(__file__).resolve().parent / "out"
 SCENE = "cornell-caustics"
 CORES = os.cpu_count() or 1
 
 
 def in_process(resolution: tuple[int, int], photons: int, seconds: float) -> dict:
-    scene, base = load_scene_file(bundled_scene_path(SCENE))
-    engine = Engine(scene, base, RenderSettings(photons_per_pass=photons, seed=1), resolution=resolution)
-    state = Accumulators.start(0.7, engine.initial_radius())
-    state.merge(engine.run_batch(state.radius(), 0, 1))  # warm-up
-    start, k = time.perf_counter(), 1
-    while time.perf_counter() - start < seconds:
-        state.merge(engine.run_batch(state.radius(), k, 1))
-        k += 1
+    engine = bench_engine(SCENE, resolution, photons_per_pass=photons, seed=1)
+    state = render(engine, passes=1)  # warm-up
+    start = time.perf_counter()
+    render(engine, seconds=seconds, state=state)
     elapsed = time.perf_counter() - start
-    return {"config": "in-process", "passes": k - 1, "photons_per_second": (k - 1) * photons / elapsed}
+    return {"config": "in-process", "passes": state.passes - 1,
+            "photons_per_second": (state.passes - 1) * photons / elapsed}
 
 
 def _percentiles(samples: list[float]) -> dict:
@@ -88,10 +83,10 @@ def on_cluster(workers: int, resolution: tuple[int, int], photons: int, seconds:
                 thread.start()
             done = c.wait(job["id"], finished, timeout=seconds + 300)
             stop.set()
-            meta = JobStore(c.redis_client).meta(job["id"])
-            render_s, merge_s = float(meta["render_seconds"]), float(meta.get("merge_seconds", 0.0))
+            record = Jobs(c.redis_client).get(job["id"])
+            render_s, merge_s = record.render_seconds, record.merge_seconds
             out = {"config": f"{workers} worker{'s' if workers > 1 else ''}", "workers": workers,
-                   "passes": done["passes"], "merges": int(meta["merges"]),
+                   "passes": done["passes"], "merges": record.merges,
                    "photons_per_second": done["photons"] / done["elapsed_seconds"],
                    "merge_seconds": merge_s, "render_seconds": render_s,
                    # per worker, the share of its time spent merging rather than rendering
@@ -111,19 +106,22 @@ def merge_cost(sizes: list[tuple[int, int]], repeats: int = 5) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         server = EmbeddedRedis(Path(tmp) / "redis").start(supervise=False)
         try:
-            store = JobStore(redis.Redis.from_url(server.url))
+            store = Jobs(redis.Redis.from_url(server.url))
             for w, h in sizes:
                 n = w * h
-                job_id = store.create({}, JobSettings(max_passes=1000).model_dump(), w, h, None)
-                store.init_radius(job_id, np.ones(n))
-                store.r.hset(f"pf:job:{job_id}", mapping={"status": "running", "started": time.time()})
+                job_id = store.create({}, Settings(max_passes=1000), w, h, None)
+                record = store.get(job_id)
+                store.init_setup(record, {"R0": np.ones(n)})
+                store.r.hset(keys.job(job_id), mapping={"status": "running", "started": time.time()})
+                layout = record.integrator.sums
+                state_bytes = 8 * n * sum(record.integrator.state_widths.values())
                 times = []
                 for k in range(repeats):
-                    delta = Delta(k, 1, 1, sums={name: rng.random(zeros(n, name).shape) for name in ADDITIVE})
+                    delta = Delta(k, 1, 1, sums={name: rng.random(layout.zeros(n, name).shape) for name in layout.names})
                     t0 = time.perf_counter()
                     assert store.merge(Batch(job_id, k, 1), delta, 1.0) == "merged"
                     times.append(time.perf_counter() - t0)
-                out.append({"width": w, "height": h, "pixels": n, "state_mb": 64 * n / 1e6,
+                out.append({"width": w, "height": h, "pixels": n, "state_mb": state_bytes / 1e6,
                             "merge_seconds": statistics.median(times)})
                 store.r.delete(*store.r.keys(f"pf:job:{job_id}*"))
         finally:
@@ -131,10 +129,7 @@ def merge_cost(sizes: list[tuple[int, int]], repeats: int = 5) -> list[dict]:
     return out
 
 
-def chart(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def chart(result: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
@@ -164,7 +159,7 @@ def chart(result: dict, path: Path) -> None:
     axes[2].set_title("one merge against image size")
     axes[2].legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, "service_scaling")
 
 
 def main() -> None:
@@ -183,9 +178,8 @@ def main() -> None:
     sizes = [(128, 128), (256, 256), (512, 512), (1024, 768), (1280, 1024)]
     result = {"scene": SCENE, "resolution": resolution, "photons_per_pass": photons, "seconds": seconds,
               "cores": CORES, "throughput": runs, "polling": polled, "merge_cost": merge_cost(sizes)}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "service_scaling.json").write_text(json.dumps(result, indent=2))
-    chart(result, OUT / "service_scaling.png")
+    write_json("service_scaling", result)
+    chart(result)
     for r in runs:
         extra = f"  merge {100 * r['merge_overhead']:.1f}%" if "merge_overhead" in r else ""
         print(f"{r['config']:>12}: {r['photons_per_second'] / 1e6:6.2f} M photons/s{extra}")

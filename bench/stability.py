@@ -21,27 +21,25 @@ Writes bench/out/stability.json and bench/out/stability.png.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 
 import worker.error_estimate as ee
+from bench.common import BENCH_DIR, bench_engine, save_figure, write_json
+from kernels.contract import LUMINANCE
 from tests.analytic import FURNACE_L, point_plane
-from worker.engine import Engine, RenderSettings
+from worker.engine import Engine
 from worker.image_io import read_image
-from worker.scene import bundled_scene_path, load_scene_file
-from worker.stats import Accumulators
+from worker.integrators.photon_mapping import GatherInputs
+from worker.render_loop import render
 
-OUT = Path(__file__).resolve().parent / "out"
 ALPHAS = (0.1, 0.5, 2 / 3, 0.7, 0.8, 0.95, 1.0)
 
 
 def engine(scene: str, res: tuple[int, int] | None, photons: int, **kw: object) -> Engine:
-    parsed, base = load_scene_file(bundled_scene_path(scene))
-    return Engine(parsed, base, RenderSettings(photons_per_pass=photons, **kw), resolution=res)
+    return bench_engine(scene, res, photons_per_pass=photons, **kw)
 
 
 def slope(x: list[float], y: list[float]) -> float:
@@ -58,14 +56,15 @@ def alpha_sweep(seeds: int, passes: int) -> dict:
         runs = []
         truth = None
         for seed in range(seeds):
-            eng = engine("point-plane", (16, 16), 1 << 12, seed=seed, initial_radius=0.5)
+            eng = engine("point-plane", (16, 16), 1 << 12, seed=seed, initial_radius=0.5, alpha=alpha)
             truth = point_plane(eng)[0] if truth is None else truth
-            st = Accumulators.start(alpha, eng.initial_radius())
-            snaps = []
-            for k in range(passes):
-                st.merge(eng.run_batch(st.radius(), k, 1))
-                if k + 1 in checkpoints:
+            snaps: list[np.ndarray] = []
+
+            def snap(st: object, _: float, snaps: list = snaps) -> None:
+                if st.passes in checkpoints:
                     snaps.append(st.photon_radiance()[:, 0].copy())
+
+            render(eng, passes=passes, progress=snap)
             runs.append(snaps)
         est = np.array(runs)  # (seeds, checkpoints, pixels)
         var = est.var(axis=0, ddof=1)
@@ -88,16 +87,14 @@ def alpha_sweep(seeds: int, passes: int) -> dict:
 
 def initial_radius(passes: int) -> dict:
     eng = engine("point-plane", (32, 32), 1 << 14, seed=3)
-    default = float(eng.initial_radius()[0])
+    default = float(eng.start().R0[0])
     truth = point_plane(eng)[0]
     out = {}
     for factor in (0.1, 1.0, 10.0):
         eng = engine("point-plane", (32, 32), 1 << 14, seed=3, initial_radius=default * factor)
-        st = Accumulators.start(0.7, eng.initial_radius())
-        curve = []
-        for k in range(passes):
-            st.merge(eng.run_batch(st.radius(), k, 1))
-            curve.append(float(np.sqrt(np.mean((st.photon_radiance()[:, 0] / truth - 1) ** 2))))
+        curve: list[float] = []
+        render(eng, passes=passes, progress=lambda st, _, curve=curve: curve.append(
+            float(np.sqrt(np.mean((st.photon_radiance()[:, 0] / truth - 1) ** 2)))))
         out[f"{factor}x"] = {"r0": default * factor, "relative_rms": curve}
     return out
 
@@ -114,7 +111,7 @@ def hash_table(seeds: int) -> dict:
         diffs = []
         for seed in range(seeds):
             exact = engine("cornell-box", (32, 32), 1 << 14, seed=seed, gather="exact")
-            r = exact.initial_radius() / 8 if r is None else r
+            r = GatherInputs(exact.start().R0 / 8) if r is None else r
             hashed = engine("cornell-box", (32, 32), 1 << 14, seed=seed, gather="stochastic",
                             hash_entries_per_photon=ratio)
             a, b = hashed.run_batch(r, 0, 1).S.sum(axis=1), exact.run_batch(r, 0, 1).S.sum(axis=1)
@@ -130,28 +127,29 @@ def hash_table(seeds: int) -> dict:
 
 def long_run(passes: int) -> dict:
     eng = engine("furnace", (16, 16), 1 << 12, seed=5)
-    st = Accumulators.start(0.7, eng.initial_radius())
-    checkpoints, curve = [], []
-    t0 = time.perf_counter()
-    for k in range(passes):
-        st.merge(eng.run_batch(st.radius(), k, 1))
-        if (k + 1) in {int(10 ** e) for e in np.arange(1, math.log10(passes) + 0.01, 0.25)}:
+    checkpoints = {int(10 ** e) for e in np.arange(1, math.log10(passes) + 0.01, 0.25)}
+    curve = []
+
+    def observe(st: object, _: float) -> None:
+        if st.passes in checkpoints:
             L = st.photon_radiance()[:, 0]
-            checkpoints.append(k + 1)
-            curve.append({"passes": k + 1, "mean_relative": float(L.mean() / FURNACE_L - 1),
+            curve.append({"passes": st.passes, "mean_relative": float(L.mean() / FURNACE_L - 1),
                           "rms_relative": float(np.sqrt(np.mean((L / FURNACE_L - 1) ** 2)))})
+
+    t0 = time.perf_counter()
+    render(eng, passes=passes, progress=observe)
     return {"passes": passes, "seconds": time.perf_counter() - t0, "curve": curve,
             "rms_slope_last_decade": slope([c["passes"] for c in curve[-5:]], [c["rms_relative"] for c in curve[-5:]])}
 
 
-EDGE_REFERENCE = Path(__file__).resolve().parent / "reference" / "directional-caustic-64x64.exr"
+EDGE_REFERENCE = BENCH_DIR / "reference" / "directional-caustic-64x64.exr"
 
 
 def edge_reference() -> tuple[np.ndarray, np.ndarray]:
     """directional-caustic's cached reference luminance (it has no visible emitter, so this
     is the photon part alone) and each pixel's distance, in pixels, to the nearest edge:
     a pixel whose 4-neighbours differ from it by more than half its value."""
-    ref = read_image(EDGE_REFERENCE)[..., :3].astype(np.float64) @ ee.LUMINANCE
+    ref = read_image(EDGE_REFERENCE)[..., :3].astype(np.float64) @ LUMINANCE
     pad = np.pad(ref, 1, mode="edge")
     jumps = [np.abs(pad[1:-1, 1:-1] - pad[:-2, 1:-1]), np.abs(pad[1:-1, 1:-1] - pad[2:, 1:-1]),
              np.abs(pad[1:-1, 1:-1] - pad[1:-1, :-2]), np.abs(pad[1:-1, 1:-1] - pad[1:-1, 2:])]
@@ -165,10 +163,8 @@ def shadow_edge(passes: int) -> dict:
     """Relative error of a shorter run against the reference, by distance to an edge."""
     ref, dist = edge_reference()
     eng = engine("directional-caustic", (64, 64), 1 << 15, seed=9)
-    st = Accumulators.start(0.7, eng.initial_radius())
-    for k in range(passes):
-        st.merge(eng.run_batch(st.radius(), k, 1))
-    img = (st.radiance() @ ee.LUMINANCE).reshape(ref.shape)
+    st = render(eng, passes=passes)
+    img = (st.radiance() @ LUMINANCE).reshape(ref.shape)
     rel = np.abs(img - ref) / np.maximum(ref, 0.05 * ref.mean())
     bins = [0, 1, 2, 3, 5, 8, 13, 99]
     rows = []
@@ -185,23 +181,20 @@ def estimator_failures() -> dict:
     ref, dist = edge_reference()
     truth, near_edge = ref.ravel(), dist.ravel() < 2
     eng = engine("directional-caustic", (64, 64), 1 << 14, seed=11)
-    st = Accumulators.start(0.7, eng.initial_radius())
     out = []
-    for k in range(32):
-        r = st.radius()
-        st.merge(eng.run_batch(r, k, 1, bias=ee.bias_estimate(r, st.G, st.emitted, "taylor")))
-        if k + 1 in (2, 3, 8, 32):
+
+    def observe(st: object, _: float) -> None:
+        if st.passes in (2, 3, 8, 32):
             est = ee.estimate(st, 0.9)
             covered = est.bound >= np.abs(est.luminance - truth)
-            out.append({"passes": k + 1, "coverage_90_at_edges": float(covered[est.known & near_edge].mean()),
+            out.append({"passes": st.passes, "coverage_90_at_edges": float(covered[est.known & near_edge].mean()),
                         "coverage_90_elsewhere": float(covered[est.known & ~near_edge].mean())})
+
+    render(eng, passes=32, progress=observe)
     return {"directional-caustic": out}
 
 
-def chart(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def chart(result: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 9))
@@ -246,7 +239,7 @@ def chart(result: dict, path: Path) -> None:
     ax.set_xlabel("distance to a shadow/caustic edge, pixels")
     ax.set_title("directional-caustic: error by distance to an edge")
     fig.tight_layout()
-    fig.savefig(path, dpi=95)
+    save_figure(fig, "stability")
 
 
 def main() -> None:
@@ -261,9 +254,8 @@ def main() -> None:
         "shadow_edge": shadow_edge(64),
         "estimator_failures": estimator_failures(),
     }
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "stability.json").write_text(json.dumps(result, indent=1))
-    chart(result, OUT / "stability.png")
+    write_json("stability", result)
+    chart(result)
     for a, r in result["alpha_sweep"].items():
         fit = f"{r['bias_slope']:.2f}" if r["bias_slope"] is not None else "not resolvable"
         print(f"alpha {a}: variance slope {r['variance_slope']:.2f} (pred {-float(a):.2f}), "

@@ -4,8 +4,9 @@
 // glossy bounces to the first diffuse hit, which becomes this pass's measurement point
 // with weight = path throughput * f_r and the share of its gather disc that lies on its
 // own surface (disc_coverage). Emission seen along the way is accumulated
-// separately (digest 5.1: directly visible emission is averaged over passes). In PPM
-// mode the host always passes pass index 0, so every pass sees the same points.
+// separately into the batch's per-pixel sums (SUM_LD; digest 5.1: directly visible
+// emission is averaged over passes). In PPM mode the host always passes pass index 0, so
+// every pass sees the same points.
 
 // Surfaces match when their normals lie within 45 degrees: the gather counts only photons
 // on a surface matching the measurement point's (spatial_hash.cl), and the disc is only
@@ -63,7 +64,7 @@ __kernel void eye_pass(
     __global float4* mp_nrm,       // normal facing the eye path
     __global float4* mp_wgt,       // throughput * albedo / pi; w: disc coverage
     __global float* mp_dist,       // eye path length to the point (initial radius)
-    __global double4* acc_direct)  // += directly seen emission, per batch
+    __global double* batch_sums)   // per-pixel records (kernels/contract.py); += directly seen emission
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
@@ -90,7 +91,7 @@ __kernel void eye_pass(
     float3 thr = (float3)(1.0f);
     float3 direct = (float3)(0.0f);
     float4 pos = (float4)(0.0f), nrm = (float4)(0.0f), wgt = (float4)(0.0f);
-    for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (worker/engine.py)
+    for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (kernels/contract.py)
         Hit h = intersect(&g, origin, d);
         if (h.surf == SURF_NONE) break;
         float3 p = origin + h.t * d;
@@ -115,5 +116,8 @@ __kernel void eye_pass(
     mp_nrm[gid] = nrm;
     mp_wgt[gid] = wgt;
     mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
-    acc_direct[gid] += (double4)(convert_double3(direct), 0.0);
+    __global double* ld = batch_sums + (size_t)gid * SUM_STRIDE + SUM_LD;
+    ld[0] += direct.x;
+    ld[1] += direct.y;
+    ld[2] += direct.z;
 }

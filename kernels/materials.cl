@@ -5,11 +5,7 @@
 // eye paths (measurement points) and store photons; mirror, glass and glossy surfaces are
 // scattered through by both eye and photon paths (digest 5.2: SPPM follows glossy lobes
 // with a sampled bounce, so glossy cost does not depend on the exponent).
-
-#define MAT_DIFFUSE 0
-#define MAT_MIRROR 1
-#define MAT_GLASS 2
-#define MAT_GLOSSY 3
+// The type codes MAT_* come from kernels/contract.py as build options.
 
 #define PI_F 3.14159265358979f
 

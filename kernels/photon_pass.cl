@@ -7,19 +7,14 @@
 // when it misses everything: the estimate is normalised by emitted photons (digest 11.1).
 // Each stored photon gets a 64-bit selection key, (random 28 bits << 36) | (path << 12) |
 // bounce: a pure function of (seed, pass, path), unique within a pass (path < 2^24 photons
-// per pass, bounce < 2^12 = the largest cap), so the stochastic hash picks the same photons
+// per pass, bounce < 2^12 = MAX_BOUNCES), so the stochastic hash picks the same photons
 // whatever order the atomic slot counter hands out slots in. Ties of the random part are
 // broken by (path, bounce); the minimum of n keys is tied with probability under n / 2^28.
+// Emitter kinds EMIT_* come from kernels/contract.py as build options.
 //
 // Paths end by Russian roulette alone (survival = the bounce's largest throughput factor,
 // so the expected flux is unchanged); `max_bounces` is only a safety cap, and its lost
-// energy is bounded in worker/engine.py (MAX_BOUNCES).
-
-#define EMIT_TRIANGLE 0
-#define EMIT_SPHERE 1
-#define EMIT_POINT 2
-#define EMIT_SPOT 3
-#define EMIT_DIRECTIONAL 4
+// energy is bounded in kernels/contract.py (MAX_BOUNCES).
 
 __kernel void photon_pass(
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,

@@ -15,6 +15,8 @@ os.environ.setdefault("PYOPENCL_NO_CACHE", "1")  # PoCL caches itself; pyopencl'
 import numpy as np  # noqa: E402
 import pyopencl as cl  # noqa: E402
 
+from kernels.contract import SumLayout, build_options  # noqa: E402
+
 KERNEL_DIR = Path(__file__).resolve().parent
 # Order matters: later files use what earlier ones define.
 SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
@@ -33,13 +35,12 @@ def create_context() -> cl.Context:
 
 
 class Program:
-    """Compiled kernels for one context, with a launcher that sizes the global range.
-    `error_sums=False` builds the gather without the error estimator's sums."""
+    """Compiled kernels for one context and one layout of per-pixel sums (the contract of
+    kernels/contract.py, handed over as build options), with a launcher."""
 
-    def __init__(self, ctx: cl.Context, error_sums: bool = True) -> None:
+    def __init__(self, ctx: cl.Context, layout: SumLayout) -> None:
         source = PREAMBLE + "\n".join((KERNEL_DIR / name).read_text() for name in SOURCES)
-        options = ["-cl-mad-enable"] + ([] if error_sums else ["-DNO_ERROR_SUMS"])
-        program = cl.Program(ctx, source).build(options=options)
+        program = cl.Program(ctx, source).build(options=["-cl-mad-enable", *build_options(layout)])
         self.kernels = {name: getattr(program, name) for name in KERNEL_NAMES}
 
     def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object) -> cl.Event:
@@ -47,14 +48,14 @@ class Program:
         return self.kernels[name](queue, (max(int(n), 1),), None, *args)
 
 
-_programs: dict[tuple[int, bool], Program] = {}
+_programs: dict[tuple[int, SumLayout], Program] = {}
 
 
-def program_for(ctx: cl.Context, error_sums: bool = True) -> Program:
-    """The process-wide compiled program for `ctx` (one per variant)."""
-    key = (ctx.int_ptr, error_sums)
+def program_for(ctx: cl.Context, layout: SumLayout) -> Program:
+    """The process-wide compiled program for `ctx` and `layout`."""
+    key = (ctx.int_ptr, layout)
     if key not in _programs:
-        _programs[key] = Program(ctx, error_sums)
+        _programs[key] = Program(ctx, layout)
     return _programs[key]
 
 

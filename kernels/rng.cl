@@ -4,9 +4,7 @@
 // statistically independent and reproducible whichever worker runs them, in any order
 // (digest 11.1 item 12). The generator is SplitMix64, itself counter-based: output i is
 // mix(state0 + i * golden), so there is no hidden sequential state to carry across passes.
-
-#define DOMAIN_EYE 1UL
-#define DOMAIN_PHOTON 2UL
+// The domains DOMAIN_* come from kernels/contract.py as build options.
 
 typedef struct { ulong state; } Rng;
 

@@ -103,30 +103,29 @@ __kernel void grid_sort(uint entries, __global const uint* cell_start, __global 
 //
 // Density estimation with the smooth kernel of dissertation eq. 6.34,
 //     K(t) = 1 - 6t^5 + 15t^4 - 10t^3,   normalised by k1 r^2, k1 = 2 pi / 7,
-// which vanishes at t = 1 with its first two derivatives, so the flux, its gradient and
-// its Laplacian can all be estimated from the same photons (section 6.4). Derivatives are
-// taken in the measurement point's tangent plane (the 3D sum of eq. 6.38 reports a bias
-// of -0.65 L under uniform light; digest 4.5). With t = |v_t| / r, v_t the tangent part
-// of (photon - point):
-//     grad K = 30 t (t-1)^2 v_t / r^2          (d/dx of K(|x - x_p| / r))
-//     lap  K = -30 t (t-1) (5t-3) / r^2         (K'' + K'/t, over r^2)
-// The pass's sums go into the batch accumulators at the radius r it used (digest 11.2):
-//     S += w Phi_K / (k1 r^2 c),  D += M / (pi r^2),  G += lap / (k1 r^2 c),  Gr += grad / (k1 r^2 c)
+// which vanishes at t = 1 with its first two derivatives, so the flux and its Laplacian
+// can both be estimated from the same photons (section 6.4). The Laplacian is taken in
+// the measurement point's tangent plane (the 3D sum of eq. 6.38 reports a bias of -0.65 L
+// under uniform light; digest 4.5). With t = |v_t| / r, v_t the tangent part of
+// (photon - point):
+//     lap K = -30 t (t-1) (5t-3) / r^2          (K'' + K'/t, over r^2)
+// The pass's sums go into the batch's per-pixel sums at the radius r it used (digest 11.2):
+//     S += w Phi_K / (k1 r^2 c),  D += M / (pi r^2),  G += lap / (k1 r^2 c)
 // where M is the raw photon count (the radius rule is count based) and c the share of the
 // disc's kernel weight on the point's own surface (eye_pass.cl, disc_coverage). For the variance
 // estimate (eq. 6.22), the pass's own luminance estimate minus the bias estimated at the
 // start of the batch, x = L_p - B', adds to X1 and its square to X2; the square of the
-// pass's own Laplacian estimate adds to L2 (the noise of the bias estimate).
+// pass's own Laplacian estimate adds to L2 (the noise of the bias estimate). The error
+// sums exist only when the layout has them (SUM_G defined). K1, the luminance weights and
+// the record layout SUM_* come from kernels/contract.py as build options.
 
-#define K1 0.8975979010256552   /* 2 pi / 7 */
-#define MIN_COVERAGE 0.05f      /* a disc almost all beyond walls: do not divide by ~0 */
+inline float luminance(float3 c) { return dot(c, (float3)(LUM_R, LUM_G, LUM_B)); }
 
-inline float luminance(float3 c) { return dot(c, (float3)(0.2126f, 0.7152f, 0.0722f)); }
+#define MIN_COVERAGE 0.05f  /* a disc almost all beyond walls: do not divide by ~0 */
 
 typedef struct {
     float3 phi;   // sum of K(t) * flux (rgb)
     float lap;    // sum of lap K * luminance(w * flux)
-    float3 grad;  // sum of grad K * luminance(w * flux)
     float m;      // photons counted (raw)
 } PassSums;
 
@@ -151,39 +150,29 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
     float k = 1.0f - t * t * t * (10.0f - 15.0f * t + 6.0f * t * t);
     s->phi += k * flux * count;
     s->m += count;
-#ifndef NO_ERROR_SUMS
-    float y = luminance(wgt * flux) * count;
-    s->lap += -30.0f * t * (t - 1.0f) * (5.0f * t - 3.0f) / (r * r) * y;
-    s->grad += 30.0f * t * (t - 1.0f) * (t - 1.0f) / (r * r) * y * vt;
+#ifdef SUM_G
+    s->lap += -30.0f * t * (t - 1.0f) * (5.0f * t - 3.0f) / (r * r) * luminance(wgt * flux) * count;
 #endif
 }
 
-typedef struct {
-    __global double4* S;
-    __global double* D;
-    __global double* G;
-    __global double4* Gr;
-    __global double* X1;
-    __global double* X2;
-    __global double* L2;
-    __global double* H;
-} Accumulators;
-
-inline void accumulate(int gid, float r, float3 wgt, float coverage, PassSums s, float photons, float bias,
-                       Accumulators acc) {
+// Add one pass's gather to pixel gid's record of the batch sums.
+inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, float coverage, PassSums s,
+                       float photons, float bias) {
+    __global double* rec = batch_sums + (size_t)gid * SUM_STRIDE;
     double kr2 = K1 * (double)r * (double)r * (double)coverage;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
-    acc.S[gid] += (double4)(flux, 0.0);
-    acc.D[gid] += (double)s.m / (M_PI * (double)r * (double)r);
-    acc.H[gid] += 1.0;
-#ifndef NO_ERROR_SUMS  // the error estimator's sums (the program is also built without them)
+    rec[SUM_S] += flux.x;
+    rec[SUM_S + 1] += flux.y;
+    rec[SUM_S + 2] += flux.z;
+    rec[SUM_D] += (double)s.m / (M_PI * (double)r * (double)r);
+    rec[SUM_H] += 1.0;
+#ifdef SUM_G
     double lap = (double)s.lap / kr2;
-    acc.G[gid] += lap;
-    acc.L2[gid] += (lap / (double)photons) * (lap / (double)photons);  // the pass's own lap L, squared
-    acc.Gr[gid] += (double4)(convert_double3(s.grad) / kr2, 0.0);
-    double x = dot(flux, (double3)(0.2126, 0.7152, 0.0722)) / (double)photons - (double)bias;
-    acc.X1[gid] += x;
-    acc.X2[gid] += x * x;
+    rec[SUM_G] += lap;
+    rec[SUM_L2] += (lap / (double)photons) * (lap / (double)photons);  // the pass's own lap L, squared
+    double x = dot(flux, (double3)(LUM_R, LUM_G, LUM_B)) / (double)photons - (double)bias;
+    rec[SUM_X1] += x;
+    rec[SUM_X2] += x * x;
 #endif
 }
 
@@ -202,11 +191,6 @@ inline QueryCells query_cells(float3 x, float inv_cell) {
 inline int3 query_cell(QueryCells q, int k) {
     return q.base + (int3)((k & 1) ? q.step.x : 0, (k & 2) ? q.step.y : 0, (k & 4) ? q.step.z : 0);
 }
-
-#define ACCUMULATOR_ARGS __global double4* acc_S, __global double* acc_D, __global double* acc_G, \
-    __global double4* acc_Gr, __global double* acc_X1, __global double* acc_X2, __global double* acc_L2, \
-    __global double* acc_H
-#define ACCUMULATORS {acc_S, acc_D, acc_G, acc_Gr, acc_X1, acc_X2, acc_L2, acc_H}
 
 // A pixel's query this pass; false if the pixel has no measurement point.
 typedef struct {
@@ -236,11 +220,11 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                                 __global const float* bias, float photons,
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
-                                ACCUMULATOR_ARGS) {
+                                __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
     if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
-    PassSums s = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
+    PassSums s = {(float3)(0.0f), 0.0f, 0.0f};
     for (int k = 0; k < 8; ++k) {
         int3 cell = query_cell(q.cells, k);
         uint h = cell_hash(cell, mask);
@@ -249,8 +233,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
         float4 pp = tab_pos[h], pf = tab_flux[h];
         if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, (float)count);
     }
-    Accumulators acc = ACCUMULATORS;
-    accumulate(gid, q.r, q.wgt, q.coverage, s, photons, bias[gid], acc);
+    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
@@ -259,11 +242,11 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const uint* sorted,
                            __global const float4* ph_pos, __global const float4* ph_flux,
-                           ACCUMULATOR_ARGS) {
+                           __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
     if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
-    PassSums s = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
+    PassSums s = {(float3)(0.0f), 0.0f, 0.0f};
     for (int k = 0; k < 8; ++k) {
         int3 cell = query_cell(q.cells, k);
         uint h = cell_hash(cell, mask);
@@ -274,6 +257,5 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
             if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, 1.0f);
         }
     }
-    Accumulators acc = ACCUMULATORS;
-    accumulate(gid, q.r, q.wgt, q.coverage, s, photons, bias[gid], acc);
+    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }

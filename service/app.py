@@ -11,7 +11,6 @@ import json
 import logging
 import os
 import tempfile
-import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, AsyncIterator, Literal
@@ -27,35 +26,35 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from service.metrics import metrics_text, workers
 from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, JobLinks, JobRequest, JobView,
                             SceneSummary)
-from worker.error_estimate import estimate
 from worker.image_io import error_colours, write_image
-from worker.job_store import JobStore, elapsed_seconds, photons_per_second
 from worker.scene import SCENES_DIR, SceneError, bundled_scene_path, inline_meshes, load_scene_file, parse_scene
-from worker.scheduler import feed, reap
+from worker.scheduler import Reaper, feed
+from worker.settings import Settings
+from worker.store import JobRecord, Jobs
+from worker.store.policy import FINAL
+from worker.store.record import JobLimitReached
 
 log = logging.getLogger("photonfarm.api")
-REAP_SECONDS = 2.0
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 
 
-def _iso(ts: str | None) -> str | None:
-    return dt.datetime.fromtimestamp(float(ts), dt.timezone.utc).isoformat() if ts else None
+def _iso(ts: float | None) -> str | None:
+    return dt.datetime.fromtimestamp(ts, dt.timezone.utc).isoformat() if ts else None
 
 
 def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:
     return HTTPException(422, detail=[{"loc": loc, "msg": msg, "type": "value_error"}])
 
 
-def job_view(store: JobStore, job_id: str, meta: dict[str, str], history: bool = False) -> JobView:
-    base = f"/v1/jobs/{job_id}"
+def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
+    base = f"/v1/jobs/{record.id}"
     return JobView(
-        id=job_id, status=meta["status"], scene_name=meta["scene_name"] or None,
-        settings=json.loads(meta["settings"]), width=int(meta["width"]), height=int(meta["height"]),
-        passes=int(meta["passes"]), photons=int(meta["emitted"]), elapsed_seconds=round(elapsed_seconds(meta), 3),
-        photons_per_second=round(photons_per_second(meta), 1), workers_active=store.workers_on(job_id),
-        created=_iso(meta["created"]), started=_iso(meta.get("started")), finished=_iso(meta.get("finished")),
-        failure=meta.get("error") or None, error_estimate=store.last_error(job_id),
-        error_history=store.history(job_id) if history else None,
+        id=record.id, status=record.status, scene_name=record.scene_name, settings=record.settings,
+        width=record.width, height=record.height, passes=record.passes, photons=record.emitted,
+        elapsed_seconds=round(record.elapsed_seconds(), 3), photons_per_second=round(record.photons_per_second, 1),
+        workers_active=jobs.leases.owners(record.id), created=_iso(record.created), started=_iso(record.started),
+        finished=_iso(record.finished), failure=record.failure, error_estimate=jobs.last_error(record.id),
+        error_history=jobs.history(record.id) if history else None,
         links=JobLinks(self=base, image_png=f"{base}/image?format=png", image_exr=f"{base}/image?format=exr",
                        error_png=f"{base}/error?format=png", error_exr=f"{base}/error?format=exr"))
 
@@ -72,24 +71,14 @@ MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 
 def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
     conn = redis.Redis.from_url(redis_url, health_check_interval=10)
-    store = JobStore(conn)
-    stop = threading.Event()
-
-    def reap_forever() -> None:
-        while not stop.wait(REAP_SECONDS):
-            try:
-                if n := reap(store):
-                    log.info("re-issued lost batches", extra={"reissued": n})
-            except redis.RedisError as exc:
-                log.warning("reaper: redis unavailable: %s", exc)
+    jobs = Jobs(conn)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
-        thread = threading.Thread(target=reap_forever, name="reaper", daemon=True)
-        if reaper:
-            thread.start()
+        running = Reaper(jobs).start() if reaper else None
         yield
-        stop.set()
+        if running is not None:
+            running.stop()
 
     app = FastAPI(title="photonfarm", version="0.1.0", lifespan=lifespan,
                   description="Distributed progressive photon mapping (SPPM) render service.")
@@ -120,11 +109,11 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
         return JSONResponse({"detail": errors}, 422)
 
-    def existing(job_id: str) -> dict[str, str]:
-        meta = store.meta(job_id)
-        if meta is None:
+    def existing(job_id: str) -> JobRecord:
+        record = jobs.get(job_id)
+        if record is None:
             raise HTTPException(404, detail=f"no job {job_id!r}")
-        return meta
+        return record
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
@@ -147,12 +136,12 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     def metrics() -> Response:
         """Prometheus text format: jobs by status, batches merged, photons per second, merge
         latency, queue depth, workers alive."""
-        return Response(metrics_text(store), media_type=CONTENT_TYPE_LATEST)
+        return Response(metrics_text(jobs), media_type=CONTENT_TYPE_LATEST)
 
     @app.get("/v1/workers")
     def list_workers() -> list[dict[str, Any]]:
         """Every registered worker: host, pid, state, last heartbeat, current job and batch."""
-        return workers(store)
+        return workers(jobs)
 
     @app.get("/v1/scenes", response_model=list[SceneSummary])
     def scenes() -> list[SceneSummary]:
@@ -186,61 +175,67 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         if width * height > MAX_SERVICE_PIXELS:
             raise _unprocessable(["body", "scene", "camera", "resolution"],
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
-        if store.active_count() >= MAX_ACTIVE_JOBS:
-            raise _unprocessable(["body"], f"at most {MAX_ACTIVE_JOBS} jobs may be active at once")
-        job_id = store.create(scene_json, settings.model_dump(), width, height, body.scene_name)
-        feed(store, job_id)
+        try:
+            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, body.scene_name,
+                                 max_active=MAX_ACTIVE_JOBS)
+        except JobLimitReached as exc:
+            raise _unprocessable(["body"], str(exc)) from None
+        feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
         log.info(f"job submitted: {body.scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
-        return job_view(store, job_id, store.meta(job_id))
+        return job_view(jobs, jobs.get(job_id))
 
     @app.get("/v1/jobs", response_model=list[JobView])
-    def jobs() -> list[JobView]:
-        out = []
-        for job_id in reversed(store.job_ids()):
-            meta = store.meta(job_id)
-            if meta is not None:
-                out.append(job_view(store, job_id, meta))
-        return out
+    def list_jobs(response: Response, offset: int = Query(0, ge=0),
+                  limit: int = Query(50, ge=1, le=500)) -> list[JobView]:
+        """Jobs, newest first, a page at a time; X-Total-Count says how many there are."""
+        records = (jobs.get(job_id) for job_id in jobs.ids(offset, limit, newest_first=True))
+        response.headers["X-Total-Count"] = str(jobs.count())
+        return [job_view(jobs, record) for record in records if record is not None]
 
     @app.get("/v1/jobs/{job_id}", response_model=JobView)
     def job(job_id: str) -> JobView:
-        return job_view(store, job_id, existing(job_id), history=True)
+        return job_view(jobs, existing(job_id), history=True)
 
-    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202)
-    def cancel(job_id: str) -> JobView:
-        meta = existing(job_id)
-        if meta["status"] in ("completed", "converged", "failed"):
-            raise HTTPException(409, detail=f"job already {meta['status']}")
-        store.cancel(job_id)
-        return job_view(store, job_id, store.meta(job_id))
+    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202,
+                responses={204: {"description": "the finished job and its images were deleted"}})
+    def cancel_or_delete(job_id: str) -> Response | JobView:
+        """An active job is cancelled (202: it stops within a pass and keeps its image); a
+        finished one is deleted with its state and images (204)."""
+        record = existing(job_id)
+        if record.status in FINAL:
+            jobs.delete(job_id)
+            return Response(status_code=204)
+        jobs.cancel(job_id)
+        return job_view(jobs, jobs.get(job_id))
 
     @app.get("/v1/jobs/{job_id}/image", responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}})
     def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
-        meta = existing(job_id)
-        w, h = int(meta["width"]), int(meta["height"])
-        state = store.accumulators(job_id, meta)
-        rgb = state.radiance().reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
+        record = existing(job_id)
+        w, h = record.width, record.height
+        state = jobs.state(record)
+        rgb = record.integrator.image(state).reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
         return Response(encode_image(rgb, format), media_type=MEDIA[format],
-                        headers={"X-Passes": meta["passes"], "X-Photons": meta["emitted"]})
+                        headers={"X-Passes": str(record.passes), "X-Photons": str(record.emitted)})
 
     @app.get("/v1/jobs/{job_id}/error", responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}})
     def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
         """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
-        meta = existing(job_id)
-        w, h = int(meta["width"]), int(meta["height"])
-        state = store.accumulators(job_id, meta)
+        record = existing(job_id)
+        w, h = record.width, record.height
+        state = jobs.state(record)
         if state is None:
             raise HTTPException(409, detail="no pass merged yet")
-        settings = json.loads(meta["settings"])
-        est = estimate(state, settings["confidence"], settings["bias_constant"])
+        est = record.integrator.estimate(state)
+        if est is None:
+            raise HTTPException(409, detail="this job does not estimate its error (error_estimation is off)")
         if format == "png":
             body = encode_image(error_colours(est.relative, est.measured).reshape(h, w, 3), "png", display=True)
         else:
             channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
-        return Response(body, media_type=MEDIA[format], headers={"X-Passes": meta["passes"],
+        return Response(body, media_type=MEDIA[format], headers={"X-Passes": str(record.passes),
                                                                  "X-Average-Relative-Error": f"{est.average:.6g}"})
 
     return app

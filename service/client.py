@@ -13,7 +13,8 @@ from typing import Any
 
 import httpx
 
-FINISHED = ("completed", "converged", "cancelled", "failed")
+from worker.store.policy import FINAL
+
 
 
 class ClientError(Exception):
@@ -79,7 +80,7 @@ def submit(args: argparse.Namespace) -> int:
     print(f"job {job['id']} {job['status']}: {args.url.rstrip('/')}{job['links']['self']}")
     if not args.watch:
         return 0
-    while job["status"] not in FINISHED:
+    while job["status"] not in FINAL:
         time.sleep(args.poll)
         job = client.call("GET", job["links"]["self"]).json()
         sys.stderr.write(_progress(job, args.threshold))

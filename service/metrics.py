@@ -10,50 +10,48 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 from rq import Queue, Worker
 
-from worker.job_store import ACTIVE, FINAL, QUEUE_NAMES, JobStore, photons_per_second
+from worker.scheduler import QUEUE_NAMES
+from worker.store import Jobs, Status
 
-ALIVE_SECONDS = 60.0  # a worker that has not been heard from for this long counts as gone
-
-
-def workers(store: JobStore) -> list[dict[str, Any]]:
-    """Registered RQ workers with their last sign of life: RQ's own heartbeat while idle,
-    ours (after every pass) while rendering."""
-    beats = store.heartbeats()
+def workers(jobs: Jobs) -> list[dict[str, Any]]:
+    """Registered RQ workers with their last sign of life (our heartbeat thread's, every
+    LEASE_SECONDS / 3 while the process lives; worker/heartbeat.py)."""
+    beats = jobs.leases.heartbeats()
     now = time.time()
     out = []
-    for w in Worker.all(connection=store.r):
+    for w in Worker.all(connection=jobs.r):
         beat = beats.get(w.name, {})
         rq_seen = w.last_heartbeat.timestamp() if w.last_heartbeat else 0.0
         last_seen = max(rq_seen, float(beat.get("last_seen", 0.0)))
         out.append({"name": w.name, "hostname": w.hostname, "pid": w.pid, "state": str(w.get_state()),
-                    "last_seen_seconds_ago": round(now - last_seen, 3), "alive": now - last_seen < ALIVE_SECONDS,
+                    "last_seen_seconds_ago": round(now - last_seen, 3), "alive": w.name in beats,
                     "job": beat.get("job") or None, "batch": beat.get("batch") or None,
                     "passes": int(beat.get("passes", 0)), "batches_done": w.successful_job_count})
     return sorted(out, key=lambda w: w["name"])
 
 
 class ServiceCollector:
-    def __init__(self, store: JobStore) -> None:
-        self.store = store
+    def __init__(self, jobs: Jobs) -> None:
+        self.jobs = jobs
 
     def collect(self) -> Iterator[Metric]:
-        by_status = dict.fromkeys(ACTIVE + FINAL, 0)
+        by_status = dict.fromkeys(Status, 0)
         merges = passes = photons = 0
         merge_seconds = rate = 0.0
-        for job_id in self.store.job_ids():
-            meta = self.store.meta(job_id)
-            if meta is None:
+        for job_id in self.jobs.ids():
+            record = self.jobs.get(job_id)
+            if record is None:
                 continue
-            by_status[meta["status"]] = by_status.get(meta["status"], 0) + 1
-            merges += int(meta.get("merges", 0))
-            merge_seconds += float(meta.get("merge_seconds", 0.0))
-            passes += int(meta["passes"])
-            photons += int(meta["emitted"])
-            if meta["status"] == "running":
-                rate += photons_per_second(meta)
+            by_status[record.status] += 1
+            merges += record.merges
+            merge_seconds += record.merge_seconds
+            passes += record.passes
+            photons += record.emitted
+            if record.status == Status.RUNNING:
+                rate += record.photons_per_second
         jobs = GaugeMetricFamily("photonfarm_jobs", "Jobs by status", labels=["status"])
         for status, count in by_status.items():
-            jobs.add_metric([status], count)
+            jobs.add_metric([status.value], count)
         yield jobs
         yield CounterMetricFamily("photonfarm_batches_merged", "Batches merged into job states", value=merges)
         yield CounterMetricFamily("photonfarm_passes_merged", "Photon passes merged", value=passes)
@@ -64,13 +62,13 @@ class ServiceCollector:
                                   count_value=merges, sum_value=merge_seconds)
         depth = GaugeMetricFamily("photonfarm_queue_depth", "Batches waiting in a queue", labels=["queue"])
         for name in QUEUE_NAMES:
-            depth.add_metric([name], Queue(name, connection=self.store.r).count)
+            depth.add_metric([name], Queue(name, connection=self.jobs.r).count)
         yield depth
-        alive = sum(1 for w in workers(self.store) if w["alive"])
-        yield GaugeMetricFamily("photonfarm_workers_alive", "Workers heard from in the last minute", value=alive)
+        alive = sum(1 for w in workers(self.jobs) if w["alive"])
+        yield GaugeMetricFamily("photonfarm_workers_alive", "Workers whose heartbeat is current", value=alive)
 
 
-def metrics_text(store: JobStore) -> bytes:
+def metrics_text(jobs: Jobs) -> bytes:
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(ServiceCollector(store))
+    registry.register(ServiceCollector(jobs))
     return generate_latest(registry)

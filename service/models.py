@@ -2,45 +2,33 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from worker.engine import RenderSettings
+from worker.settings import DEFAULTS, Settings
+from worker.store.policy import Status
 
 # Service limits (README, "Limits"): each answers 413 or 422 naming what it limits.
 MAX_BODY_BYTES = 16 * 1024 * 1024
-MAX_SERVICE_PIXELS = 1280 * 1024  # per job; the job state is 64 bytes per pixel in Redis
+MAX_SERVICE_PIXELS = 1280 * 1024  # per job
 MAX_SERVICE_PHOTONS_PER_PASS = 1 << 22
 MAX_ACTIVE_JOBS = 16
-DEFAULT_MAX_SECONDS = 300.0  # when a job names no budget at all
 
 
-class JobSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+class JobSettings(Settings):
+    """The settings model (worker/settings.py) with the service's tighter limits; the
+    defaults are the model's own."""
 
-    method: Literal["sppm", "ppm"] = "sppm"
-    gather: Literal["stochastic", "exact"] = RenderSettings.gather
-    alpha: float = Field(0.7, gt=0.0, le=1.0)
-    photons_per_pass: int = Field(RenderSettings.photons_per_pass, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS)
-    max_passes: int | None = Field(None, ge=1, le=10_000_000)
-    max_seconds: float | None = Field(None, gt=0.0, le=7 * 86_400.0)
-    seed: int = Field(0, ge=0, lt=2 ** 63)
-    resolution: tuple[int, int] | None = None
-    priority: Literal["high", "normal", "low"] = "normal"
-    initial_radius: float | None = Field(None, gt=0.0)
-    error_threshold: float | None = Field(None, gt=0.0, le=10.0,
-                                          description="stop, as converged, when the average relative error is at most this")
-    confidence: float = Field(0.9, gt=0.0, lt=1.0, description="of the per-pixel error bound; 0.5 bounds the median error (README)")
-    bias_constant: Literal["taylor", "dissertation"] = "taylor"
+    photons_per_pass: int = Field(DEFAULTS.photons_per_pass, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
+                                  description=Settings.model_fields["photons_per_pass"].description)
 
-    @model_validator(mode="after")
-    def _budget(self) -> "JobSettings":
-        if self.resolution is not None and (min(self.resolution) < 1 or self.resolution[0] * self.resolution[1] > MAX_SERVICE_PIXELS):
-            raise ValueError(f"resolution must have positive sides and at most {MAX_SERVICE_PIXELS} pixels")
-        if self.max_passes is None and self.max_seconds is None:  # also with a threshold: it may be out of reach
-            self.max_seconds = DEFAULT_MAX_SECONDS
-        return self
+    @field_validator("resolution")
+    @classmethod
+    def _service_pixels(cls, value: tuple[int, int] | None) -> tuple[int, int] | None:
+        if value is not None and value[0] * value[1] > MAX_SERVICE_PIXELS:
+            raise ValueError(f"at most {MAX_SERVICE_PIXELS} pixels per job")
+        return value
 
 
 class JobRequest(BaseModel):
@@ -69,14 +57,15 @@ class ErrorPoint(BaseModel):
     passes: int
     photons: int
     seconds: float
-    error: float = Field(description="estimated average relative error at the job's confidence")
+    error: float | None = Field(description="estimated average relative error at the job's confidence "
+                                            "(none without error estimation)")
 
 
 class JobView(BaseModel):
     id: str
-    status: Literal["queued", "running", "cancel-requested", "cancelled", "converged", "completed", "failed"]
+    status: Status
     scene_name: str | None
-    settings: dict[str, Any]
+    settings: Settings
     width: int
     height: int
     passes: int = Field(description="passes merged into the estimate")

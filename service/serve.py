@@ -36,7 +36,7 @@ class LocalWorkers:
         self._stop = threading.Event()
 
     def _spawn(self) -> subprocess.Popen:
-        return spawn([sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis_url], env=self.env)
+        return spawn([sys.executable, "-m", "service.cli", "worker", "--redis-url", self.redis_url], env=self.env)
 
     def start(self) -> "LocalWorkers":
         self.procs = [self._spawn() for _ in range(self.count)]

@@ -9,10 +9,12 @@ import pyopencl as cl
 import pytest
 
 from kernels.program import create_context
-from worker.engine import Engine, RenderSettings
-from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
+from worker.engine import Engine
+from worker.error_estimate import ErrorEstimate
+from worker.integrators.base import State
+from worker.render_loop import render as render_passes
 from worker.scene import bundled_scene_path, load_scene_file
-from worker.stats import Accumulators
+from worker.settings import Settings
 
 
 @pytest.fixture(scope="session")
@@ -22,37 +24,29 @@ def ctx() -> cl.Context:
 
 @pytest.fixture(scope="session")
 def make_engine(ctx: cl.Context):
-    """Engine for a bundled scene (by name) or a scene file (Path)."""
+    """Engine for a bundled scene (by name) or a scene file (Path), with settings fields."""
 
     def make(scene: str | Path, resolution: tuple[int, int] | None = None, **settings: object) -> Engine:
         path = scene if isinstance(scene, Path) else bundled_scene_path(scene)
         parsed, base = load_scene_file(path)
-        return Engine(parsed, base, RenderSettings(**settings), resolution=resolution, ctx=ctx)
+        return Engine(parsed, base, Settings(resolution=resolution, **settings), ctx=ctx)
 
     return make
 
 
-def render(engine: Engine, passes: int, alpha: float = 0.7) -> Accumulators:
-    """Sequential progressive render: one pass per batch, each at the current radii."""
-    state = Accumulators.start(alpha, engine.initial_radius())
-    for k in range(passes):
-        state.merge(engine.run_batch(state.radius(), k, 1))
-    return state
+def render(engine: Engine, passes: int) -> State:
+    """Sequential progressive render (worker/render_loop.py): one pass per batch."""
+    return render_passes(engine, passes=passes)
 
 
-def image(engine: Engine, state: Accumulators) -> np.ndarray:
-    return state.radiance().reshape(engine.arrays.height, engine.arrays.width, 3)
+def image(engine: Engine, state: State) -> np.ndarray:
+    return engine.integrator.image(state).reshape(engine.arrays.height, engine.arrays.width, 3)
 
 
-def render_until(engine: Engine, threshold: float, confidence: float = 0.9, max_passes: int = 1000,
-                 alpha: float = 0.7) -> tuple[Accumulators, ErrorEstimate]:
-    """The progressive loop with termination: one pass per batch, the variance samples
-    bias-corrected (eq. 6.22), until the estimated average relative error is at most
-    `threshold` or `max_passes` ran."""
-    state = Accumulators.start(alpha, engine.initial_radius())
-    est = estimate(state, confidence)
-    while est.average > threshold and state.passes < max_passes:
-        r = state.radius()
-        state.merge(engine.run_batch(r, state.passes, 1, bias=bias_estimate(r, state.G, state.emitted, "taylor")))
-        est = estimate(state, confidence)
-    return state, est
+def render_until(engine: Engine, threshold: float, max_passes: int) -> tuple[State, ErrorEstimate]:
+    """The progressive loop with termination, as a job with `error_threshold` runs it: stop
+    once the estimated average relative error (at the engine's confidence) is at most
+    `threshold`, or after `max_passes`."""
+    state = render_passes(engine, passes=max_passes,
+                          progress=lambda st, _: engine.integrator.estimate(st).average <= threshold)
+    return state, engine.integrator.estimate(state)

@@ -6,7 +6,7 @@ import numpy as np
 
 from tests.analytic import FURNACE_L, point_plane
 from tests.conftest import image, render
-from worker.stats import Accumulators
+from worker.integrators.photon_mapping import GatherInputs
 
 
 
@@ -19,10 +19,10 @@ def test_furnace_mean_within_two_percent(make_engine) -> None:
 
 def test_furnace_per_pixel_error_falls_with_passes(make_engine) -> None:
     eng = make_engine("furnace", photons_per_pass=1 << 14, seed=4)
-    state = Accumulators.start(0.7, eng.initial_radius())
+    state = eng.start()
     rms = {}
     for k in range(64):
-        state.merge(eng.run_batch(state.radius(), k, 1))
+        state.merge(eng.render_batch(state, k, 1))
         if k + 1 in (4, 16, 64):
             rel = image(eng, state) / FURNACE_L - 1.0
             rms[k + 1] = float(np.sqrt(np.mean(rel ** 2)))
@@ -56,7 +56,7 @@ def test_ppm_keeps_one_set_of_measurement_points(make_engine) -> None:
     """PPM: every pass uses pass 0's points, so what the eye sees directly repeats exactly,
     and the furnace still comes out at its analytic radiance."""
     eng = make_engine("furnace", photons_per_pass=1 << 15, seed=8, method="ppm")
-    r = eng.initial_radius()
+    r = GatherInputs(eng.start().R0)
     a, b = eng.run_batch(r, 0, 1), eng.run_batch(r, 1, 1)
     assert np.array_equal(a.H, b.H) and np.array_equal(a.Ld, b.Ld)
     sppm = make_engine("furnace", photons_per_pass=1 << 15, seed=8, method="sppm")

@@ -11,9 +11,14 @@ import pytest
 from scipy import integrate
 
 from tests.analytic import FURNACE_L, point_plane
-from worker.error_estimate import BIAS_CONSTANTS, K1, K2, LUMINANCE, bias_estimate, estimate
+from kernels.contract import K1, K2, LUMINANCE
+from worker.error_estimate import BIAS_CONSTANTS, bias_estimate, estimate
 from worker.image_io import read_image
-from worker.stats import ADDITIVE, Accumulators, zeros
+from tests.conftest import render
+from worker.integrators.photon_mapping import sum_layout
+from worker.stats import Accumulators
+
+LAYOUT = sum_layout(error_estimation=True)
 
 REFERENCE = Path(__file__).resolve().parent.parent / "bench" / "reference" / "cornell-caustics-48x48.exr"
 
@@ -56,7 +61,7 @@ def test_cubic_ramp_reproduces_fig_6_1(make_engine) -> None:
     rms, max_bias = {}, {}
     for R in (3.0, 0.75):
         photons = _grid_photons(ramp, (-2.5 - 1.2 * R, 6.5 + 1.2 * R), 1.1 * R, R / 40)
-        sums = eng.gather_photons(points, normals, np.full(len(xs), R), *photons).sums
+        sums = eng.passes.gather_photons(points, normals, np.full(len(xs), R), *photons)
         actual = sums["S"][:, 0] - ramp(xs)
         max_bias[R] = np.abs(actual).max()
         for name, c in BIAS_CONSTANTS.items():
@@ -72,43 +77,37 @@ def test_laplacian_is_taken_in_the_tangent_plane(make_engine) -> None:
     xs = np.linspace(-1.0, 1.0, 21)
     eng, points, normals = _probe(make_engine, xs)
     R = 0.5
-    sums = eng.gather_photons(points, normals, np.full(len(xs), R),
-                              *_grid_photons(lambda x: np.ones_like(x), (-2.0, 2.0), 1.0, R / 40)).sums
+    sums = eng.passes.gather_photons(points, normals, np.full(len(xs), R),
+                                     *_grid_photons(lambda x: np.ones_like(x), (-2.0, 2.0), 1.0, R / 40))
     L = sums["S"][:, 0]
     np.testing.assert_allclose(L, 1.0, rtol=2e-3)
     assert np.abs(sums["G"]).max() < 0.01 * 7.0 / R ** 2  # under 1% of what eq. 6.38 would give
-    assert np.abs(sums["Gr"]).max() < 0.01 / R
 
 
-def test_point_plane_derivatives_converge_to_the_analytic_ones(make_engine) -> None:
+def test_point_plane_laplacian_converges_to_the_analytic_one(make_engine) -> None:
     """Fig. 6.3: a point light over a Lambertian plane, fixed radius (alpha = 1, plain photon
-    mapping): with 10K photons the derivatives are noise, with more they converge."""
+    mapping): with 10K photons the Laplacian is noise, with more it converges."""
     errors = []
     for photons, passes in ((10_000, 1), (1_000_000, 1), (1_000_000, 10)):
         eng = make_engine("point-plane", resolution=(32, 32), photons_per_pass=photons, seed=2, gather="exact",
-                          initial_radius=0.4)
-        _, grad, lap = point_plane(eng)
-        st = Accumulators.start(1.0, eng.initial_radius())
-        for k in range(passes):
-            st.merge(eng.run_batch(st.radius(), k, 1))
-        g_err = np.sqrt(np.mean(np.sum((st.Gr / st.emitted - grad) ** 2, axis=1)) / np.mean(np.sum(grad ** 2, axis=1)))
-        l_err = np.sqrt(np.mean((st.G / st.emitted - lap) ** 2) / np.mean(lap ** 2))
-        errors.append((g_err, l_err))
-    (g0, l0), (g1, l1), (g2, l2) = errors
-    assert g0 > 4 * g1 and l0 > 5 * l1, errors
-    assert g2 < g1 and l2 < l1, errors
-    assert g2 < 0.10 and l2 < 0.25, errors  # what is left is the bias of smoothing at R = 0.4
+                          initial_radius=0.4, alpha=1.0)
+        _, _, lap = point_plane(eng)
+        st = render(eng, passes)
+        errors.append(np.sqrt(np.mean((st.G / st.emitted - lap) ** 2) / np.mean(lap ** 2)))
+    l0, l1, l2 = errors
+    assert l0 > 5 * l1, errors
+    assert l2 < l1, errors
+    assert l2 < 0.25, errors  # what is left is the bias of smoothing at R = 0.4
 
 
 def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[int], resolution=None,  # noqa: ANN001
               photons: int = 1 << 15) -> dict:
     eng = make_engine(scene, resolution=resolution, photons_per_pass=photons, seed=31, gather=gather)
     truth = truth_of(eng)
-    st = Accumulators.start(0.7, eng.initial_radius())
+    st = eng.start()
     out = {}
     for k in range(max(checkpoints)):
-        r = st.radius()
-        st.merge(eng.run_batch(r, k, 1, bias=bias_estimate(r, st.G, st.emitted, "taylor")))
+        st.merge(eng.render_batch(st, k, 1))  # gathers at the current radius, less the current bias
         if k + 1 in checkpoints:
             for confidence in (0.5, 0.9):
                 est = estimate(st, confidence)
@@ -151,7 +150,7 @@ def test_coverage_with_the_stochastic_hash_after_enough_passes(make_engine) -> N
 
 
 def _state(n: int, passes: int) -> Accumulators:
-    st = Accumulators.start(0.7, np.ones(n))
+    st = Accumulators.start(0.7, np.ones(n), LAYOUT)
     st.passes, st.emitted = passes, passes * 100
     return st
 
@@ -175,5 +174,5 @@ def test_guards_fewer_than_two_passes_and_unlit_pixels() -> None:
 
 
 def test_zero_state_has_zero_bias() -> None:
-    assert not bias_estimate(np.ones(3), zeros(3, "G"), 0, "taylor").any()
-    assert set(ADDITIVE) >= {"G", "Gr", "X1", "X2", "L2", "H"}
+    assert not bias_estimate(np.ones(3), LAYOUT.zeros(3, "G"), 0, "taylor").any()
+    assert set(LAYOUT.names) >= {"G", "X1", "X2", "L2", "H"}

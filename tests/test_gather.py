@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tests.conftest import render
+from worker.integrators.photon_mapping import GatherInputs
 
 SEEDS = range(40)
 
@@ -17,7 +18,7 @@ def test_stochastic_hash_is_unbiased_against_exact_gather(make_engine) -> None:
     seeds the mean difference of each quadrant's totals must lie within 4 standard errors
     (a 1-in-16000 event per check if unbiased), while single seeds differ clearly.
     """
-    r = np.full(32 * 32, 40.0)
+    r = GatherInputs(np.full(32 * 32, 40.0))
 
     def quadrants(x: np.ndarray) -> np.ndarray:
         return x.reshape(2, 16, 2, 16, -1).sum(axis=(1, 3, 4)).ravel()

@@ -6,16 +6,20 @@ import math
 
 import numpy as np
 
-from worker.stats import ADDITIVE, Accumulators, Delta, zeros
+from worker.integrators.base import Delta
+from worker.integrators.photon_mapping import GatherInputs, sum_layout
+from worker.stats import Accumulators
+
+LAYOUT = sum_layout(error_estimation=True)
 
 
 def test_first_pass_identities(make_engine) -> None:
     """With N0 = 0: R1^2 = alpha R0^2 exactly and N1 = alpha M1 (digest 3.8, T3)."""
-    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=11)
     alpha = 0.7
-    state = Accumulators.start(alpha, eng.initial_radius())
+    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=11, alpha=alpha)
+    state = eng.start()
     r0 = state.radius()
-    delta = eng.run_batch(r0, 0, 1)
+    delta = eng.run_batch(GatherInputs(r0), 0, 1)
     state.merge(delta)
     lit = delta.D > 0
     assert lit.mean() > 0.5  # most pixels found photons: the identity is checked on them
@@ -27,13 +31,13 @@ def test_first_pass_identities(make_engine) -> None:
 
 def test_second_pass_is_the_sequential_ppm_update(make_engine) -> None:
     """D-form merge of a pass gathered at the current radius = eq. 6.5/6.6."""
-    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=12)
     alpha = 0.7
-    state = Accumulators.start(alpha, eng.initial_radius())
-    state.merge(eng.run_batch(state.radius(), 0, 1))
+    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=12, alpha=alpha)
+    state = eng.start()
+    state.merge(eng.run_batch(GatherInputs(state.radius()), 0, 1))
     r1, n1 = state.radius(), state.N.copy()
     r1_used = r1.astype(np.float32).astype(np.float64)
-    delta = eng.run_batch(r1, 1, 1)
+    delta = eng.run_batch(GatherInputs(r1), 1, 1)
     state.merge(delta)
     m2 = delta.D * math.pi * r1_used ** 2
     lit = (n1 > 0) & (m2 > 0)
@@ -44,19 +48,19 @@ def test_second_pass_is_the_sequential_ppm_update(make_engine) -> None:
 def test_D_is_additive_and_merge_order_does_not_change_the_estimate(make_engine) -> None:
     """S, D, E and Ld are sums: any merge order gives the same image (to rounding)."""
     eng = make_engine("cornell-caustics", resolution=(48, 48), photons_per_pass=1 << 15, seed=13)
-    r0 = eng.initial_radius()
+    r0 = eng.start().R0
     # Batches gathered at different (stale) radii, as concurrent workers would.
-    deltas = [eng.run_batch(r0 * s, 2 * i, 2) for i, s in enumerate((1.0, 0.8, 1.0, 0.6, 0.9))]
+    deltas = [eng.run_batch(GatherInputs(r0 * s), 2 * i, 2) for i, s in enumerate((1.0, 0.8, 1.0, 0.6, 0.9))]
     orders = [[0, 1, 2, 3, 4], [4, 2, 0, 3, 1], [3, 4, 1, 0, 2]]
     states = []
     for order in orders:
-        st = Accumulators.start(0.7, r0)
+        st = Accumulators.start(0.7, r0, LAYOUT)
         for i in order:
             st.merge(deltas[i])
         states.append(st)
     np.testing.assert_array_equal(states[0].emitted, states[1].emitted)
     for st in states[1:]:
-        for name in ADDITIVE:  # rounding of a reordered sum scales with its largest term
+        for name in LAYOUT.names:  # rounding of a reordered sum scales with its largest term
             ref = states[0].sums[name]
             np.testing.assert_allclose(st.sums[name], ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
         np.testing.assert_allclose(st.radiance(), states[0].radiance(), rtol=1e-13, atol=1e-300)
@@ -70,9 +74,9 @@ def test_D_is_additive_and_merge_order_does_not_change_the_estimate(make_engine)
 
 def test_unlit_pixels_keep_a_bounded_radius() -> None:
     """A pixel that never found a photon has no statistics: R0, capped at the largest lit radius."""
-    st = Accumulators.start(0.5, np.full(3, 2.0))
+    st = Accumulators.start(0.5, np.full(3, 2.0), LAYOUT)
     zero = np.zeros(3)
-    sums = {name: zeros(3, name) for name in ADDITIVE}
+    sums = {name: LAYOUT.zeros(3, name) for name in LAYOUT.names}
     sums["D"] = np.array([1.0, 0.0, 0.0])
     st.merge(Delta(0, 1, 10, sums=sums))
     r = st.radius()

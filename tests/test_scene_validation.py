@@ -606,11 +606,11 @@ def test_cli_scene_path_is_a_directory(cli_available, tmp_path: Path):
 
 
 def test_cli_photons_per_pass_above_limit(cli_available, tmp_path: Path):
-    from worker.engine import MAX_PHOTONS_PER_PASS
+    from worker.settings import MAX_PHOTONS_PER_PASS
 
     proc = run_cli("render", "cornell-box", "--passes", "1", "--photons-per-pass", str(MAX_PHOTONS_PER_PASS + 1),
                    "--out", str(tmp_path / "x.png"))
-    assert_clean_failure(proc, "photons_per_pass")
+    assert_clean_failure(proc, "--photons-per-pass")
     assert_one_line(proc)
 
 
@@ -645,12 +645,12 @@ def test_cli_resolution_override_respects_max_pixels(monkeypatch, tmp_path: Path
 
     Run in-process with the engine replaced, so a failure cannot start a 16-Mpixel render.
     """
-    import worker.cli as cli
+    import service.cli as cli
 
     def no_engine(*args, **kwargs):
         raise AssertionError("engine constructed for a resolution above MAX_PIXELS")
 
-    monkeypatch.setattr(cli, "Engine", no_engine)
+    monkeypatch.setattr("worker.engine.Engine", no_engine)
     res = f"{MAX_RESOLUTION}x{MAX_RESOLUTION}"
     try:
         rc = cli.main(["render", "cornell-box", "--passes", "1", "--resolution", res, "--out", str(tmp_path / "x.png")])

@@ -7,15 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 from tests.analytic import FURNACE_L
-from worker.stats import Accumulators
+from tests.conftest import render
+from worker.integrators.photon_mapping import GatherInputs
 
 
 def test_alpha_one_keeps_the_initial_radius(make_engine) -> None:
     """alpha = 1 is plain photon mapping at a fixed radius (dissertation 6.2): bias O(1)."""
-    eng = make_engine("cornell-box", resolution=(24, 24), photons_per_pass=1 << 13, seed=1)
-    st = Accumulators.start(1.0, eng.initial_radius())
-    for k in range(8):
-        st.merge(eng.run_batch(st.radius(), k, 1))
+    eng = make_engine("cornell-box", resolution=(24, 24), photons_per_pass=1 << 13, seed=1, alpha=1.0)
+    st = render(eng, 8)
     np.testing.assert_allclose(st.radius(), st.R0, rtol=1e-12)
 
 
@@ -25,7 +24,8 @@ def test_undersized_hash_table_adds_noise_not_bias(make_engine) -> None:
     on the same photons while each pixel scatters more than with 4 entries per photon. At a
     small radius (R0/8), so that cells hold about one photon: the regime of Fig. 10.3 (with
     big cells the one-survivor-per-cell loss dwarfs any table size; bench/stability.py)."""
-    r = make_engine("cornell-box", resolution=(32, 32), photons_per_pass=1 << 14, seed=0).initial_radius() / 8
+    r0 = make_engine("cornell-box", resolution=(32, 32), photons_per_pass=1 << 14, seed=0).start().R0
+    r = GatherInputs(r0 / 8)
     scatter = {}
     for ratio in (1 / 64, 4.0):
         diffs = []
@@ -44,10 +44,10 @@ def test_long_run_does_not_drift(make_engine) -> None:
     """2000 passes on a tiny furnace: the float64 sums keep the mean on the analytic value
     and the error keeps falling (bench/stability.py runs 10^4 passes)."""
     eng = make_engine("furnace", resolution=(8, 8), photons_per_pass=1 << 10, seed=2)
-    st = Accumulators.start(0.7, eng.initial_radius())
+    st = eng.start()
     rms = {}
     for k in range(2000):
-        st.merge(eng.run_batch(st.radius(), k, 1))
+        st.merge(eng.render_batch(st, k, 1))
         if k + 1 in (200, 2000):
             L = st.photon_radiance()[:, 0]
             rms[k + 1] = float(np.sqrt(np.mean((L / FURNACE_L - 1) ** 2)))

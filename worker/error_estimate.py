@@ -57,18 +57,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats as scipy_stats
 
-from worker.stats import Accumulators
+from kernels.contract import K1, K2, LUMINANCE
 
-K1 = 2.0 * math.pi / 7.0  # integral of K over the unit disc
-K2 = 10.0 * math.pi / 168.0  # integral of |u|^2 K over the unit disc
+if TYPE_CHECKING:
+    from worker.stats import Accumulators
+
 BIAS_CONSTANTS = {"taylor": K2 / (2.0 * K1), "dissertation": K2}
 FLOOR_FRACTION = 0.05
 BIAS_SIGNIFICANCE = 1.25  # standard errors a bias estimate must exceed to count in the bound
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 UNLIT_MIN_PHOTONS = 16  # photons a pixel must have found to set the per-photon luminance q
 
 
@@ -97,7 +98,7 @@ def student_t(confidence: float, dof: int) -> float:
     return float(scipy_stats.t.ppf(0.5 + 0.5 * confidence, dof))
 
 
-def unlit_bound(state: Accumulators, lum: np.ndarray, known: np.ndarray, confidence: float) -> np.ndarray:
+def unlit_bound(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confidence: float) -> np.ndarray:
     """Per pixel, the zero-count bound q (-ln(1 - c)) / (pi R^2 E) (module docstring); inf
     where nothing is known yet (no photon found anywhere, or none emitted)."""
     n = len(lum)
@@ -110,7 +111,7 @@ def unlit_bound(state: Accumulators, lum: np.ndarray, known: np.ndarray, confide
     return q * -math.log1p(-confidence) / (math.pi * r2 * state.emitted)
 
 
-def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
+def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
              significance: float = BIAS_SIGNIFICANCE) -> ErrorEstimate:
     """The error bound per pixel and its image average; `significance` is z above."""
     if not 0.0 < confidence < 1.0:

@@ -18,8 +18,10 @@ import uuid
 import redis
 from rq import Queue, SimpleWorker
 
-from worker.job_store import QUEUE_NAMES
+from worker.heartbeat import Heartbeat
 from worker.logs import configure_logging
+from worker.scheduler import QUEUE_NAMES
+from worker.store import Leases
 
 log = logging.getLogger("photonfarm.worker")
 
@@ -28,11 +30,14 @@ def run_worker(redis_url: str, burst: bool = False) -> int:
     configure_logging()
     conn = redis.Redis.from_url(redis_url)
     while True:
+        name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"  # says where it runs
+        beat = Heartbeat(Leases(conn), name).start()
         try:
-            queues = [Queue(name, connection=conn) for name in QUEUE_NAMES]
-            name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"  # says where it runs
+            queues = [Queue(q, connection=conn) for q in QUEUE_NAMES]
             SimpleWorker(queues, connection=conn, name=name).work(burst=burst, with_scheduler=False)
             return 0
         except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
             log.warning("redis unavailable; retrying in 1 s: %s", exc)
             time.sleep(1.0)
+        finally:
+            beat.stop()

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.contract import EMITTERS, MATERIALS
 from worker.bvh import build_bvh
 from worker.scene import (
     SCENES_DIR,
@@ -22,8 +23,9 @@ from worker.scene import (
     shape_triangles,
 )
 
-MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS, MAT_GLOSSY = 0, 1, 2, 3
-EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL = 0, 1, 2, 3, 4
+MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS, MAT_GLOSSY = (MATERIALS[k] for k in ("diffuse", "mirror", "glass", "glossy"))
+EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL = (
+    EMITTERS[k] for k in ("triangle", "sphere", "point", "spot", "directional"))
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ asks for the next one, which joins the END of its priority queue: batches of dif
 jobs interleave, so a small job never waits for a large one to finish, only for the
 batches already queued. Workers take the high queue first, then normal, then low.
 
-The reaper (run by the API process, every few seconds) looks at leases that expired:
+The reaper (a thread of the API process, every few seconds) looks at leases that expired:
 a batch still waiting in a queue gets more time; one whose worker vanished (killed, or
 its Redis connection lost) is put on the queue again. Its passes keep their indices and
 seeds, and the merged set guarantees they count once whichever copy finishes first.
@@ -13,6 +13,9 @@ seeds, and the merged set guarantees they count once whichever copy finishes fir
 
 from __future__ import annotations
 
+import logging
+import threading
+import time
 import uuid
 
 import redis
@@ -20,71 +23,128 @@ from rq import Queue, Worker
 from rq.exceptions import NoSuchJobError
 from rq.job import Job, JobStatus
 
-from worker.job_store import ACTIVE, PRIORITIES, QUEUE_NAMES, Batch, JobStore
+from worker.settings import PRIORITIES, Priority
+from worker.store import Batch, Jobs, Status
+from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
 
-MAX_INFLIGHT_PER_JOB = 8
+QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
+REAP_SECONDS = 2.0
+PRUNE_SECONDS = 60.0
+
+log = logging.getLogger("photonfarm.scheduler")
 
 
-def queue_for(conn: redis.Redis, priority: str) -> Queue:
+def queue_for(conn: redis.Redis, priority: Priority) -> Queue:
     return Queue(QUEUE_NAMES[PRIORITIES.index(priority)], connection=conn)
 
 
-def enqueue(store: JobStore, batch: Batch, priority: str) -> None:
+def enqueue(jobs: Jobs, batch: Batch, priority: Priority) -> None:
     rq_id = f"pf-{batch.job_id}-{batch.first}-{batch.n}-{uuid.uuid4().hex[:8]}"
-    store.r.hset("pf:batch-rq", batch.member, rq_id)
-    queue_for(store.r, priority).enqueue_call(
+    jobs.leases.set_carrier(batch, rq_id)
+    queue_for(jobs.r, priority).enqueue_call(
         "worker.tasks.run_batch", args=(batch.job_id, batch.first, batch.n), timeout=RQ_TIMEOUT,
         result_ttl=0, failure_ttl=86_400, job_id=rq_id)
 
 
-def target_inflight(conn: redis.Redis) -> int:
-    return max(1, min(MAX_INFLIGHT_PER_JOB, Worker.count(connection=conn)))
+def target_inflight(jobs: Jobs) -> int:
+    """Batches a job keeps in flight: one per live worker (dead registrations count for
+    nothing), within MAX_INFLIGHT_PER_JOB."""
+    return max(1, min(MAX_INFLIGHT_PER_JOB, jobs.leases.live_workers()))
 
 
-def feed(store: JobStore, job_id: str, pass_seconds: float | None = None) -> int:
+def feed(jobs: Jobs, job_id: str, pass_seconds: float | None = None) -> int:
     """Issue batches until the job has its share in flight; returns how many were issued."""
-    meta = store.meta(job_id)
-    if meta is None:
+    record = jobs.get(job_id)
+    if record is None:
         return 0
     issued = 0
-    target = target_inflight(store.r)
-    while store.inflight(job_id) < target:
-        batch = store.allocate(job_id, pass_seconds)
+    target = target_inflight(jobs)
+    while jobs.leases.inflight(job_id) < target:
+        batch = jobs.allocate(job_id, pass_seconds)
         if batch is None:
             break
-        enqueue(store, batch, meta["priority"])
+        enqueue(jobs, batch, record.settings.priority)
         issued += 1
     return issued
 
 
-def reap(store: JobStore) -> int:
+def _still_queued(jobs: Jobs, batch: Batch) -> bool:
+    """The batch's RQ job is waiting in its queue. A job RQ marks queued but that is in no
+    queue list was taken by a worker that died before starting it: lost, not waiting."""
+    rq_id = jobs.leases.carrier(batch)
+    if rq_id is None:
+        return False
+    try:
+        job = Job.fetch(rq_id, connection=jobs.r)
+    except NoSuchJobError:
+        return False
+    return job.get_status() == JobStatus.QUEUED and \
+        jobs.r.lpos(Queue(job.origin, connection=jobs.r).key, rq_id) is not None
+
+
+def forget_dead_workers(jobs: Jobs) -> int:
+    """Unregister from RQ the workers our heartbeat no longer hears (RQ keeps a worker that
+    died mid-job registered until the job's timeout): they are no capacity."""
+    dead = set(jobs.leases.dead_workers())
+    if not dead:
+        return 0
+    for w in Worker.all(connection=jobs.r):
+        if w.name in dead:
+            w.register_death()
+    return len(dead)
+
+
+def reap(jobs: Jobs) -> int:
     """Re-issue lost batches and settle jobs that have nothing left in flight."""
     reissued = 0
-    for batch in store.expired_leases():
-        if not store.is_wanted(batch):
-            store.drop_batch(batch)
+    for batch in jobs.leases.expired():
+        if not jobs.is_wanted(batch):
+            jobs.drop(batch)
             continue
-        rq_id = store.r.hget("pf:batch-rq", batch.member)
-        status = None
-        if rq_id is not None:
-            try:
-                status = Job.fetch(rq_id.decode(), connection=store.r).get_status()
-            except NoSuchJobError:
-                status = None
-        if status == JobStatus.QUEUED:
-            store.extend_queued(batch)  # still waiting its turn
+        if _still_queued(jobs, batch):
+            jobs.leases.extend_queued(batch)  # still waiting its turn
             continue
-        meta = store.meta(batch.job_id)
-        store.reissue(batch)
-        enqueue(store, batch, meta["priority"] if meta else "normal")
+        record = jobs.get(batch.job_id)
+        jobs.leases.reissue(batch)
+        enqueue(jobs, batch, record.settings.priority if record else "normal")
         reissued += 1
-    for job_id in store.job_ids():
-        meta = store.meta(job_id)
-        if meta is None or meta["status"] not in ACTIVE:
+    forget_dead_workers(jobs)
+    for job_id in jobs.active_ids():
+        record = jobs.get(job_id)
+        if record is None or record.status not in ACTIVE:
             continue
-        if meta["status"] == "cancel-requested":
-            store.settle_cancel(job_id)
-        elif store.inflight(job_id) == 0 and feed(store, job_id) == 0 and meta["status"] == "running":
-            store.finish_spent(job_id)  # budget spent and nothing left to merge
+        if record.status == Status.CANCEL_REQUESTED:
+            jobs.settle(job_id, Status.CANCEL_REQUESTED, Status.CANCELLED)
+        elif jobs.leases.inflight(job_id) == 0 and feed(jobs, job_id) == 0 and record.status == Status.RUNNING:
+            jobs.settle(job_id, Status.RUNNING, Status.COMPLETED)  # budget spent and nothing left to merge
     return reissued
+
+
+class Reaper:
+    """The reaper as a daemon thread (started by the API process)."""
+
+    def __init__(self, jobs: Jobs, interval: float = REAP_SECONDS) -> None:
+        self.jobs = jobs
+        self.interval = interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="reaper", daemon=True)
+
+    def _run(self) -> None:
+        last_prune = 0.0
+        while not self._stop.wait(self.interval):
+            try:
+                if n := reap(self.jobs):
+                    log.info("re-issued lost batches", extra={"reissued": n})
+                if time.monotonic() - last_prune > PRUNE_SECONDS:
+                    self.jobs.prune()  # ids of jobs past their retention
+                    last_prune = time.monotonic()
+            except redis.RedisError as exc:
+                log.warning("reaper: redis unavailable: %s", exc)
+
+    def start(self) -> "Reaper":
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()

@@ -14,9 +14,10 @@ section 11.2 (iii), which turns the dissertation's sequential update (eqs. 6.5-6
 S uses the smooth kernel K of eq. 6.34 (normalised by k1 r^2, so L estimates the same
 radiance as with PPM's disc); D stays count based (pi r^2), as the radius rule derives
 from counts. The error estimator's sums (worker/error_estimate.py) are additive too:
-G and Gr (Laplacian and gradient of the luminance, /k1 r^2), X1 and X2 (sums of the
-bias-corrected per-pass samples and of their squares), L2 (sum of the squared per-pass
-Laplacian estimates) and H (passes with a measurement point).
+G (Laplacian of the luminance, /k1 r^2), X1 and X2 (sums of the bias-corrected per-pass
+samples and of their squares), L2 (sum of the squared per-pass Laplacian estimates) and
+H (passes with a measurement point). The layout of the sums is the integrator's
+(worker/integrators/photon_mapping.py).
 
 With r = R (a batch of one pass gathered at the current radius) this is exactly eq. 6.6:
 R'^2 = R^2 (N + alpha M) / (N + M), and S/E equals tau/(pi R^2 E) of eq. 6.1. S, D, E and
@@ -30,8 +31,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from kernels.contract import SumLayout
+
+if TYPE_CHECKING:
+    from worker.integrators.base import Delta
 
 
 def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -52,67 +59,43 @@ def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
     return np.sqrt(r2)
 
 
-# The sums a batch adds, with their per-pixel width (1 = scalar, 3 = rgb or a vector).
-ADDITIVE = {"S": 3, "D": 1, "Ld": 3, "G": 1, "Gr": 3, "X1": 1, "X2": 1, "L2": 1, "H": 1}
-
-
-def zeros(n_pixels: int, name: str) -> np.ndarray:
-    width = ADDITIVE.get(name, 1)
-    return np.zeros((n_pixels, width) if width > 1 else n_pixels)
-
-
-def _sum_attribute(obj: object, name: str) -> np.ndarray:
-    """`obj.S` for `obj.sums["S"]` (and no recursion while unpickling, before `sums` exists)."""
-    sums = obj.__dict__.get("sums")
-    if sums is not None and name in sums:
-        return sums[name]
-    raise AttributeError(name)
-
-
-@dataclass
-class Delta:
-    """What a batch of passes adds: sums over its passes, each at the radius it read."""
-
-    first_pass: int
-    n_passes: int
-    emitted: int  # photon paths emitted over the batch
-    sums: dict[str, np.ndarray]  # every name of ADDITIVE, float64
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        return _sum_attribute(self, name)
-
-
 @dataclass
 class Accumulators:
-    """A job's shared per-pixel state (float64)."""
+    """A photon-mapping job's shared per-pixel state (float64)."""
 
     alpha: float
     R0: np.ndarray  # (pixels,) initial radius
     N: np.ndarray
-    sums: dict[str, np.ndarray]  # every name of ADDITIVE
+    sums: dict[str, np.ndarray]  # every name of the integrator's SumLayout
     emitted: int = 0
     passes: int = 0
 
     @classmethod
-    def start(cls, alpha: float, R0: np.ndarray) -> "Accumulators":
+    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout) -> "Accumulators":
         """Empty state: no pass merged, every radius at its initial value."""
         if not 0.0 < alpha <= 1.0:
             raise ValueError("alpha must lie in (0, 1]")
         n = len(R0)
         return cls(alpha=alpha, R0=np.asarray(R0, np.float64), N=np.zeros(n),
-                   sums={name: zeros(n, name) for name in ADDITIVE})
+                   sums={name: layout.zeros(n, name) for name in layout.names})
 
     def __getattr__(self, name: str) -> np.ndarray:
-        return _sum_attribute(self, name)
+        sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
+        if sums is not None and name in sums:
+            return sums[name]
+        raise AttributeError(name)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {"R0": self.R0, "N": self.N, **self.sums}
 
     def radius(self) -> np.ndarray:
         return radius(self.R0, self.N, self.D)
 
-    def merge(self, delta: Delta) -> None:
+    def merge(self, delta: "Delta") -> None:
         """Add a batch. Commutative in every sum; N uses the radius at merge time."""
         r2_now = self.radius() ** 2
         self.N += self.alpha * math.pi * r2_now * delta.D
-        for name in ADDITIVE:
+        for name in self.sums:
             self.sums[name] += delta.sums[name]
         self.emitted += delta.emitted
         self.passes += delta.n_passes

@@ -7,7 +7,6 @@ because OpenCL state does not survive a fork.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from collections import OrderedDict
@@ -16,10 +15,12 @@ import pyopencl as cl
 from rq import get_current_job
 
 from kernels.program import create_context
-from worker.engine import BatchAborted, Engine, RenderSettings
-from worker.job_store import Batch, JobStore
+from worker.engine import Engine
+from worker.heartbeat import holding
+from worker.integrators.base import BatchAborted
 from worker.scene import SCENES_DIR, SceneError, parse_scene
 from worker.scheduler import feed
+from worker.store import Batch, JobRecord, Jobs, Status
 
 log = logging.getLogger("photonfarm.worker")
 ENGINE_CACHE_SIZE = 2
@@ -27,20 +28,16 @@ _engines: "OrderedDict[str, Engine]" = OrderedDict()
 _ctx: cl.Context | None = None
 
 
-def engine_for(job_id: str, meta: dict[str, str]) -> Engine:
+def engine_for(jobs: Jobs, record: JobRecord) -> Engine:
     """This process's Engine for a job, built on first use (scenes arrive inline in Redis)."""
     global _ctx
-    if job_id in _engines:
-        _engines.move_to_end(job_id)
-        return _engines[job_id]
+    if record.id in _engines:
+        _engines.move_to_end(record.id)
+        return _engines[record.id]
     _ctx = _ctx or create_context()
-    settings = json.loads(meta["settings"])
-    engine = Engine(parse_scene(json.loads(meta["scene"])), SCENES_DIR,
-                    RenderSettings(method=settings["method"], gather=settings["gather"],
-                                   photons_per_pass=settings["photons_per_pass"], seed=settings["seed"],
-                                   initial_radius=settings.get("initial_radius")),
-                    resolution=(int(meta["width"]), int(meta["height"])), ctx=_ctx)
-    _engines[job_id] = engine
+    settings = record.settings.model_copy(update={"resolution": (record.width, record.height)})
+    engine = Engine(parse_scene(jobs.scene(record.id)), SCENES_DIR, settings, ctx=_ctx)
+    _engines[record.id] = engine
     while len(_engines) > ENGINE_CACHE_SIZE:
         _engines.popitem(last=False)
     return engine
@@ -48,42 +45,43 @@ def engine_for(job_id: str, meta: dict[str, str]) -> Engine:
 
 def run_batch(job_id: str, first: int, n: int) -> str:
     rq_job = get_current_job()
-    store = JobStore(rq_job.connection)
+    jobs = Jobs(rq_job.connection)
     batch = Batch(job_id, first, n)
     worker = rq_job.worker_name or "worker"
     context = {"job": job_id, "batch": batch.id, "worker": worker}
-    if not store.start_batch(batch, worker):
+    # Take the lease.
+    if not jobs.start(batch, worker):
         log.info("batch skipped: merged or no longer wanted", extra=context)
         return "skipped"
-    store.heartbeat(worker, job_id, batch.id)
-    meta = store.meta(job_id)
+    record = jobs.get(job_id)
     try:
-        engine = engine_for(job_id, meta)
+        engine = engine_for(jobs, record)
     except (SceneError, ValueError) as exc:
-        store.fail(job_id, f"cannot render this scene: {exc}")
-        store.drop_batch(batch)
+        jobs.fail(job_id, f"cannot render this scene: {exc}")
+        jobs.drop(batch)
         log.error("job failed: cannot render its scene", extra=context)
         return "failed"
+    # Render: the job's first batch fixes its setup arrays (e.g. R0, from pass 0).
     start = time.perf_counter()
     try:
-        r0 = store.initial_radius(job_id)
-        if r0 is None:  # the job's first batch fixes R0 (one eye pass)
-            r0 = store.init_radius(job_id, engine.initial_radius())
-        radius, bias = store.batch_inputs(job_id, r0, meta)
-        delta = engine.run_batch(radius, first, n, bias=bias,
-                                 keep_going=lambda k: store.renew_lease(batch, worker) == "running")
+        with holding(batch):
+            if not jobs.has_setup(record):
+                jobs.init_setup(record, engine.passes.setup())
+            delta = engine.run_batch(jobs.batch_inputs(record), first, n,
+                                     keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
     except BatchAborted:
-        store.drop_batch(batch)
+        jobs.drop(batch)
         log.info("batch aborted: the job stopped wanting it", extra=context)
         return "aborted"
     except Exception as exc:  # noqa: BLE001 - counted, then RQ records the traceback
         log.exception("batch failed", extra=context)
-        if store.record_failure(batch, f"batch {batch.id} failed: {exc!r}"):
-            store.drop_batch(batch)
+        if jobs.record_failure(batch, f"batch {batch.id} failed: {exc!r}"):
+            jobs.drop(batch)
         raise
     seconds = time.perf_counter() - start
-    outcome = store.merge(batch, delta, seconds)
+    # Merge, then ask for the next batch.
+    outcome = jobs.merge(batch, delta, seconds)
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
-        feed(store, job_id, pass_seconds=seconds / n)
+        feed(jobs, job_id, pass_seconds=seconds / n)
     return outcome

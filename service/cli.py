@@ -1,4 +1,6 @@
-"""`photonfarm render`: render a scene locally, with a progress bar."""
+"""`photonfarm`: render locally, run the service or a worker, submit to a service, and
+check or convert scenes. Render flags take their defaults and help from the settings
+model (worker/settings.py) and are validated by it."""
 
 from __future__ import annotations
 
@@ -7,11 +9,15 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
-from worker.engine import MAX_PHOTONS_PER_PASS, Engine, RenderSettings
-from worker.image_io import write_image
+from pydantic import ValidationError
+
 from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_scene_file
-from worker.stats import Accumulators
+from worker.settings import Settings
+
+# Render flags that are settings fields, by flag name (defaults and help from the model).
+RENDER_FIELDS = ("method", "gather", "alpha", "photons_per_pass", "initial_radius", "seed", "resolution")
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -26,7 +32,7 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive(kind: type) -> object:
+def _positive(kind: type) -> Any:
     def parse(text: str) -> object:
         try:
             value = kind(text)
@@ -38,18 +44,27 @@ def _positive(kind: type) -> object:
     return parse
 
 
-def _alpha(text: str) -> float:
-    value = _positive(float)(text)
-    if value > 1.0:
-        raise argparse.ArgumentTypeError("alpha must lie in (0, 1]")
-    return value  # type: ignore[return-value]
-
-
 def _output(text: str) -> Path:
     path = Path(text)
     if path.suffix.lower() not in (".exr", ".png"):
         raise argparse.ArgumentTypeError("output must end in .exr or .png")
     return path
+
+
+def _add_setting(parser: argparse.ArgumentParser, name: str) -> None:
+    """A flag for a settings field, with the model's default, choices and help."""
+    info = Settings.model_fields[name]
+    flag = "--" + {"initial_radius": "radius"}.get(name, name).replace("_", "-")
+    kwargs: dict[str, Any] = {"dest": name, "default": info.default}
+    choices = getattr(info.annotation, "__args__", None)
+    if name == "resolution":
+        kwargs["type"] = _resolution
+    elif choices and all(isinstance(c, str) for c in choices):
+        kwargs["choices"] = choices
+    else:
+        kwargs["type"] = {"alpha": float, "initial_radius": float}.get(name, int)
+    default = f" (default: {info.default})" if info.default is not None else ""
+    parser.add_argument(flag, help=f"{info.description}{default}", **kwargs)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,14 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     budget = render.add_mutually_exclusive_group(required=True)
     budget.add_argument("--passes", type=_positive(int), help="number of photon passes")
     budget.add_argument("--seconds", type=_positive(float), help="render for this long")
-    render.add_argument("--photons-per-pass", type=_positive(int), default=RenderSettings.photons_per_pass)
-    render.add_argument("--alpha", type=_alpha, default=0.7, help="fraction of photons kept per pass (default 0.7)")
-    render.add_argument("--method", choices=("sppm", "ppm"), default="sppm")
-    render.add_argument("--gather", choices=("stochastic", "exact"), default="stochastic")
-    render.add_argument("--resolution", type=_resolution, help="override the scene's WIDTHxHEIGHT")
-    render.add_argument("--seed", type=int, default=0)
-    render.add_argument("--radius", type=_positive(float), help="initial radius in world units "
-                        "(default: 2 pixel footprints at each pixel's first diffuse hit)")
+    for name in RENDER_FIELDS:
+        _add_setting(render, name)
     render.add_argument("--out", type=_output, required=True, help="output image, .exr (linear) or .png")
 
     serve = sub.add_parser("serve", help="run the HTTP API (with embedded Redis and local workers by default)")
@@ -79,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--data-dir", type=Path, default=Path(os.environ.get("PHOTONFARM_DATA", "data")),
                        help="where the embedded Redis keeps its append-only file (default: ./data)")
 
-    from service.client import add_parser as add_submit_parser  # the HTTP client lives with the API
+    from service.client import add_parser as add_submit_parser
 
     add_submit_parser(sub, _positive(float), _positive(int), _resolution)
 
@@ -89,34 +98,57 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _progress(passes: int, total: int | None, photons: int, elapsed: float, seconds: float | None) -> None:
-    frac = passes / total if total else min(elapsed / seconds, 1.0) if seconds else 0.0
-    bar = "#" * int(30 * frac)
-    rate = photons / elapsed if elapsed > 0 else 0.0
-    sys.stderr.write(f"\r[{bar:<30}] {passes} passes  {rate / 1e6:6.2f} M photons/s  {elapsed:7.1f} s")
-    sys.stderr.flush()
+def _check_output(path: Path) -> None:
+    """Fail before rendering, not after: create missing folders, and probe that the file
+    can be written."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        existed = path.exists()
+        with open(path, "ab"):
+            pass
+        if not existed:
+            path.unlink()
+    except OSError as exc:
+        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def render(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from worker.engine import Engine
+    from worker.image_io import write_image
+    from worker.render_loop import render as render_passes
+
     path = Path(args.scene) if args.scene.endswith(".json") else bundled_scene_path(args.scene)
     scene, base_dir = load_scene_file(path)
-    if args.photons_per_pass > MAX_PHOTONS_PER_PASS:
-        raise SceneError("photons_per_pass", f"at most {MAX_PHOTONS_PER_PASS}")
-    settings = RenderSettings(method=args.method, gather=args.gather, photons_per_pass=args.photons_per_pass,
-                              seed=args.seed, initial_radius=args.radius)
-    engine = Engine(scene, base_dir, settings, resolution=args.resolution)
-    state = Accumulators.start(args.alpha, engine.initial_radius())
+    try:
+        settings = Settings(**{name: getattr(args, name) for name in RENDER_FIELDS},
+                            max_passes=args.passes, max_seconds=args.seconds)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise ValueError(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from None
+    _check_output(args.out)
+    engine = Engine(scene, base_dir, settings)
+    state = engine.start()
     start = time.perf_counter()
-    k = 0
-    while (args.passes and k < args.passes) or (args.seconds and time.perf_counter() - start < args.seconds):
-        state.merge(engine.run_batch(state.radius(), k, 1))
-        k += 1
-        _progress(k, args.passes, state.emitted, time.perf_counter() - start, args.seconds)
-    sys.stderr.write("\n")
+    total = args.passes or args.seconds
+    with tqdm(total=total, unit="pass" if args.passes else "s", disable=None, file=sys.stderr,
+              bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} [{elapsed}<{remaining}] {postfix}") as bar:
+        def progress(st: Any, elapsed: float) -> None:
+            bar.n = st.passes if args.passes else min(elapsed, args.seconds)
+            bar.set_postfix_str(f"{st.emitted / max(elapsed, 1e-9) / 1e6:.2f} M photons/s", refresh=True)
+
+        interrupted = False
+        try:
+            render_passes(engine, passes=args.passes, seconds=args.seconds, progress=progress, state=state)
+        except KeyboardInterrupt:
+            interrupted = True
     a = engine.arrays
-    write_image(args.out, state.radiance().reshape(a.height, a.width, 3))
-    print(f"wrote {args.out}: {state.passes} passes, {state.emitted} photons, {time.perf_counter() - start:.1f} s")
-    return 0
+    write_image(args.out, engine.integrator.image(state).reshape(a.height, a.width, 3))
+    note = " (interrupted: the image so far)" if interrupted else ""
+    print(f"wrote {args.out}{note}: {state.passes} passes, {state.emitted} photons, "
+          f"{time.perf_counter() - start:.1f} s")
+    return 130 if interrupted else 0
 
 
 def main(argv: list[str] | None = None) -> int:

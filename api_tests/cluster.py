@@ -16,17 +16,19 @@ import httpx
 import redis
 
 from service.redis_server import EmbeddedRedis, free_port
+from worker.store import Batch, keys
+from worker.store.policy import FINAL
 
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
 
 
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
-                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1) -> None:
+                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None) -> None:
         self.data_dir = data_dir
         self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind).start(supervise=False)
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
-                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1"}
+                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", **(env or {})}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()
@@ -47,13 +49,13 @@ class Cluster:
 
     def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:
         """A worker process; `prefix` runs it elsewhere (e.g. `ip netns exec NS`)."""
-        cmd = [*(prefix or []), sys.executable, "-m", "worker.cli", "worker", "--redis-url", self.redis.url]
+        cmd = [*(prefix or []), sys.executable, "-m", "service.cli", "worker", "--redis-url", self.redis.url]
         proc = subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
         self.workers.append(proc)
         return proc
 
     def start_api(self) -> None:
-        cmd = [sys.executable, "-m", "worker.cli", "serve", "--port", str(self.port), "--workers", "0",
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--workers", "0",
                "--redis-url", self.redis.url]
         self.api = subprocess.Popen(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
         deadline = time.time() + 60
@@ -114,13 +116,13 @@ class Cluster:
 
 
 def finished(job: dict[str, Any]) -> bool:
-    return job["status"] in ("completed", "converged", "cancelled", "failed")
+    return job["status"] in FINAL
 
 
 def merged_passes(r: redis.Redis, job_id: str) -> list[int]:
     """Every pass index merged into the job, from its merged-batch set (sorted, may repeat)."""
     out: list[int] = []
-    for batch in r.smembers(f"pf:job:{job_id}:merged"):
-        first, n = (int(x) for x in batch.decode().split("+"))
-        out.extend(range(first, first + n))
+    for batch_id in r.smembers(keys.merged(job_id)):
+        batch = Batch.from_id(job_id, batch_id.decode())
+        out.extend(range(batch.first, batch.first + batch.n))
     return sorted(out)

@@ -1,0 +1,97 @@
+"""The kernel-host contract: every constant the kernels and Python share, defined once here
+and handed to the OpenCL build as `-D` options (no `.cl` file repeats a value).
+
+Importable without OpenCL (the API process uses the constants and layouts too).
+
+Per-pixel sums. A batch's sums live on the device in one float64 buffer, one record of
+`stride` doubles per pixel (pixel-major: a gather writes one contiguous record). A
+`SumLayout` names each sum with its width (1 = scalar, 3 = rgb); the kernels address a sum
+as `sums[gid * SUM_STRIDE + SUM_<NAME>]` and test `#ifdef SUM_<NAME>` for optional ones, so
+adding a sum is one entry in a layout here plus the kernel code that writes it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# Materials (surface record type) and emitter kinds: see kernels/materials.cl, photon_pass.cl.
+MATERIALS = {"diffuse": 0, "mirror": 1, "glass": 2, "glossy": 3}
+EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
+# Random-number domains: independent streams for eye and photon paths (kernels/rng.cl).
+RNG_DOMAINS = {"eye": 1, "photon": 2}
+
+# The smooth kernel K(t) = 1 - 6t^5 + 15t^4 - 10t^3 (dissertation eq. 6.34) and its moments.
+K1 = 2.0 * math.pi / 7.0  # integral of K over the unit disc: the flux normalisation k1 r^2
+K2 = 10.0 * math.pi / 168.0  # integral of |u|^2 K over the unit disc
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights: what "error" measures
+
+# Photon paths end by Russian roulette and eye paths at their first diffuse hit; this cap
+# on bounces per photon path and specular bounces per eye path is only a safety net.
+# Russian roulette keeps the expected throughput, so the energy the cap cuts is the true
+# throughput still carried after MAX_BOUNCES bounces: at most a^MAX_BOUNCES of the emitted
+# (or seen) energy where every surface reflects at most a. For a = 0.99 that is
+# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2; the 16 bounces of old lost 0.99^16 = 15%.
+# Lossless surfaces (albedo 1: ideal mirrors and glass) absorb nothing, so there the cut is
+# the share of paths still trapped among them after 4096 bounces: zero in any scene where
+# such a chain ends at a diffuse surface or escapes (glass: each internal hit stays inside
+# only with the Fresnel reflectance), and the radiance of a closed lossless cavity with no
+# diffuse surface is not defined at all. 4096 = 2^12 is what the photon key's bounce field
+# holds (kernels/photon_pass.cl).
+MAX_BOUNCES = 4096
+
+
+@dataclass(frozen=True)
+class SumLayout:
+    """Named per-pixel float64 sums packed in one record of `stride` doubles."""
+
+    widths: tuple[tuple[str, int], ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.widths)
+
+    @property
+    def offsets(self) -> dict[str, int]:
+        out, at = {}, 0
+        for name, width in self.widths:
+            out[name] = at
+            at += width
+        return out
+
+    @property
+    def stride(self) -> int:
+        return sum(width for _, width in self.widths)
+
+    def width(self, name: str) -> int:
+        return dict(self.widths)[name]
+
+    def zeros(self, n_pixels: int, name: str) -> np.ndarray:
+        width = self.width(name)
+        return np.zeros((n_pixels, width) if width > 1 else n_pixels)
+
+    def split(self, records: np.ndarray) -> dict[str, np.ndarray]:
+        """(pixels, stride) records -> one array per sum, (pixels,) or (pixels, 3)."""
+        out = {}
+        for name, at in self.offsets.items():
+            width = self.width(name)
+            out[name] = np.ascontiguousarray(records[:, at:at + width] if width > 1 else records[:, at])
+        return out
+
+    def defines(self) -> dict[str, int]:
+        return {"SUM_STRIDE": self.stride, **{f"SUM_{name.upper()}": at for name, at in self.offsets.items()}}
+
+
+def build_options(layout: SumLayout) -> list[str]:
+    """The `-D` options that hand this contract to the kernels."""
+    defines: dict[str, object] = {
+        **{f"MAT_{name.upper()}": code for name, code in MATERIALS.items()},
+        **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
+        **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},
+        "K1": repr(K1),
+        **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
+        **layout.defines(),
+    }
+    return [f"-D{name}={value}" for name, value in defines.items()]

@@ -1,0 +1,51 @@
+"""One settings model: the CLI's flags and the API's fields take their defaults from it,
+and the API process never loads OpenCL."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from service.cli import RENDER_FIELDS, build_parser
+from service.models import JobRequest, JobSettings
+from worker.settings import DEFAULTS, Settings
+
+
+def test_cli_and_api_defaults_are_the_models_own() -> None:
+    render = build_parser()._subparsers._group_actions[0].choices["render"]  # noqa: SLF001
+    flags = {a.dest: a for a in render._actions}  # noqa: SLF001
+    for name in RENDER_FIELDS:
+        assert flags[name].default == Settings.model_fields[name].default, name
+        assert flags[name].help.startswith(Settings.model_fields[name].description), name
+    for name, field in Settings.model_fields.items():
+        assert JobSettings.model_fields[name].default == field.default, name
+    # what a request without settings gets is exactly the model's defaults
+    assert JobRequest(scene_name="furnace").settings.model_dump() == DEFAULTS.model_dump()
+
+
+def test_the_service_limits_are_tighter_not_different() -> None:
+    too_many = Settings.model_fields["photons_per_pass"].metadata
+    assert any(getattr(m, "le", 0) > (1 << 22) for m in too_many)
+    for value in (1 << 22, 1 << 23):
+        assert Settings(photons_per_pass=value).photons_per_pass == value
+    try:
+        JobSettings(photons_per_pass=1 << 23)
+    except ValueError as exc:
+        assert "photons_per_pass" in str(exc)
+    else:
+        raise AssertionError("the service accepted more photons per pass than its limit")
+
+
+def test_the_api_process_does_not_import_opencl() -> None:
+    code = "import sys, service.app, service.metrics, service.models; print('pyopencl' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", out
+
+
+def test_a_threshold_needs_the_error_estimate() -> None:
+    try:
+        Settings(error_threshold=0.1, error_estimation=False)
+    except ValueError as exc:
+        assert "error_estimation" in str(exc)
+    else:
+        raise AssertionError("a threshold without an error estimate can never be reached")

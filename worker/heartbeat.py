@@ -1,0 +1,63 @@
+"""A worker process's heartbeat: a thread that, every LEASE_SECONDS / 3, says the process
+is alive and extends the lease of the batch it is rendering.
+
+Beating from a thread, not between passes, lets a single pass take longer than a lease
+(a 4M-photon pass at the largest frames does), while a killed or stopped process (SIGKILL,
+SIGSTOP) beats no more: its leases lapse and the reaper re-issues its batch.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from contextlib import contextmanager
+from typing import Iterator
+
+import redis
+
+from worker.store import Batch, Leases
+from worker.store.policy import LEASE_SECONDS
+
+log = logging.getLogger("photonfarm.worker")
+_current: "Heartbeat | None" = None  # this process's heartbeat, if it runs one
+
+
+class Heartbeat:
+    def __init__(self, leases: Leases, worker: str, interval: float = LEASE_SECONDS / 3) -> None:
+        self.leases = leases
+        self.worker = worker
+        self.interval = interval
+        self.batch: Batch | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
+
+    def _run(self) -> None:
+        while True:
+            try:
+                self.leases.keep_alive(self.worker, self.batch)
+            except redis.RedisError as exc:  # Redis restarting: beat again next time
+                log.warning("heartbeat: redis unavailable: %s", exc)
+            if self._stop.wait(self.interval):
+                return
+
+    def start(self) -> "Heartbeat":
+        global _current
+        _current = self
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+@contextmanager
+def holding(batch: Batch) -> Iterator[None]:
+    """Keep `batch`'s lease alive from this process's heartbeat while the block runs."""
+    beat = _current
+    if beat is not None:
+        beat.batch = batch
+    try:
+        yield
+    finally:
+        if beat is not None:
+            beat.batch = None

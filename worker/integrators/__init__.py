@@ -1,0 +1,17 @@
+"""Rendering methods by name. The host halves are importable without OpenCL; the device
+halves are imported where rendering happens (worker/engine.py)."""
+
+from __future__ import annotations
+
+from worker.integrators.base import Delta, Integrator
+from worker.integrators.photon_mapping import PhotonMapping, ProgressivePhotonMapping
+from worker.settings import Settings
+
+INTEGRATORS: dict[str, type[Integrator]] = {cls.name: cls for cls in (PhotonMapping, ProgressivePhotonMapping)}
+
+
+def integrator_for(settings: Settings) -> Integrator:
+    return INTEGRATORS[settings.method](settings)
+
+
+__all__ = ["Delta", "INTEGRATORS", "Integrator", "integrator_for"]

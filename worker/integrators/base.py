@@ -1,0 +1,117 @@
+"""The integrator interface: what a rendering method traces per pass, which additive
+per-pixel sums it returns, and how its image and error estimate are formed from them.
+
+A method is two halves. The host half (this interface, no OpenCL) is all the service,
+the job store and the merge ever see: the sums' layout, the job state, `merge`, `image`
+and `estimate`. The device half (`Passes`, imported only where rendering happens) runs
+the kernels of a batch of passes and returns the batch's sums. Adding a method means one
+subclass of each, registered in worker/integrators/__init__.py; nothing in service/ and
+nothing in the store's merge changes, because both only call these methods and store
+the named arrays the integrator declares.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Protocol
+
+import numpy as np
+
+from kernels.contract import SumLayout
+from worker.error_estimate import ErrorEstimate
+from worker.settings import Settings
+
+
+@dataclass
+class Delta:
+    """What a batch of passes adds to a job: its per-pixel sums (float64) and counters."""
+
+    first_pass: int
+    n_passes: int
+    emitted: int  # photon paths emitted over the batch
+    sums: dict[str, np.ndarray]  # every name of the integrator's SumLayout
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
+        if sums is not None and name in sums:
+            return sums[name]
+        raise AttributeError(name)
+
+
+class State(Protocol):
+    """A job's progressive state, as the store keeps it: named per-pixel arrays and counters."""
+
+    emitted: int
+    passes: int
+
+    def arrays(self) -> dict[str, np.ndarray]: ...
+
+
+class Integrator(ABC):
+    """The host half of a rendering method (see the module docstring)."""
+
+    name: ClassVar[str]
+    # Per-pixel arrays fixed once per job by its first batch (first writer wins), e.g. R0.
+    setup_arrays: ClassVar[tuple[str, ...]] = ()
+    # Per-pixel arrays a batch reads from the job state before it starts.
+    input_arrays: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+
+    @property
+    @abstractmethod
+    def sums(self) -> SumLayout:
+        """The additive per-pixel sums a batch returns (and the kernels' record layout)."""
+
+    @property
+    @abstractmethod
+    def state_widths(self) -> dict[str, int]:
+        """Every per-pixel array of the job state (setup arrays and sums included) and its width."""
+
+    @abstractmethod
+    def start(self, setup: dict[str, np.ndarray]) -> State:
+        """The empty state of a job whose setup arrays (`setup_arrays`) are fixed."""
+
+    @abstractmethod
+    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int) -> State:
+        """The job state from stored arrays (setup arrays present, missing sums zero) and counters."""
+
+    @abstractmethod
+    def batch_inputs(self, state: State) -> Any:
+        """What a batch starting now reads from the state (needs only `input_arrays`)."""
+
+    @abstractmethod
+    def merge(self, state: State, delta: Delta) -> None:
+        """Add a batch to the state: commutative in every sum."""
+
+    @abstractmethod
+    def image(self, state: State) -> np.ndarray:
+        """The current estimate, (pixels, 3) float64."""
+
+    @abstractmethod
+    def estimate(self, state: State) -> ErrorEstimate:
+        """The per-pixel error bound and its image average (dissertation ch. 6)."""
+
+    def zeros(self, n_pixels: int, name: str) -> np.ndarray:
+        width = self.state_widths[name]
+        return np.zeros((n_pixels, width) if width > 1 else n_pixels)
+
+
+KeepGoing = Callable[[int], bool]
+
+
+class BatchAborted(Exception):
+    """A batch stopped between passes because its job no longer wants it."""
+
+
+class Passes(Protocol):
+    """The device half of a method: runs a batch of passes on one engine."""
+
+    def setup(self) -> dict[str, np.ndarray]:
+        """The job's setup arrays (e.g. R0), computed on the device from pass 0."""
+
+    def run_batch(self, inputs: Any, first_pass: int, n_passes: int, keep_going: KeepGoing | None = None) -> Delta:
+        """Passes first_pass .. first_pass + n_passes - 1; `keep_going(pass)` is asked after
+        every pass, and False raises BatchAborted."""

@@ -1,0 +1,89 @@
+"""Photon mapping, the host half: (stochastic) progressive photon mapping, SPPM and PPM.
+
+Per pass: an eye pass makes one measurement point per pixel (SPPM jitters new points every
+pass; PPM keeps pass 0's), photons are traced, and every point gathers the photons within
+its radius. A batch returns the per-pixel sums below; the radius rule and the merge live in
+worker/stats.py, the error estimate in worker/error_estimate.py. The device half is
+worker/integrators/photon_mapping_passes.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels.contract import SumLayout
+from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
+from worker.integrators.base import Delta, Integrator
+from worker.stats import Accumulators
+
+# S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; Ld: directly seen
+# emission (rgb); H: passes with a measurement point. Then the error estimator's sums
+# (only for jobs that estimate their error): G the Laplacian, X1 and X2 the bias-corrected
+# per-pass samples and their squares, L2 the squared per-pass Laplacians.
+PHOTON_SUMS = (("S", 3), ("D", 1), ("Ld", 3), ("H", 1))
+ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1))
+
+
+def sum_layout(error_estimation: bool) -> SumLayout:
+    return SumLayout(PHOTON_SUMS + (ERROR_SUMS if error_estimation else ()))
+
+
+@dataclass(frozen=True)
+class GatherInputs:
+    """What a batch of photon-mapping passes reads: the radius per pixel, and the bias
+    estimate its per-pass variance samples subtract (eq. 6.22; zero if not given)."""
+
+    radius: np.ndarray
+    bias: np.ndarray | None = None
+
+
+class PhotonMapping(Integrator):
+    """SPPM: a new jittered measurement point per pixel and pass (dissertation ch. 7)."""
+
+    name = "sppm"
+    fixed_points = False  # PPM: every pass uses pass 0's measurement points
+    setup_arrays = ("R0",)
+    input_arrays = ("R0", "N", "D", "G")
+
+    @property
+    def sums(self) -> SumLayout:
+        return sum_layout(self.settings.error_estimation)
+
+    @property
+    def state_widths(self) -> dict[str, int]:
+        return {"R0": 1, "N": 1, **dict(self.sums.widths)}
+
+    def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
+        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums)
+
+    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int) -> Accumulators:
+        n = len(arrays["R0"])
+        sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name) for name in self.sums.names}
+        return Accumulators(alpha=self.settings.alpha, R0=arrays["R0"], N=arrays.get("N", np.zeros(n)),
+                            sums=sums, emitted=emitted, passes=passes)
+
+    def batch_inputs(self, state: Accumulators) -> GatherInputs:
+        r = state.radius()
+        if not self.settings.error_estimation:
+            return GatherInputs(r)
+        return GatherInputs(r, bias_estimate(r, state.G, state.emitted, self.settings.bias_constant))
+
+    def merge(self, state: Accumulators, delta: Delta) -> None:
+        state.merge(delta)
+
+    def image(self, state: Accumulators) -> np.ndarray:
+        return state.radiance()
+
+    def estimate(self, state: Accumulators) -> ErrorEstimate | None:
+        if not self.settings.error_estimation:
+            return None
+        return estimate(state, self.settings.confidence, self.settings.bias_constant)
+
+
+class ProgressivePhotonMapping(PhotonMapping):
+    """PPM: one fixed set of measurement points (pass 0's), dissertation ch. 5."""
+
+    name = "ppm"
+    fixed_points = True

@@ -1,0 +1,240 @@
+"""Photon mapping, the device half: the kernels of one pass and of a batch of passes.
+
+A pass is: eye pass (one measurement point per pixel), photon pass, lookup-structure
+build (exact grid or stochastic hash), gather. A batch runs several passes at the radii
+it was given and sums their contributions on the device (worker/engine.py, Device).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pyopencl as cl
+
+from kernels.program import f32, i32, u32, u64
+from worker.integrators.base import BatchAborted, Delta, KeepGoing
+from worker.integrators.photon_mapping import GatherInputs, PhotonMapping
+
+if TYPE_CHECKING:
+    from worker.engine import Device
+
+R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at the median lit pixel ...
+R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
+PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(10, math.ceil(math.log2(max(n, 1))))
+
+
+class PhotonMappingPasses:
+    """Eye pass, photon pass, lookup structure and gather for SPPM and PPM."""
+
+    def __init__(self, integrator: PhotonMapping, device: "Device") -> None:
+        self.integrator = integrator
+        self.settings = integrator.settings
+        self.dev = device
+        n = device.arrays.n_pixels
+        self.mp_pos = device.buffer(16 * n)  # measurement points: position (w: 1 if present)
+        self.mp_nrm = device.buffer(16 * n)  # normal facing the eye path
+        self.mp_wgt = device.buffer(16 * n)  # path throughput * albedo / pi (w: disc coverage)
+        self.mp_dist = device.buffer(4 * n)  # eye path length to the point
+        self.radius = device.buffer(4 * n)
+        self.bias = device.buffer(4 * n)
+        self.ph_count = device.buffer(4)
+        self.capacity = 0
+        self.entries = 0
+        self._reserve_photons(3 * self.settings.photons_per_pass)
+        self.photons_stored = 0  # of the last pass
+
+    # ------------------------------------------------------------------ buffers
+    def _reserve_photons(self, capacity: int) -> None:
+        self.capacity = capacity
+        self.ph_pos = self.dev.buffer(16 * capacity)
+        self.ph_flux = self.dev.buffer(16 * capacity)
+        self.ph_key = self.dev.buffer(8 * capacity)
+        self.sorted = self.dev.buffer(4 * capacity)
+
+    def _reserve_table(self, entries: int) -> None:
+        if entries <= self.entries:
+            return
+        self.entries = entries
+        self.tab_key = self.dev.buffer(8 * entries)
+        self.tab_count = self.dev.buffer(4 * entries)
+        self.tab_pos = self.dev.buffer(16 * entries)
+        self.tab_flux = self.dev.buffer(16 * entries)
+        self.cell_start = self.dev.buffer(4 * entries)
+        self.cell_fill = self.dev.buffer(4 * entries)
+
+    # ------------------------------------------------------------------- passes
+    def _eye_pass(self, pass_index: int) -> None:
+        dev, a = self.dev, self.dev.arrays
+        eye_index = 0 if self.integrator.fixed_points else pass_index
+        ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, dev.camera,
+                                i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
+                                i32(self.settings.max_bounces), self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt,
+                                self.mp_dist, dev.batch_sums)
+        dev.times.add("eye", [ev])
+
+    def _photon_pass(self, pass_index: int) -> int:
+        """Trace the pass's photons; returns how many were stored."""
+        dev = self.dev
+        while True:
+            events = [dev.fill(self.ph_count, np.uint32(0), 1)]
+            events.append(dev.program.launch(
+                dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
+                u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
+                self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
+            stored = np.zeros(1, np.uint32)
+            cl.enqueue_copy(dev.queue, stored, self.ph_count)
+            dev.times.add("trace", events)
+            if stored[0] <= self.capacity:
+                return int(stored[0])
+            self._reserve_photons(int(stored[0] * 1.25))  # same seed: the re-run is identical
+
+    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
+        dev, a, p = self.dev, self.dev.arrays, self.dev.program
+        photons = f32(self.settings.photons_per_pass)
+        inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
+        if (gather or self.settings.gather) == "stochastic":
+            entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
+            self._reserve_table(entries)
+            mask = u32(entries - 1)
+            build = [dev.fill(self.tab_key, np.uint64(2 ** 64 - 1), entries),
+                     dev.fill(self.tab_count, np.uint32(0), entries),
+                     p.launch(dev.queue, "hash_select", n_stored, u32(n_stored), self.ph_pos, self.ph_key,
+                              inv_cell, mask, self.tab_key, self.tab_count),
+                     p.launch(dev.queue, "hash_store", n_stored, u32(n_stored), self.ph_pos, self.ph_flux,
+                              self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux)]
+            gather_ev = p.launch(dev.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
+                                 self.mp_nrm, self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask,
+                                 self.tab_count, self.tab_pos, self.tab_flux, dev.batch_sums)
+        else:
+            entries = _next_pow2(n_stored)
+            self._reserve_table(entries)
+            mask = u32(entries - 1)
+            build = [dev.fill(self.tab_count, np.uint32(0), entries),
+                     p.launch(dev.queue, "grid_count", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
+                              self.tab_count),
+                     p.launch(dev.queue, "grid_scan", 1, u32(entries), self.tab_count, self.cell_start,
+                              self.cell_fill),
+                     p.launch(dev.queue, "grid_scatter", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
+                              self.cell_fill, self.sorted),
+                     p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.tab_count,
+                              self.sorted, self.ph_key)]
+            gather_ev = p.launch(dev.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
+                                 self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
+                                 self.tab_count, self.sorted, self.ph_pos, self.ph_flux, dev.batch_sums)
+        gather_ev.wait()
+        dev.times.add("build", build)
+        dev.times.add("gather", [gather_ev])
+
+    # -------------------------------------------------------------------- setup
+    def setup(self) -> dict[str, np.ndarray]:
+        """R0 for every pixel: the override, or the larger of R0_FOOTPRINTS pixel footprints
+        and the radius that holds R0_PHOTONS photons per pass at the median lit pixel.
+
+        Both are the dissertation's (5.3.1): "the footprint of the pixel", or after the first
+        photon pass a k-nearest-photon radius, here made one value for the whole image as in
+        its GPU SPPM, since the stochastic hash sizes its cells by the largest radius. The
+        footprint alone ignores how many photons a pass brings: on smallppm at 1024x768 it
+        gave R0 = 0.10 and 4.7x the image error of R0 = 0.5 at smallppm's 4M photons. The
+        photon count alone shrinks R0 below a pixel where photons are dense, which buys no
+        resolution, only noise.
+
+        The density comes from pass 0 itself: its eye pass, its photons, and an exact gather
+        at PROBE_FOOTPRINTS pixel footprints; nothing of it is kept."""
+        dev, a = self.dev, self.dev.arrays
+        n = a.n_pixels
+        if self.settings.initial_radius is not None:
+            return {"R0": np.full(n, self.settings.initial_radius)}
+        # Footprint: the median eye-path length to the first diffuse hit times the pixel's angle.
+        cl.enqueue_copy(dev.queue, self.radius, np.zeros(n, np.float32))  # radius 0: no disc coverage rays
+        self._eye_pass(0)
+        dist = np.empty(n, np.float32)
+        cl.enqueue_copy(dev.queue, dist, self.mp_dist)
+        hit = dist > 0.0
+        footprint = float(np.median(dist[hit])) * a.pixel_angle if hit.any() \
+            else a.scene_diagonal / max(a.width, a.height)
+        # Density: an exact gather of pass 0's photons at the probe radius.
+        probe = PROBE_FOOTPRINTS * footprint
+        dev.zero_sums()
+        cl.enqueue_copy(dev.queue, self.radius, np.full(n, probe, np.float32))
+        cl.enqueue_copy(dev.queue, self.bias, np.zeros(n, np.float32))
+        self._build_and_gather(self._photon_pass(0), probe, gather="exact")  # every photon counted
+        density = dev.read_sums()["D"]  # M / (pi probe^2): photons per unit area per pass
+        dev.times.seconds.clear()  # set-up, not rendering
+        lit = density > 0.0
+        r0 = R0_FOOTPRINTS * footprint
+        if lit.any():  # else no photon reached anything the camera sees
+            r0 = max(r0, math.sqrt(R0_PHOTONS / (math.pi * float(np.median(density[lit])))))
+        return {"R0": np.full(n, r0)}
+
+    # -------------------------------------------------------------------- batch
+    def run_batch(self, inputs: GatherInputs, first_pass: int, n_passes: int,
+                  keep_going: KeepGoing | None = None) -> Delta:
+        """Run passes first_pass .. first_pass+n_passes-1, all gathering at `inputs.radius`."""
+        dev = self.dev
+        n = dev.arrays.n_pixels
+        r32 = np.ascontiguousarray(inputs.radius, np.float32)
+        if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
+            raise ValueError("radius must hold one positive finite value per pixel")
+        b32 = np.zeros(n, np.float32) if inputs.bias is None else np.ascontiguousarray(inputs.bias, np.float32)
+        cl.enqueue_copy(dev.queue, self.radius, r32)
+        cl.enqueue_copy(dev.queue, self.bias, b32)
+        dev.zero_sums()
+        for k in range(first_pass, first_pass + n_passes):
+            self._eye_pass(k)
+            self.photons_stored = self._photon_pass(k)
+            self._build_and_gather(self.photons_stored, float(r32.max()))
+            if keep_going is not None and not keep_going(k):
+                dev.times.settle()
+                raise BatchAborted(f"stopped after pass {k}")
+        return Delta(first_pass=first_pass, n_passes=n_passes,
+                     emitted=n_passes * self.settings.photons_per_pass, sums=dev.read_sums())
+
+    # -------------------------------------------------------------------- probe
+    def gather_photons(self, points: np.ndarray, normals: np.ndarray, radius: np.ndarray, photon_pos: np.ndarray,
+                       photon_flux: np.ndarray, photon_dir: np.ndarray,
+                       photon_normal: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Gather given photons at given points with the real kernels, no eye or photon pass:
+        a probe of the density and Laplacian estimates (e.g. noise-free on a photon grid).
+        Needs an engine whose resolution has exactly len(points) pixels; unit weights, the
+        whole disc on the point's surface. `photon_normal` is each photon's surface normal
+        facing it (default: photon_dir, photons that arrived along their surface's normal)."""
+        dev = self.dev
+        n, m = dev.arrays.n_pixels, len(photon_pos)
+        if len(points) != n:
+            raise ValueError(f"this engine gathers at exactly {n} points")
+        if m > self.capacity:
+            self._reserve_photons(m)
+
+        def f4(a: np.ndarray, w: float | np.ndarray = 0.0) -> np.ndarray:
+            out = np.zeros((len(a), 4), np.float32)
+            out[:, :3] = a
+            out[:, 3] = w
+            return out
+
+        def packed(dirs: np.ndarray) -> np.ndarray:
+            return np.array([_pack_dir(d) for d in dirs], np.uint32).view(np.float32)
+
+        nrm = packed(photon_dir if photon_normal is None else photon_normal)
+        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)),
+                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)),
+                          (self.ph_pos, f4(photon_pos, nrm)), (self.ph_flux, f4(photon_flux, packed(photon_dir))),
+                          (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
+            cl.enqueue_copy(dev.queue, buf, host)
+        cl.enqueue_copy(dev.queue, self.ph_key, np.arange(m, dtype=np.uint64))
+        dev.zero_sums()
+        self._build_and_gather(m, float(np.max(radius)))
+        return dev.read_sums()
+
+
+def _pack_dir(d: np.ndarray) -> int:
+    """Octahedral 2 x 16-bit direction, as pack_dir in kernels/materials.cl (for the probe)."""
+    v = np.asarray(d, np.float64) / np.abs(d).sum()
+    p = v[:2] if v[2] >= 0 else (1.0 - np.abs(v[[1, 0]])) * np.where(v[:2] >= 0, 1.0, -1.0)
+    q = np.clip(np.round((p * 0.5 + 0.5) * 65535.0), 0, 65535).astype(np.uint32)
+    return int(q[0] | (q[1] << 16))

@@ -1,0 +1,87 @@
+"""Every render and job setting with its default and its bounds, in one place.
+
+One typed model: the CLI takes its flags' defaults and help from it, the API validates a
+job with it, the job store keeps it and gives it back as this model, and the engine takes
+it whole. Importable without OpenCL (the API process never renders). The service's own,
+tighter limits (pixels and photons per job) are checked in service/models.py.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from kernels.contract import MAX_BOUNCES
+from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
+
+MAX_PHOTONS_PER_PASS = 1 << 24
+DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold may be out of reach)
+
+Method = Literal["sppm", "ppm"]
+Gather = Literal["exact", "stochastic"]
+Priority = Literal["high", "normal", "low"]
+PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
+
+
+class Settings(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    # What is rendered, and how.
+    method: Method = Field("sppm", description="sppm: new measurement points every pass (stochastic PPM); "
+                                               "ppm: one fixed set of points")
+    gather: Gather = Field("exact", description="photon lookup: exact grid, or stochastic spatial hashing "
+                                                "(one photon per cell, dissertation ch. 10)")
+    alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule)")
+    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass")
+    initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
+                                         description="initial gather radius in world units (default: the larger "
+                                                     "of 2 pixel footprints and the radius holding 16 photons per "
+                                                     "pass at the median lit pixel)")
+    hash_entries_per_photon: float = Field(1.0, gt=0.0, le=64.0,
+                                           description="stochastic hash table entries per stored photon")
+    seed: int = Field(0, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
+    max_bounces: int = Field(MAX_BOUNCES, ge=1, le=MAX_BOUNCES,
+                             description="safety cap on bounces per path (paths end by Russian roulette; "
+                                         "lower it only to study what the cap cuts)")
+    resolution: tuple[int, int] | None = Field(None, description="[width, height] (default: the scene's)")
+    # The error estimate.
+    error_estimation: bool = Field(True, description="accumulate the error estimator's per-pixel sums")
+    confidence: float = Field(0.9, gt=0.0, lt=1.0,
+                              description="of the per-pixel error bound; 0.5 bounds the median error")
+    bias_constant: Literal["taylor", "dissertation"] = Field("taylor", description="constant c of the bias "
+                                                             "estimate 0.5 R^2 c lap L")
+    # The job's budget and place in the queues.
+    max_passes: int | None = Field(None, ge=1, le=10_000_000, description="stop after this many passes")
+    max_seconds: float | None = Field(None, gt=0.0, le=7 * 86_400.0, description="stop after this many seconds")
+    error_threshold: float | None = Field(None, gt=0.0, le=10.0,
+                                          description="stop, as converged, when the average relative error is "
+                                                      "at most this")
+    priority: Priority = Field("normal", description="queue: high, normal or low")
+
+    @field_validator("resolution")
+    @classmethod
+    def _resolution(cls, value: tuple[int, int] | None) -> tuple[int, int] | None:
+        if value is not None:
+            w, h = value
+            if not (1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION):
+                raise ValueError(f"each side must lie in 1..{MAX_RESOLUTION}")
+            if w * h > MAX_PIXELS:
+                raise ValueError(f"at most {MAX_PIXELS} pixels")
+        return value
+
+    @model_validator(mode="before")
+    @classmethod
+    def _budget(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("max_passes") is None and data.get("max_seconds") is None:
+            return {**data, "max_seconds": DEFAULT_MAX_SECONDS}
+        return data
+
+    @model_validator(mode="after")
+    def _threshold_needs_estimate(self) -> "Settings":
+        if self.error_threshold is not None and not self.error_estimation:
+            raise ValueError("error_threshold needs error_estimation")
+        return self
+
+
+DEFAULTS = Settings()

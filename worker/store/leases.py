@@ -1,0 +1,180 @@
+"""Batch leases, the registry of issued batches, and worker heartbeats.
+
+A batch is a range of pass indices [first, first + n) of one job. From its allocation
+until it is merged or dropped it is in the job's in-flight set and holds a lease: a
+deadline in `pf:leases`, QUEUED_SECONDS while it waits in a queue, LEASE_SECONDS once a
+worker has taken it (renewed after every pass). The registry also records which worker
+owns it and which RQ job carries it, so the reaper (worker/scheduler.py) can tell a batch
+still waiting from one whose worker vanished.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import redis
+
+from worker.store import keys
+from worker.store.policy import ALIVE_SECONDS, LEASE_SECONDS, QUEUED_SECONDS
+
+
+@dataclass(frozen=True)
+class Batch:
+    job_id: str
+    first: int
+    n: int
+
+    @property
+    def id(self) -> str:
+        return f"{self.first}+{self.n}"
+
+    @property
+    def member(self) -> str:
+        return f"{self.job_id}/{self.first}/{self.n}"
+
+    @classmethod
+    def parse(cls, member: str) -> "Batch":
+        job_id, first, n = member.split("/")
+        return cls(job_id, int(first), int(n))
+
+    @classmethod
+    def from_id(cls, job_id: str, batch_id: str) -> "Batch":
+        first, n = batch_id.split("+")
+        return cls(job_id, int(first), int(n))
+
+
+def _decode(h: dict[bytes, bytes]) -> dict[str, str]:
+    return {k.decode(): v.decode() for k, v in h.items()}
+
+
+class Leases:
+    def __init__(self, conn: redis.Redis) -> None:
+        self.r = conn
+
+    # --------------------------------------------------------------- registry
+    @staticmethod
+    def register(pipe: redis.client.Pipeline, batch: Batch) -> None:
+        """Queue the commands that issue a batch (inside the allocating transaction)."""
+        pipe.sadd(keys.inflight(batch.job_id), batch.id)
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS})
+
+    @staticmethod
+    def release(pipe: redis.client.Pipeline, batch: Batch) -> None:
+        """Queue the commands that forget a batch (merged or dropped)."""
+        pipe.srem(keys.inflight(batch.job_id), batch.id)
+        pipe.zrem(keys.LEASES, batch.member)
+        pipe.hdel(keys.LEASE_OWNER, batch.member)
+        pipe.hdel(keys.BATCH_RQ, batch.member)
+
+    def drop(self, batch: Batch) -> None:
+        pipe = self.r.pipeline()
+        self.release(pipe, batch)
+        pipe.execute()
+
+    def inflight(self, job_id: str) -> int:
+        return self.r.scard(keys.inflight(job_id))
+
+    def is_inflight(self, batch: Batch) -> bool:
+        return bool(self.r.sismember(keys.inflight(batch.job_id), batch.id))
+
+    def unowned(self, job_id: str) -> list[Batch]:
+        """The job's in-flight batches that no worker has taken."""
+        batches = [Batch.from_id(job_id, b.decode()) for b in self.r.smembers(keys.inflight(job_id))]
+        pipe = self.r.pipeline()
+        for batch in batches:
+            pipe.hexists(keys.LEASE_OWNER, batch.member)
+        return [batch for batch, owned in zip(batches, pipe.execute()) if not owned]
+
+    def set_carrier(self, batch: Batch, rq_id: str) -> None:
+        self.r.hset(keys.BATCH_RQ, batch.member, rq_id)
+
+    def carrier(self, batch: Batch) -> str | None:
+        rq_id = self.r.hget(keys.BATCH_RQ, batch.member)
+        return rq_id.decode() if rq_id is not None else None
+
+    # ----------------------------------------------------------------- leases
+    def take(self, batch: Batch, worker: str) -> None:
+        pipe = self.r.pipeline()
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS})
+        pipe.hset(keys.LEASE_OWNER, batch.member, worker)
+        pipe.execute()
+
+    def renew(self, pipe: redis.client.Pipeline, batch: Batch, worker: str) -> None:
+        """Queue a lease extension and a heartbeat (after every pass)."""
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS}, xx=True)
+        self._beat(pipe, worker, batch.job_id, batch.id, passes=1)
+
+    def keep_alive(self, worker: str, batch: Batch | None) -> None:
+        """The worker process's periodic beat (worker/heartbeat.py), with the lease of the
+        batch it renders: a pass may take longer than a lease, a dead process beats no more."""
+        pipe = self.r.pipeline()
+        now = time.time()
+        pipe.hset(keys.worker(worker), "last_seen", now)
+        pipe.expire(keys.worker(worker), int(ALIVE_SECONDS))
+        pipe.zadd(keys.WORKER_SEEN, {worker: now})
+        if batch is not None:
+            pipe.zadd(keys.LEASES, {batch.member: now + LEASE_SECONDS}, xx=True)
+        pipe.execute()
+
+    def expired(self, now: float | None = None) -> list[Batch]:
+        now = time.time() if now is None else now
+        return [Batch.parse(m.decode()) for m in self.r.zrangebyscore(keys.LEASES, "-inf", now)]
+
+    def extend_queued(self, batch: Batch) -> None:
+        self.r.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS}, xx=True)
+
+    def reissue(self, batch: Batch) -> None:
+        """Give a lost batch a fresh deadline (the caller enqueues it again)."""
+        pipe = self.r.pipeline()
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS})
+        pipe.hdel(keys.LEASE_OWNER, batch.member)
+        pipe.execute()
+
+    def owners(self, job_id: str) -> int:
+        """Workers holding a live lease on one of the job's batches."""
+        members = [Batch.from_id(job_id, b.decode()).member for b in self.r.smembers(keys.inflight(job_id))]
+        if not members:
+            return 0
+        now = time.time()
+        pipe = self.r.pipeline()
+        for m in members:
+            pipe.zscore(keys.LEASES, m)
+            pipe.hget(keys.LEASE_OWNER, m)
+        out = pipe.execute()
+        return len({out[i + 1] for i in range(0, len(out), 2) if out[i] is not None and out[i] > now and out[i + 1]})
+
+    # ------------------------------------------------------------- heartbeats
+    @staticmethod
+    def _beat(pipe: redis.client.Pipeline, worker: str, job: str, batch: str, passes: int = 0) -> None:
+        key = keys.worker(worker)
+        now = time.time()
+        pipe.hset(key, mapping={"job": job, "batch": batch, "last_seen": now})
+        pipe.hincrby(key, "passes", passes)
+        pipe.expire(key, int(ALIVE_SECONDS))
+        pipe.zadd(keys.WORKER_SEEN, {worker: now})
+
+    def live_workers(self) -> int:
+        """Workers heard from within ALIVE_SECONDS: the capacity batches are issued for."""
+        return self.r.zcount(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")
+
+    def dead_workers(self) -> list[str]:
+        """Forget workers not heard from within ALIVE_SECONDS; returns their names."""
+        cutoff = time.time() - ALIVE_SECONDS
+        names = [n.decode() for n in self.r.zrangebyscore(keys.WORKER_SEEN, "-inf", cutoff)]
+        if names:
+            self.r.zrem(keys.WORKER_SEEN, *names)
+        return names
+
+    def heartbeat(self, worker: str, job: str = "", batch: str = "") -> None:
+        pipe = self.r.pipeline()
+        self._beat(pipe, worker, job, batch)
+        pipe.execute()
+
+    def heartbeats(self) -> dict[str, dict[str, str]]:
+        """Live worker name -> its last heartbeat (job, batch, passes, last_seen)."""
+        names = [n.decode() for n in self.r.zrangebyscore(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")]
+        pipe = self.r.pipeline()
+        for name in names:
+            pipe.hgetall(keys.worker(name))
+        return {name: _decode(h) for name, h in zip(names, pipe.execute()) if h}

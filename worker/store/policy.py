@@ -1,0 +1,73 @@
+"""The job policy, pure: statuses, how many passes a batch gets, and when a job ends.
+
+No Redis here: the record (worker/store/record.py) reads the facts, asks these functions,
+and writes what they decide.
+"""
+
+from __future__ import annotations
+
+import os
+from enum import StrEnum
+
+from worker.settings import Settings
+
+
+class Status(StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    CANCEL_REQUESTED = "cancel-requested"
+    CANCELLED = "cancelled"
+    CONVERGED = "converged"
+    COMPLETED = "completed"
+    FAILED = "failed"
+
+
+ACTIVE = frozenset({Status.QUEUED, Status.RUNNING, Status.CANCEL_REQUESTED})  # holds a job slot
+RENDERING = frozenset({Status.QUEUED, Status.RUNNING})  # takes new batches
+MERGING = frozenset({Status.RUNNING, Status.CANCEL_REQUESTED})  # a finished batch still counts
+FINAL = frozenset(Status) - ACTIVE
+
+# A started batch must report a pass (or finish) this often, or it is taken for lost.
+LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
+QUEUED_SECONDS = LEASE_SECONDS  # how often the reaper checks that a waiting batch is still in its queue
+BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long, and ...
+MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
+MAX_BATCH_PASSES = 32
+MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
+MAX_INFLIGHT_PER_JOB = 8
+# A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
+# not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
+ALIVE_SECONDS = 3 * LEASE_SECONDS
+# Finished jobs (and their images) are kept this long, then deleted.
+RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 * 86_400)))
+
+
+def batch_passes(pass_seconds: float, mean_merge_seconds: float) -> int:
+    """Passes for the next batch: about BATCH_TARGET_SECONDS of rendering, and long enough
+    that a merge costs at most MERGE_SHARE of a worker's time. One until a pass was timed."""
+    if pass_seconds <= 0.0:
+        return 1
+    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE)
+    return max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
+
+
+# ------------------------------------------------------------- the termination rule
+def out_of_time(settings: Settings, elapsed: float) -> bool:
+    return settings.max_seconds is not None and elapsed >= settings.max_seconds
+
+
+def passes_left(settings: Settings, passes: int) -> int | None:
+    """Passes the budget still allows after `passes` (None: no pass budget)."""
+    return None if settings.max_passes is None else max(0, settings.max_passes - passes)
+
+
+def after_merge(status: Status, settings: Settings, passes: int, elapsed: float, error: float | None) -> Status:
+    """A job's status once a batch has merged: cancelled if asked, converged at its error
+    threshold, completed when a budget is spent, else as it was."""
+    if status == Status.CANCEL_REQUESTED:
+        return Status.CANCELLED
+    if settings.error_threshold is not None and error is not None and error <= settings.error_threshold:
+        return Status.CONVERGED
+    if passes_left(settings, passes) == 0 or out_of_time(settings, elapsed):
+        return Status.COMPLETED
+    return status
