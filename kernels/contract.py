@@ -28,6 +28,20 @@ K1 = 2.0 * math.pi / 7.0  # integral of K over the unit disc: the flux normalisa
 K2 = 10.0 * math.pi / 168.0  # integral of |u|^2 K over the unit disc
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights: what "error" measures
 
+# Photon paths end by Russian roulette and eye paths at their first diffuse hit; this cap
+# on bounces per photon path and specular bounces per eye path is only a safety net.
+# Russian roulette keeps the expected throughput, so the energy the cap cuts is the true
+# throughput still carried after MAX_BOUNCES bounces: at most a^MAX_BOUNCES of the emitted
+# (or seen) energy where every surface reflects at most a. For a = 0.99 that is
+# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2; the 16 bounces of old lost 0.99^16 = 15%.
+# Lossless surfaces (albedo 1: ideal mirrors and glass) absorb nothing, so there the cut is
+# the share of paths still trapped among them after 4096 bounces: zero in any scene where
+# such a chain ends at a diffuse surface or escapes (glass: each internal hit stays inside
+# only with the Fresnel reflectance), and the radiance of a closed lossless cavity with no
+# diffuse surface is not defined at all. 4096 = 2^12 is what the photon key's bounce field
+# holds (kernels/photon_pass.cl).
+MAX_BOUNCES = 4096
+
 
 @dataclass(frozen=True)
 class SumLayout:

@@ -2,10 +2,48 @@
 //
 // A jittered sub-pixel sample (and lens sample) is followed through mirror, glass and
 // glossy bounces to the first diffuse hit, which becomes this pass's measurement point
-// with weight = path throughput * f_r. Emission seen along the way is accumulated
+// with weight = path throughput * f_r and the share of its gather disc that lies on its
+// own surface (disc_coverage). Emission seen along the way is accumulated
 // separately into the batch's per-pixel sums (SUM_LD; digest 5.1: directly visible
 // emission is averaged over passes). In PPM mode the host always passes pass index 0, so
 // every pass sees the same points.
+
+// Surfaces match when their normals lie within 45 degrees: the gather counts only photons
+// on a surface matching the measurement point's (spatial_hash.cl), and the disc is only
+// as large as that surface. A smooth surface of curvature radius rho turns its normal by
+// r / rho across a disc of radius r, so it keeps every photon while r < 0.78 rho.
+#define NORMAL_MATCH_COS 0.7071f
+#define COVERAGE_RAYS 8
+
+// Share of the kernel weight of the tangent disc (radius r about x, normal n) that lies on
+// the point's own surface: where a concave corner's wall cuts the disc, no photon of this
+// surface lies beyond it, and without the correction the estimate there is dark by that
+// share (half the weight at the corner line). Polar integration of the kernel over the
+// disc, cut where a ray along the surface meets a non-matching surface, in COVERAGE_RAYS
+// equally spaced directions turned by a random angle (an unbiased quadrature of the
+// covered weight):  G(s) = int_0^s K(t) t dt / int_0^1 K(t) t dt
+//                        = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7.
+// A surface that ends in empty space (a convex edge) is not detected.
+inline float disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng* rng) {
+    if (r <= 0.0f) return 1.0f;
+    float3 t, b;
+    onb(n, &t, &b);
+    float3 o = x + n * ray_eps(x);
+    float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS), covered = 0.0f;
+    for (int k = 0; k < COVERAGE_RAYS; ++k) {
+        float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
+        float3 u = cos(phi) * t + sin(phi) * b;
+        Hit h = intersect(g, o, u);
+        float s = 1.0f;
+        if (h.surf != SURF_NONE && h.t < r) {
+            float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
+            if (dot(nh, n) <= NORMAL_MATCH_COS) s = h.t / r;
+        }
+        float s2 = s * s;
+        covered += s2 * (3.5f + s2 * s * (-14.0f + s * (17.5f - 6.0f * s)));
+    }
+    return covered / COVERAGE_RAYS;
+}
 
 typedef struct {
     float4 position;   // w: near clip distance along the view axis
@@ -21,10 +59,11 @@ __kernel void eye_pass(
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
     __global const float4* surf_a, __global const float4* surf_b,
     __global const CameraDesc* cam, int width, int height,
-    ulong seed, uint pass, int max_depth,
+    ulong seed, uint pass, int max_bounces,
+    __global const float* radius,  // the radius this pass gathers at (0: no coverage)
     __global float4* mp_pos,       // xyz; w: 1 if the pixel has a measurement point
     __global float4* mp_nrm,       // normal facing the eye path
-    __global float4* mp_wgt,       // throughput * albedo / pi
+    __global float4* mp_wgt,       // throughput * albedo / pi; w: disc coverage
     __global float* mp_dist,       // eye path length to the point (initial radius)
     __global double* batch_sums)   // per-pixel records (kernels/contract.py); += directly seen emission
 {
@@ -53,7 +92,7 @@ __kernel void eye_pass(
     float3 thr = (float3)(1.0f);
     float3 direct = (float3)(0.0f);
     float4 pos = (float4)(0.0f), nrm = (float4)(0.0f), wgt = (float4)(0.0f);
-    for (int depth = 0; depth < max_depth; ++depth) {
+    for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (kernels/contract.py)
         Hit h = intersect(&g, origin, d);
         if (h.surf == SURF_NONE) break;
         float3 p = origin + h.t * d;
@@ -65,7 +104,7 @@ __kernel void eye_pass(
             float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
             pos = (float4)(p, 1.0f);
             nrm = (float4)(n, 0.0f);
-            wgt = (float4)(thr * sa.xyz / PI_F, 0.0f);
+            wgt = (float4)(thr * sa.xyz / PI_F, disc_coverage(&g, p, n, radius[gid], &rng));
             break;
         }
         float3 nd, w;

@@ -5,10 +5,16 @@
 // row1 = (edge1 | axis | direction, cos cone | disc radius), row2 = (edge2, sphere radius),
 // row3 = (power rgb, selection probability). Every path counts as one emitted photon, also
 // when it misses everything: the estimate is normalised by emitted photons (digest 11.1).
-// Each stored photon gets a 64-bit selection key, (random 32 bits << 32) | (path, bounce):
-// a pure function of (seed, pass, path), so the stochastic hash picks the same photons
-// whatever order the atomic slot counter hands out slots in. Emitter kinds EMIT_* come from
-// kernels/contract.py as build options.
+// Each stored photon gets a 64-bit selection key, (random 28 bits << 36) | (path << 12) |
+// bounce: a pure function of (seed, pass, path), unique within a pass (path < 2^24 photons
+// per pass, bounce < 2^12 = MAX_BOUNCES), so the stochastic hash picks the same photons
+// whatever order the atomic slot counter hands out slots in. Ties of the random part are
+// broken by (path, bounce); the minimum of n keys is tied with probability under n / 2^28.
+// Emitter kinds EMIT_* come from kernels/contract.py as build options.
+//
+// Paths end by Russian roulette alone (survival = the bounce's largest throughput factor,
+// so the expected flux is unchanged); `max_bounces` is only a safety cap, and its lost
+// energy is bounded in kernels/contract.py (MAX_BOUNCES).
 
 __kernel void photon_pass(
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
@@ -17,8 +23,8 @@ __kernel void photon_pass(
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
     __global const float4* surf_a, __global const float4* surf_b,
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
-    ulong seed, uint pass, int max_depth, uint capacity,
-    __global float4* ph_pos,     // xyz position
+    ulong seed, uint pass, int max_bounces, uint capacity,
+    __global float4* ph_pos,     // xyz position; w: packed surface normal facing the photon (uint bits)
     __global float4* ph_flux,    // rgb flux; w: packed incoming direction (uint bits)
     __global ulong* ph_key,      // selection key for the stochastic hash
     __global volatile uint* ph_count)
@@ -65,7 +71,7 @@ __kernel void photon_pass(
         d = r1.xyz;
     }
 
-    for (int bounce = 0; bounce < max_depth; ++bounce) {
+    for (int bounce = 0; bounce < max_bounces; ++bounce) {
         Hit h = intersect(&g, o, d);
         if (h.surf == SURF_NONE) return;
         float3 p = o + h.t * d;
@@ -73,16 +79,17 @@ __kernel void photon_pass(
         int type = as_int(sa.w);
         float3 w, nd;
         if (type == MAT_DIFFUSE) {
-            ulong key = ((ulong)rng_u32(&rng) << 32) | (ulong)(path * (uint)max_depth + (uint)bounce);
+            float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+            ulong key = ((ulong)(rng_u32(&rng) >> 4) << 36) | ((ulong)path << 12) | (ulong)bounce;
             uint slot = atomic_inc(ph_count);
             if (slot < capacity) {  // the host re-runs the pass with more room on overflow
                 float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
-                ph_pos[slot] = (float4)(p, 0.0f);
+                ph_pos[slot] = (float4)(p, as_float(pack_dir(n)));  // w: the surface's normal
                 ph_flux[slot] = (float4)(stored, as_float(pack_dir(-d)));
                 ph_key[slot] = key;
             }
-            float3 n = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
-            nd = sample_cosine(n, rng_float(&rng), rng_float(&rng));
+            float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;  // the lobe turns about the shading normal
+            nd = sample_cosine(ns, rng_float(&rng), rng_float(&rng));
             w = sa.xyz;  // f cos / pdf = (rho/pi) cos / (cos/pi)
         } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, &rng, &nd, &w)) {
             return;

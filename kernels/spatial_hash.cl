@@ -110,8 +110,9 @@ __kernel void grid_sort(uint entries, __global const uint* cell_start, __global 
 // (photon - point):
 //     lap K = -30 t (t-1) (5t-3) / r^2          (K'' + K'/t, over r^2)
 // The pass's sums go into the batch's per-pixel sums at the radius r it used (digest 11.2):
-//     S += w Phi_K / (k1 r^2),  D += M / (pi r^2),  G += lap / (k1 r^2)
-// where M is the raw photon count (the radius rule is count based). For the variance
+//     S += w Phi_K / (k1 r^2 c),  D += M / (pi r^2),  G += lap / (k1 r^2 c)
+// where M is the raw photon count (the radius rule is count based) and c the share of the
+// disc's kernel weight on the point's own surface (eye_pass.cl, disc_coverage). For the variance
 // estimate (eq. 6.22), the pass's own luminance estimate minus the bias estimated at the
 // start of the batch, x = L_p - B', adds to X1 and its square to X2; the square of the
 // pass's own Laplacian estimate adds to L2 (the noise of the bias estimate). The error
@@ -120,17 +121,26 @@ __kernel void grid_sort(uint entries, __global const uint* cell_start, __global 
 
 inline float luminance(float3 c) { return dot(c, (float3)(LUM_R, LUM_G, LUM_B)); }
 
+#define MIN_COVERAGE 0.05f  /* a disc almost all beyond walls: do not divide by ~0 */
+
 typedef struct {
     float3 phi;   // sum of K(t) * flux (rgb)
     float lap;    // sum of lap K * luminance(w * flux)
     float m;      // photons counted (raw)
 } PassSums;
 
+// Whether a photon found in `cell` counts for the query at x (normal n, radius^2 r2): it
+// must lie in the disc, have arrived on the side the eye sees, and lie on a surface that
+// matches the point's (NORMAL_MATCH_COS, eye_pass.cl). The last test keeps a concave
+// corner from gathering the photons of the perpendicular wall (10% too bright against
+// Mitsuba in the Cornell box's corners); the disc coverage measured in the eye pass then
+// renormalises the estimate for the part of the disc beyond that wall.
 inline bool photon_counts(float3 x, float3 n, float r2, int3 cell, float inv_cell, float4 pp, float4 pf) {
     if (any(cell_of(pp.xyz, inv_cell) != cell)) return false;
     float3 v = pp.xyz - x;
     if (dot(v, v) >= r2) return false;
-    return dot(unpack_dir(as_uint(pf.w)), n) > 0.0f;  // arrived on the side the eye sees
+    if (dot(unpack_dir(as_uint(pf.w)), n) <= 0.0f) return false;  // arrived on the side the eye sees
+    return dot(unpack_dir(as_uint(pp.w)), n) > NORMAL_MATCH_COS;
 }
 
 inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, float4 pp, float3 flux, float count) {
@@ -146,10 +156,10 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
 }
 
 // Add one pass's gather to pixel gid's record of the batch sums.
-inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, PassSums s, float photons,
-                       float bias) {
+inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, float coverage, PassSums s,
+                       float photons, float bias) {
     __global double* rec = batch_sums + (size_t)gid * SUM_STRIDE;
-    double kr2 = K1 * (double)r * (double)r;
+    double kr2 = K1 * (double)r * (double)r * (double)coverage;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
     rec[SUM_S] += flux.x;
     rec[SUM_S + 1] += flux.y;
@@ -185,6 +195,7 @@ inline int3 query_cell(QueryCells q, int k) {
 // A pixel's query this pass; false if the pixel has no measurement point.
 typedef struct {
     float3 x, n, wgt;
+    float coverage;  // share of the disc's kernel weight on the point's surface
     float r, r2;
     QueryCells cells;
 } Query;
@@ -195,7 +206,9 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
     if (mp.w == 0.0f) return false;
     q->x = mp.xyz;
     q->n = mp_nrm[gid].xyz;
-    q->wgt = mp_wgt[gid].xyz;
+    float4 w = mp_wgt[gid];
+    q->wgt = w.xyz;
+    q->coverage = fmax(w.w, MIN_COVERAGE);
     q->r = radius[gid];
     q->r2 = q->r * q->r;
     q->cells = query_cells(q->x, inv_cell);
@@ -220,7 +233,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
         float4 pp = tab_pos[h], pf = tab_flux[h];
         if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, (float)count);
     }
-    accumulate(batch_sums, gid, q.r, q.wgt, s, photons, bias[gid]);
+    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
@@ -244,5 +257,5 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
             if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, 1.0f);
         }
     }
-    accumulate(batch_sums, gid, q.r, q.wgt, s, photons, bias[gid]);
+    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }

@@ -10,6 +10,7 @@ import pytest
 
 from kernels.program import create_context
 from worker.engine import Engine
+from worker.error_estimate import ErrorEstimate
 from worker.integrators.base import State
 from worker.render_loop import render as render_passes
 from worker.scene import bundled_scene_path, load_any_scene
@@ -41,3 +42,12 @@ def render(engine: Engine, passes: int) -> State:
 
 def image(engine: Engine, state: State) -> np.ndarray:
     return engine.integrator.image(state).reshape(engine.arrays.height, engine.arrays.width, 3)
+
+
+def render_until(engine: Engine, threshold: float, max_passes: int) -> tuple[State, ErrorEstimate]:
+    """The progressive loop with termination, as a job with `error_threshold` runs it: stop
+    once the estimated average relative error (at the engine's confidence) is at most
+    `threshold`, or after `max_passes`."""
+    state = render_passes(engine, passes=max_passes,
+                          progress=lambda st, _: engine.integrator.estimate(st).average <= threshold)
+    return state, engine.integrator.estimate(state)

@@ -29,17 +29,33 @@ whose constant is c = k2 / (2 k1) = 5/48. The default is "taylor": it is the est
 the bias of the estimator we compute, and an overestimated bias only delays termination.
 "dissertation" reproduces the paper's numbers.
 
-Unlit pixels. The average relative error is the mean over pixels that had a measurement
-point (H > 0) of bound / max(L, floor), floor = FLOOR_FRACTION x the mean L of lit
-pixels, so that dim pixels are measured against a visible fraction of the image and
-cannot dominate the mean. A pixel that never found a photon (D = 0) has no estimate of its
-error at all; it counts as relative error 1 (not 0), so an image that light has not yet
-reached cannot pass for converged. With fewer than two passes the noise is unknown and
-every pixel counts as 1.
+Never-lit pixels. A pixel that had measurement points but never found a photon (D = 0)
+has no sample variance, but its zero count is evidence: with E photons emitted and every
+pass's disc at least as large as the current radius R (radii only shrink), an expected
+density of rho photons per unit area per emitted photon would have put at least
+rho pi R^2 E photons into its discs, and zero were found. The one-sided Poisson bound at
+confidence c gives rho pi R^2 E <= -ln(1 - c), and so
+
+    L <= q (-ln(1 - c)) / (pi R^2 E)       (reported as the pixel's noise; bias 0)
+
+with q the luminance a photon contributes per unit photon density, Y(S) / D, taken as its
+largest value over pixels that found at least UNLIT_MIN_PHOTONS photons: the assumption is
+that a photon reaching the dark pixel would carry no more than the brightest well-sampled
+pixel's. The bound falls like 1 / (R^2 E), so a region no light reaches converges too.
+Its relative error is capped at 1: an estimate of 0 is off by at most max(L, floor).
+
+The image average. Per pixel, relative error = bound / max(L, floor), floor =
+FLOOR_FRACTION x the mean L of lit pixels, so dim pixels are measured against a visible
+fraction of the image. The image's average relative error is the LARGER of two means:
+over pixels that found photons, and over measured pixels that never did. A black region
+then cannot hold the average up forever (its mean falls with the bound above), nor, by
+being most of the image, dilute the error of the lit part (which is averaged on its own).
+With fewer than two passes the noise is unknown and the average is 1.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -54,6 +70,7 @@ if TYPE_CHECKING:
 BIAS_CONSTANTS = {"taylor": K2 / (2.0 * K1), "dissertation": K2}
 FLOOR_FRACTION = 0.05
 BIAS_SIGNIFICANCE = 1.25  # standard errors a bias estimate must exceed to count in the bound
+UNLIT_MIN_PHOTONS = 16  # photons a pixel must have found to set the per-photon luminance q
 
 
 @dataclass(frozen=True)
@@ -64,8 +81,8 @@ class ErrorEstimate:
     bound: np.ndarray  # noise + |B|
     relative: np.ndarray  # bound / max(L, floor); 1 where unknown
     measured: np.ndarray  # pixels that had a measurement point
-    known: np.ndarray  # measured pixels that ever found a photon: their error has an estimate
-    average: float  # mean relative error over measured pixels (eq. 6.33)
+    known: np.ndarray  # measured pixels that ever found a photon (the rest: the zero-count bound)
+    average: float  # the larger of the mean relative errors of known and of never-lit pixels
     confidence: float
 
 
@@ -79,6 +96,19 @@ def bias_estimate(radius: np.ndarray, G: np.ndarray, emitted: int, constant: str
 def student_t(confidence: float, dof: int) -> float:
     """Two-sided quantile t(1 - beta/2, dof) for confidence 1 - beta."""
     return float(scipy_stats.t.ppf(0.5 + 0.5 * confidence, dof))
+
+
+def unlit_bound(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confidence: float) -> np.ndarray:
+    """Per pixel, the zero-count bound q (-ln(1 - c)) / (pi R^2 E) (module docstring); inf
+    where nothing is known yet (no photon found anywhere, or none emitted)."""
+    n = len(lum)
+    if state.emitted == 0 or not known.any():
+        return np.full(n, np.inf)
+    r2 = state.radius() ** 2
+    per_photon = np.where(known, lum * state.emitted / np.where(known, state.D, 1.0), 0.0)  # Y(S) / D
+    counted = known & (state.D * math.pi * r2 >= UNLIT_MIN_PHOTONS)
+    q = float(per_photon[counted].max() if counted.any() else per_photon[known].max())
+    return q * -math.log1p(-confidence) / (math.pi * r2 * state.emitted)
 
 
 def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
@@ -99,14 +129,24 @@ def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
         bias_noise = significance * 0.5 * r2 * BIAS_CONSTANTS[constant] * np.sqrt(lap_var / i)
     else:
         noise = bias_noise = np.full_like(lum, np.inf)
-    significant_bias = np.maximum(np.abs(bias) - bias_noise, 0.0)
-    bound = noise + significant_bias
     measured = state.H > 0
     known = measured & (state.D > 0.0)
+    dark = measured & ~known
+    noise = np.where(dark, unlit_bound(state, lum, known, confidence), noise)
+    significant_bias = np.maximum(np.abs(bias) - bias_noise, 0.0)
+    bound = noise + significant_bias
     lit = measured & (lum > 0.0)
     floor = FLOOR_FRACTION * float(lum[lit].mean()) if lit.any() else 1.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where(known & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
-    average = float(relative[measured].mean()) if measured.any() else 1.0
+        relative = np.where(measured & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
+    relative[dark] = np.minimum(relative[dark], 1.0)  # an estimate of 0 is off by at most 100%
+    average = image_average(relative, known, dark) if i >= 2 else 1.0
     return ErrorEstimate(luminance=lum, bias=bias, noise=noise, bound=bound, relative=relative,
                          measured=measured, known=known, average=average, confidence=confidence)
+
+
+def image_average(relative: np.ndarray, known: np.ndarray, dark: np.ndarray) -> float:
+    """The larger of the mean relative error over pixels that found photons and over
+    measured pixels that never did (module docstring); 1 if no pixel was measured."""
+    means = [float(relative[group].mean()) for group in (known, dark) if group.any()]
+    return max(means) if means else 1.0

@@ -12,6 +12,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
 
 MAX_PHOTONS_PER_PASS = 1 << 24
@@ -40,6 +41,9 @@ class Settings(BaseModel):
     hash_entries_per_photon: float = Field(1.0, gt=0.0, le=64.0,
                                            description="stochastic hash table entries per stored photon")
     seed: int = Field(0, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
+    max_bounces: int = Field(MAX_BOUNCES, ge=1, le=MAX_BOUNCES,
+                             description="safety cap on bounces per path (paths end by Russian roulette; "
+                                         "lower it only to study what the cap cuts)")
     resolution: tuple[int, int] | None = Field(None, description="[width, height] (default: the scene's)")
     # The error estimate.
     error_estimation: bool = Field(True, description="accumulate the error estimator's per-pixel sums")

@@ -20,7 +20,6 @@ from worker.integrators.photon_mapping import GatherInputs, PhotonMapping
 if TYPE_CHECKING:
     from worker.engine import Device
 
-MAX_DEPTH = 16  # bounces per photon path and specular bounces per eye path
 R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at the median lit pixel ...
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
 PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
@@ -40,7 +39,7 @@ class PhotonMappingPasses:
         n = device.arrays.n_pixels
         self.mp_pos = device.buffer(16 * n)  # measurement points: position (w: 1 if present)
         self.mp_nrm = device.buffer(16 * n)  # normal facing the eye path
-        self.mp_wgt = device.buffer(16 * n)  # path throughput * albedo / pi
+        self.mp_wgt = device.buffer(16 * n)  # path throughput * albedo / pi (w: disc coverage)
         self.mp_dist = device.buffer(4 * n)  # eye path length to the point
         self.radius = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
@@ -75,7 +74,8 @@ class PhotonMappingPasses:
         eye_index = 0 if self.integrator.fixed_points else pass_index
         ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, dev.camera,
                                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                i32(MAX_DEPTH), self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, dev.batch_sums)
+                                i32(self.settings.max_bounces), self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt,
+                                self.mp_dist, dev.batch_sums)
         dev.times.add("eye", [ev])
 
     def _photon_pass(self, pass_index: int) -> int:
@@ -85,7 +85,7 @@ class PhotonMappingPasses:
             events = [dev.fill(self.ph_count, np.uint32(0), 1)]
             events.append(dev.program.launch(
                 dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
-                u64(self.settings.seed), u32(pass_index), i32(MAX_DEPTH), u32(self.capacity),
+                u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
                 self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.ph_count)
@@ -151,6 +151,7 @@ class PhotonMappingPasses:
         if self.settings.initial_radius is not None:
             return {"R0": np.full(n, self.settings.initial_radius)}
         # Footprint: the median eye-path length to the first diffuse hit times the pixel's angle.
+        cl.enqueue_copy(dev.queue, self.radius, np.zeros(n, np.float32))  # radius 0: no disc coverage rays
         self._eye_pass(0)
         dist = np.empty(n, np.float32)
         cl.enqueue_copy(dev.queue, dist, self.mp_dist)
@@ -196,10 +197,13 @@ class PhotonMappingPasses:
 
     # -------------------------------------------------------------------- probe
     def gather_photons(self, points: np.ndarray, normals: np.ndarray, radius: np.ndarray, photon_pos: np.ndarray,
-                       photon_flux: np.ndarray, photon_dir: np.ndarray) -> dict[str, np.ndarray]:
+                       photon_flux: np.ndarray, photon_dir: np.ndarray,
+                       photon_normal: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Gather given photons at given points with the real kernels, no eye or photon pass:
         a probe of the density and Laplacian estimates (e.g. noise-free on a photon grid).
-        Needs an engine whose resolution has exactly len(points) pixels; unit weights."""
+        Needs an engine whose resolution has exactly len(points) pixels; unit weights, the
+        whole disc on the point's surface. `photon_normal` is each photon's surface normal
+        facing it (default: photon_dir, photons that arrived along their surface's normal)."""
         dev = self.dev
         n, m = dev.arrays.n_pixels, len(photon_pos)
         if len(points) != n:
@@ -213,9 +217,13 @@ class PhotonMappingPasses:
             out[:, 3] = w
             return out
 
-        packed = np.array([_pack_dir(d) for d in photon_dir], np.uint32).view(np.float32)
-        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)), (self.mp_wgt, f4(np.ones((n, 3)))),
-                          (self.ph_pos, f4(photon_pos)), (self.ph_flux, f4(photon_flux, packed)),
+        def packed(dirs: np.ndarray) -> np.ndarray:
+            return np.array([_pack_dir(d) for d in dirs], np.uint32).view(np.float32)
+
+        nrm = packed(photon_dir if photon_normal is None else photon_normal)
+        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)),
+                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)),
+                          (self.ph_pos, f4(photon_pos, nrm)), (self.ph_flux, f4(photon_flux, packed(photon_dir))),
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
             cl.enqueue_copy(dev.queue, buf, host)
         cl.enqueue_copy(dev.queue, self.ph_key, np.arange(m, dtype=np.uint64))

@@ -1,0 +1,77 @@
+"""Pixels no light reaches: their zero photon count bounds their radiance, and the image's
+average relative error (worker/error_estimate.py) lets a mostly dark image converge
+without letting the dark part dilute the error of the lit part."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.analytic import spot_plane
+from tests.conftest import render_until
+from worker.error_estimate import FLOOR_FRACTION, estimate, image_average
+from worker.integrators.photon_mapping import sum_layout
+from worker.stats import Accumulators
+
+RHO, POWER, HEIGHT, CONE = 0.5, 10.0, 1.0, 40.0
+
+
+def _two_pixels(emitted: int) -> Accumulators:
+    """Pixel 0 found photons (density D, luminance 1 per unit density), pixel 1 none."""
+    st = Accumulators.start(0.7, np.full(2, 0.5), sum_layout(error_estimation=True))
+    st.passes, st.emitted = 10, emitted
+    st.sums["H"][:] = 10
+    st.sums["D"][0] = 1000.0
+    st.N[0] = math.pi * 0.1 ** 2 * 1000.0  # radius 0.1
+    st.sums["S"][0] = 1000.0 * 1.0 * emitted / emitted  # Y(S) / D = 1
+    st.sums["X1"][0], st.sums["X2"][0] = 10.0, 10.1
+    return st
+
+
+def test_a_zero_count_bounds_the_radiance_and_the_bound_falls_as_photons_are_emitted() -> None:
+    a, b = estimate(_two_pixels(10_000), 0.9), estimate(_two_pixels(40_000), 0.9)
+    # q = 1 per unit density, R = 0.1 (the dark pixel takes the largest lit radius): -ln(0.1) / (pi R^2 E)
+    assert a.noise[1] == pytest.approx(-math.log(0.1) / (math.pi * 0.01 * 10_000))
+    assert b.noise[1] == pytest.approx(a.noise[1] / 4)
+    assert a.bias[1] == 0.0 and a.bound[1] == a.noise[1]
+    assert not a.known[1] and a.measured[1]
+
+
+def test_the_average_is_the_larger_of_the_lit_and_the_dark_means() -> None:
+    rel = np.array([0.4, 0.2, 0.01, 0.01, 0.01, 0.01])
+    known = np.array([True, True, False, False, False, False])
+    assert image_average(rel, known, ~known) == pytest.approx(0.3)  # 4 dark pixels do not dilute it
+    assert image_average(np.array([0.02, 0.02, 0.5, 0.5]), known[:4], ~known[:4]) == pytest.approx(0.5)
+
+
+def spot_scene(tmp_path: Path) -> Path:
+    """A spot light straight down over a plane; the camera sees 1.7 units either side of
+    the light's foot, the cone lights 0.84 of it: 75% of the pixels are never lit."""
+    scene = {
+        "camera": {"position": [0, 3, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": 60, "resolution": [64, 64]},
+        "materials": {"plane": {"type": "diffuse", "albedo": [RHO] * 3}},
+        "shapes": [{"type": "quad", "corner": [-5, 0, -5], "edge1": [0, 0, 10], "edge2": [10, 0, 0],
+                    "material": "plane"}],
+        "lights": [{"type": "spot", "position": [0, HEIGHT, 0], "direction": [0, -1, 0], "cone_angle": CONE,
+                    "power": [POWER] * 3}],
+    }
+    path = tmp_path / "spot.json"
+    path.write_text(json.dumps(scene))
+    return path
+
+
+def test_a_mostly_dark_spot_light_image_converges_with_its_actual_error_below_the_threshold(make_engine,
+                                                                                           tmp_path) -> None:
+    eng = make_engine(spot_scene(tmp_path), photons_per_pass=1 << 14, seed=12)
+    truth = spot_plane(eng, RHO, POWER, HEIGHT, CONE)
+    assert np.mean(truth == 0.0) > 0.75  # the case of issue 11: most pixels outside the cone
+    state, est = render_until(eng, 0.1, max_passes=600)  # at the default confidence, 0.9
+    assert est.average <= 0.1, (state.passes, est.average)
+    floor = FLOOR_FRACTION * truth[truth > 0].mean()
+    actual = np.abs(est.luminance - truth) / np.maximum(truth, floor)
+    dark = est.measured & ~est.known
+    assert image_average(actual, est.known, dark) <= 0.1, (state.passes, image_average(actual, est.known, dark))
