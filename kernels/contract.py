@@ -20,8 +20,9 @@ import numpy as np
 # Materials (surface record type) and emitter kinds: see kernels/materials.cl, photon_pass.cl.
 MATERIALS = {"diffuse": 0, "mirror": 1, "glass": 2, "glossy": 3}
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
-# Random-number domains: independent streams for eye and photon paths (kernels/rng.cl).
-RNG_DOMAINS = {"eye": 1, "photon": 2}
+# Random-number domains: independent streams for eye paths, photon paths and the light
+# samples at the measurement points (kernels/rng.cl).
+RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3}
 
 # The smooth kernel K(t) = 1 - 6t^5 + 15t^4 - 10t^3 (dissertation eq. 6.34) and its moments.
 K1 = 2.0 * math.pi / 7.0  # integral of K over the unit disc: the flux normalisation k1 r^2

@@ -6,7 +6,10 @@
 // own surface (disc_coverage). Emission seen along the way is accumulated
 // separately into the batch's per-pixel sums (SUM_LD; digest 5.1: directly visible
 // emission is averaged over passes). In PPM mode the host always passes pass index 0, so
-// every pass sees the same points.
+// every pass sees the same points. With `nee`, direct light at the point is estimated
+// too (lights.cl) and added to SUM_LD, from its own random stream keyed by the real pass
+// index (so PPM's fixed points still get a new light sample every pass); SUM_LD2, where
+// the layout has it, adds the square of the pass's Ld luminance for the error estimate.
 
 // Surfaces match when their normals lie within 45 degrees: the gather counts only photons
 // on a surface matching the measurement point's (spatial_hash.cl), and the disc is only
@@ -58,8 +61,11 @@ __kernel void eye_pass(
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
     __global const float4* surf_a, __global const float4* surf_b,
+    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
     __global const CameraDesc* cam, int width, int height,
     ulong seed, uint pass, int max_bounces,
+    int nee,                       // 1: estimate direct light at the point (lights.cl)
+    uint light_pass,               // the real pass index: seeds the light samples
     __global const float* radius,  // the radius this pass gathers at (0: no coverage)
     __global float4* mp_pos,       // xyz; w: 1 if the pixel has a measurement point
     __global float4* mp_nrm,       // normal facing the eye path
@@ -105,6 +111,12 @@ __kernel void eye_pass(
             pos = (float4)(p, 1.0f);
             nrm = (float4)(n, 0.0f);
             wgt = (float4)(thr * sa.xyz / PI_F, disc_coverage(&g, p, n, radius[gid], &rng));
+            if (nee) {
+                Rng light_rng = rng_make(seed, light_pass, (uint)gid, DOMAIN_NEE);
+                float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
+                direct += thr * direct_light(&g, surf_b, emitters, emitter_cdf, n_emitters, p, n, ns, sa.xyz,
+                                             &light_rng);
+            }
             break;
         }
         float3 nd, w;
@@ -122,4 +134,8 @@ __kernel void eye_pass(
     ld[0] += direct.x;
     ld[1] += direct.y;
     ld[2] += direct.z;
+#ifdef SUM_LD2
+    double lum = LUM_R * (double)direct.x + LUM_G * (double)direct.y + LUM_B * (double)direct.z;
+    batch_sums[(size_t)gid * SUM_STRIDE + SUM_LD2] += lum * lum;
+#endif
 }

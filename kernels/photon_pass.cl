@@ -1,9 +1,8 @@
 // Photon pass: emission proportional to light power, Russian roulette on albedo, a
-// photon stored at every diffuse hit (dissertation 5.3.4; slides 3.2).
+// photon stored at every diffuse hit (dissertation 5.3.4; slides 3.2), except the first
+// hit from the light when direct light comes from next-event estimation (`nee`, lights.cl).
 //
-// Emitter records are four float4 rows: row0 = (position or v0 or disc centre, type),
-// row1 = (edge1 | axis | direction, cos cone | disc radius), row2 = (edge2, sphere radius),
-// row3 = (power rgb, selection probability). Every path counts as one emitted photon, also
+// Emitter records: see lights.cl. Every path counts as one emitted photon, also
 // when it misses everything: the estimate is normalised by emitted photons (digest 11.1).
 // Each stored photon gets a 64-bit selection key, (random 28 bits << 36) | (path << 12) |
 // bounce: a pure function of (seed, pass, path), unique within a pass (path < 2^24 photons
@@ -24,6 +23,7 @@ __kernel void photon_pass(
     __global const float4* surf_a, __global const float4* surf_b,
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
     ulong seed, uint pass, int max_bounces, uint capacity,
+    int nee,                     // 1: no photon is stored at its first hit (direct light is NEE's)
     __global float4* ph_pos,     // xyz position; w: packed surface normal facing the photon (uint bits)
     __global float4* ph_flux,    // rgb flux; w: packed incoming direction (uint bits)
     __global ulong* ph_key,      // selection key for the stochastic hash
@@ -34,13 +34,8 @@ __kernel void photon_pass(
     SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
     Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
 
-    // Pick an emitter in proportion to its power (binary search of the CDF).
-    float u = rng_float(&rng);
-    int lo = 0, hi = n_emitters - 1;
-    while (lo < hi) {
-        int mid = (lo + hi) / 2;
-        if (emitter_cdf[mid] > u) hi = mid; else lo = mid + 1;
-    }
+    // Pick an emitter in proportion to its power.
+    int lo = pick_emitter(emitter_cdf, n_emitters, rng_float(&rng));
     float4 r0 = emitters[4 * lo], r1 = emitters[4 * lo + 1], r2 = emitters[4 * lo + 2], r3 = emitters[4 * lo + 3];
     float3 flux = r3.xyz / r3.w;
     float u1 = rng_float(&rng), u2 = rng_float(&rng), u3 = rng_float(&rng), u4 = rng_float(&rng);
@@ -79,14 +74,16 @@ __kernel void photon_pass(
         int type = as_int(sa.w);
         float3 w, nd;
         if (type == MAT_DIFFUSE) {
-            float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
-            ulong key = ((ulong)(rng_u32(&rng) >> 4) << 36) | ((ulong)path << 12) | (ulong)bounce;
-            uint slot = atomic_inc(ph_count);
-            if (slot < capacity) {  // the host re-runs the pass with more room on overflow
-                float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
-                ph_pos[slot] = (float4)(p, as_float(pack_dir(n)));  // w: the surface's normal
-                ph_flux[slot] = (float4)(stored, as_float(pack_dir(-d)));
-                ph_key[slot] = key;
+            if (bounce > 0 || !nee) {
+                float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+                ulong key = ((ulong)(rng_u32(&rng) >> 4) << 36) | ((ulong)path << 12) | (ulong)bounce;
+                uint slot = atomic_inc(ph_count);
+                if (slot < capacity) {  // the host re-runs the pass with more room on overflow
+                    float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
+                    ph_pos[slot] = (float4)(p, as_float(pack_dir(n)));  // w: the surface's normal
+                    ph_flux[slot] = (float4)(stored, as_float(pack_dir(-d)));
+                    ph_key[slot] = key;
+                }
             }
             float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;  // the lobe turns about the shading normal
             nd = sample_cosine(ns, rng_float(&rng), rng_float(&rng));

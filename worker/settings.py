@@ -20,6 +20,7 @@ DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold 
 
 Method = Literal["sppm", "ppm"]
 Gather = Literal["exact", "stochastic"]
+Direct = Literal["photons", "nee"]
 Priority = Literal["high", "normal", "low"]
 PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
 
@@ -32,6 +33,9 @@ class Settings(BaseModel):
                                                "ppm: one fixed set of points")
     gather: Gather = Field("exact", description="photon lookup: exact grid, or stochastic spatial hashing "
                                                 "(one photon per cell, dissertation ch. 10)")
+    direct: Direct = Field("photons", description="direct light at the measurement points: photons (density "
+                                                  "estimate), or nee (a light sample and a BSDF sample per pass, "
+                                                  "MIS-weighted; photons then skip their first hit)")
     alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule)")
     photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass")
     initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,

@@ -21,13 +21,17 @@ from worker.stats import Accumulators
 # S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; Ld: directly seen
 # emission (rgb); H: passes with a measurement point. Then the error estimator's sums
 # (only for jobs that estimate their error): G the Laplacian, X1 and X2 the bias-corrected
-# per-pass samples and their squares, L2 the squared per-pass Laplacians.
+# per-pass samples and their squares, L2 the squared per-pass Laplacians; with direct light
+# by next-event estimation (`direct: nee`), Ld2 the squared luminance of each pass's Ld
+# sample (its variance enters the error bound).
 PHOTON_SUMS = (("S", 3), ("D", 1), ("Ld", 3), ("H", 1))
 ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1))
+NEE_ERROR_SUMS = (("Ld2", 1),)
 
 
-def sum_layout(error_estimation: bool) -> SumLayout:
-    return SumLayout(PHOTON_SUMS + (ERROR_SUMS if error_estimation else ()))
+def sum_layout(error_estimation: bool, direct: str = "photons") -> SumLayout:
+    errors = ERROR_SUMS + (NEE_ERROR_SUMS if direct == "nee" else ())
+    return SumLayout(PHOTON_SUMS + (errors if error_estimation else ()))
 
 
 @dataclass(frozen=True)
@@ -49,7 +53,7 @@ class PhotonMapping(Integrator):
 
     @property
     def sums(self) -> SumLayout:
-        return sum_layout(self.settings.error_estimation)
+        return sum_layout(self.settings.error_estimation, self.settings.direct)
 
     @property
     def state_widths(self) -> dict[str, int]:

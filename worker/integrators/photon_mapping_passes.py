@@ -36,6 +36,7 @@ class PhotonMappingPasses:
         self.integrator = integrator
         self.settings = integrator.settings
         self.dev = device
+        self.nee = i32(self.settings.direct == "nee")  # direct light by next-event estimation (kernels/lights.cl)
         n = device.arrays.n_pixels
         self.mp_pos = device.buffer(16 * n)  # measurement points: position (w: 1 if present)
         self.mp_nrm = device.buffer(16 * n)  # normal facing the eye path
@@ -72,9 +73,9 @@ class PhotonMappingPasses:
     def _eye_pass(self, pass_index: int) -> None:
         dev, a = self.dev, self.dev.arrays
         eye_index = 0 if self.integrator.fixed_points else pass_index
-        ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, dev.camera,
+        ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
                                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                i32(self.settings.max_bounces), self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt,
+                                i32(self.settings.max_bounces), self.nee, u32(pass_index), self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt,
                                 self.mp_dist, dev.batch_sums)
         dev.times.add("eye", [ev])
 
@@ -86,7 +87,7 @@ class PhotonMappingPasses:
             events.append(dev.program.launch(
                 dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
                 u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
-                self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
+                self.nee, self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.ph_count)
             dev.times.add("trace", events)

@@ -1,0 +1,119 @@
+// Lights: picking an emitter, and next-event estimation of direct light at a measurement
+// point (`direct: nee`, issue 12 step 1, as pbrt-v4's SPPM).
+//
+// Emitter records are four float4 rows: row0 = (position or v0 or disc centre, type),
+// row1 = (edge1 | axis | direction, cos cone | disc radius), row2 = (edge2, sphere radius),
+// row3 = (power rgb, selection probability), chosen in proportion to power (summed rgb;
+// worker/scene_arrays.py). Area emitters (triangles, spheres) are Lambertian, shining from
+// their front side with radiance Le = power / (pi area).
+//
+// Direct light at a diffuse point x (albedo rho, f = rho / pi) is estimated per pass by
+// one light sample and one cosine-weighted BSDF sample. Delta lights (point, spot,
+// directional) give L f cos / p with no MIS (a BSDF sample never hits them); area lights
+// are weighted by the power heuristic between the two techniques, whose pdfs in solid
+// angle at x are
+//     p_light = P_k / P * d^2 / (A_k cos_l) = pi sum(Le) d^2 / (P cos_l)
+//     p_bsdf  = cos_s / pi
+// (P_k = pi sum(Le) A_k the emitter's power, P the total: the light pdf of a direction
+// needs only the emission of the surface it hits). The photon pass then stores nothing at
+// a photon's first hit, so direct light is counted once, while light reaching x through
+// specular surfaces (caustics) stays with the photons: a shadow ray stops at glass.
+
+// Index of the emitter whose CDF interval holds u (binary search).
+inline int pick_emitter(__global const float* cdf, int n, float u) {
+    int lo = 0, hi = n - 1;
+    while (lo < hi) {
+        int mid = (lo + hi) / 2;
+        if (cdf[mid] > u) hi = mid; else lo = mid + 1;
+    }
+    return lo;
+}
+
+inline float power_heuristic(float a, float b) { return a * a / (a * a + b * b); }
+
+// The light sample: MIS-weighted L f cos / p from one emitter chosen by power, or 0 if
+// the emitter is occluded, behind x, or faces away. n: geometric normal on the eye's side;
+// ns: shading normal on that side.
+inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
+                           int n_emitters, float total_power, float3 x, float3 n, float3 ns, float3 albedo,
+                           Rng* rng) {
+    int k = pick_emitter(cdf, n_emitters, rng_float(rng));
+    float4 r0 = emitters[4 * k], r1 = emitters[4 * k + 1], r2 = emitters[4 * k + 2], r3 = emitters[4 * k + 3];
+    float u1 = rng_float(rng), u2 = rng_float(rng);
+    int kind = as_int(r0.w);
+    float3 wi, li;  // direction to the light; radiance (area) or intensity / d^2 or irradiance (delta)
+    float dist, pdf = r3.w, mis = 1.0f;
+    if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
+        float3 y, nl;
+        float area;
+        if (kind == EMIT_TRIANGLE) {
+            float su = sqrt(u1);
+            y = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
+            float3 c = cross(r1.xyz, r2.xyz);
+            area = 0.5f * length(c);
+            nl = normalize(c);
+        } else {
+            nl = sample_sphere(u1, u2);
+            y = r0.xyz + r2.w * nl;
+            area = 4.0f * PI_F * r2.w * r2.w;
+        }
+        float3 to = y - x;
+        float d2 = dot(to, to);
+        dist = sqrt(d2);
+        wi = to / dist;
+        float cos_l = -dot(wi, nl);
+        if (cos_l <= 0.0f || area <= 0.0f) return (float3)(0.0f);
+        li = r3.xyz / (PI_F * area);
+        pdf *= d2 / (area * cos_l);
+        mis = power_heuristic(pdf, fmax(dot(wi, ns), 0.0f) / PI_F);
+        dist -= 2.0f * ray_eps(y);  // the shadow ray stops short of the light's own surface
+    } else if (kind == EMIT_DIRECTIONAL) {
+        wi = -r1.xyz;
+        dist = INFINITY;
+        li = r3.xyz / (PI_F * r1.w * r1.w);  // the irradiance the emitting disc carries
+    } else {  // point or spot: intensity / d^2
+        float3 to = r0.xyz - x;
+        float d2 = dot(to, to);
+        dist = sqrt(d2);
+        wi = to / dist;
+        if (kind == EMIT_POINT) {
+            li = r3.xyz / (4.0f * PI_F * d2);
+        } else {
+            if (-dot(wi, r1.xyz) < r1.w) return (float3)(0.0f);  // outside the cone
+            li = r3.xyz / (2.0f * PI_F * (1.0f - r1.w) * d2);
+        }
+        dist -= 2.0f * ray_eps(r0.xyz);
+    }
+    float cos_s = dot(wi, ns);
+    if (cos_s <= 0.0f || dot(wi, n) <= 0.0f) return (float3)(0.0f);
+    Hit h = intersect(g, x + n * ray_eps(x), wi);
+    if (h.surf != SURF_NONE && h.t < dist) return (float3)(0.0f);
+    return albedo / PI_F * li * (cos_s * mis / pdf);
+}
+
+// The BSDF sample: a cosine-weighted ray from x that collects the emission it hits,
+// weighted by the power heuristic against sample_light (the only light it can find).
+inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* surf_b, float total_power,
+                                   float3 x, float3 n, float3 ns, float3 albedo, Rng* rng) {
+    float3 wi = sample_cosine(ns, rng_float(rng), rng_float(rng));
+    if (dot(wi, n) <= 0.0f) return (float3)(0.0f);
+    Hit h = intersect(g, x + n * ray_eps(x), wi);
+    if (h.surf == SURF_NONE || dot(wi, h.ng) >= 0.0f) return (float3)(0.0f);  // emitters shine to their front
+    float3 le = surf_b[h.surf].xyz;
+    float sum_le = le.x + le.y + le.z;
+    if (sum_le <= 0.0f) return (float3)(0.0f);
+    float p_light = PI_F * sum_le * h.t * h.t / (total_power * -dot(wi, h.ng));
+    float p_bsdf = dot(wi, ns) / PI_F;
+    return albedo * le * power_heuristic(p_bsdf, p_light);  // f cos / p_bsdf = albedo
+}
+
+// Direct light at x by both samples (0 in a scene without emitters).
+inline float3 direct_light(const SceneGeom* g, __global const float4* surf_b, __global const float4* emitters,
+                           __global const float* cdf, int n_emitters, float3 x, float3 n, float3 ns, float3 albedo,
+                           Rng* rng) {
+    if (n_emitters == 0) return (float3)(0.0f);
+    float4 r3 = emitters[3];  // any record gives the total power: its power / its probability
+    float total_power = (r3.x + r3.y + r3.z) / r3.w;
+    return sample_light(g, emitters, cdf, n_emitters, total_power, x, n, ns, albedo, rng)
+         + sample_bsdf_emission(g, surf_b, total_power, x, n, ns, albedo, rng);
+}
