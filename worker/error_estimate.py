@@ -51,6 +51,13 @@ over pixels that found photons, and over measured pixels that never did. A black
 then cannot hold the average up forever (its mean falls with the bound above), nor, by
 being most of the image, dilute the error of the lit part (which is averaged on its own).
 With fewer than two passes the noise is unknown and the average is 1.
+
+Direct light by next-event estimation (`direct: nee`). Then the image is the photon
+estimate plus Ld / i, the mean of per-pass samples y_j = Y(Ld_j) (directly seen emission
+plus the light and BSDF samples at the point). Its sample variance (from Ld2, the sum of
+y_j^2) adds to the photon samples' variance as that of an independent part (the two use
+independent random streams; the shared measurement point's covariance is ignored), also
+for never-lit pixels, and relative errors are taken against the whole luminance.
 """
 
 from __future__ import annotations
@@ -118,23 +125,28 @@ def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
         raise ValueError("confidence must lie in (0, 1)")
     i = state.passes
     lum = state.photon_radiance() @ LUMINANCE
+    nee = "Ld2" in state.sums  # direct light by NEE: its per-pass samples are part of the estimate
+    direct = state.Ld @ LUMINANCE / max(i, 1) if nee else np.zeros_like(lum)
     r2 = state.radius() ** 2
     bias = bias_estimate(np.sqrt(r2), state.G, state.emitted, constant)
     if i >= 2:
         t = student_t(confidence, i - 1)
-        var = np.maximum(state.X2 - state.X1 ** 2 / i, 0.0) / (i - 1)
+        direct_var = np.maximum(state.Ld2 - i * direct ** 2, 0.0) / (i - 1) if nee else 0.0
+        var = np.maximum(state.X2 - state.X1 ** 2 / i, 0.0) / (i - 1) + direct_var
         noise = t * np.sqrt(var / i)
+        direct_noise = t * np.sqrt(direct_var / i)
         lap_sum = state.G / (state.emitted / i)  # sum over passes of each pass's lap L
         lap_var = np.maximum(state.L2 - lap_sum ** 2 / i, 0.0) / (i - 1)
         bias_noise = significance * 0.5 * r2 * BIAS_CONSTANTS[constant] * np.sqrt(lap_var / i)
     else:
-        noise = bias_noise = np.full_like(lum, np.inf)
+        noise = bias_noise = direct_noise = np.full_like(lum, np.inf)
     measured = state.H > 0
     known = measured & (state.D > 0.0)
     dark = measured & ~known
-    noise = np.where(dark, unlit_bound(state, lum, known, confidence), noise)
+    noise = np.where(dark, unlit_bound(state, lum, known, confidence) + direct_noise, noise)
     significant_bias = np.maximum(np.abs(bias) - bias_noise, 0.0)
     bound = noise + significant_bias
+    lum = lum + direct
     lit = measured & (lum > 0.0)
     floor = FLOOR_FRACTION * float(lum[lit].mean()) if lit.any() else 1.0
     with np.errstate(invalid="ignore", divide="ignore"):
