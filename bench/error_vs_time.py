@@ -38,7 +38,8 @@ REFERENCES = BENCH_DIR / "reference"
 # scene -> how its reference is made: "path" (Mitsuba path tracing converges) or "sppm"
 SCENES = {"cornell-box": "path", "cornell-caustics": "path", "gap": "path",
           "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm"}
-OURS = {"sppm exact": ("sppm", "exact"), "sppm stochastic": ("sppm", "stochastic"), "ppm exact": ("ppm", "exact")}
+OURS = {"sppm exact": ("sppm", "exact"), "sppm stochastic": ("sppm", "stochastic"), "ppm exact": ("ppm", "exact"),
+        "sppm nee": ("sppm", "exact", "nee")}  # (method, gather[, direct])
 PEERS = ("mitsuba path", "mitsuba ptracer")
 TARGETS = (0.10, 0.05)
 PHOTONS = 1 << 17
@@ -83,9 +84,10 @@ def rel_rms(img: np.ndarray, ref: np.ndarray) -> float:
     return float(np.sqrt(np.mean(((img - ref) / np.maximum(ref, floor)) ** 2)))
 
 
-def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, method: str, gather: str, budget: float) -> list:
+def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, budget: float, method: str, gather: str,
+             direct: str = "photons") -> list:
     t0 = time.perf_counter()
-    eng = bench_engine(scene, res, method=method, gather=gather, photons_per_pass=PHOTONS, seed=7)
+    eng = bench_engine(scene, res, method=method, gather=gather, direct=direct, photons_per_pass=PHOTONS, seed=7)
     state = eng.start()
     setup = time.perf_counter() - t0
     curve = []
@@ -143,7 +145,7 @@ def main() -> None:
         if args.make_references or not reference_path(scene, res).exists():
             make_reference(scene, res, args.reference_seconds)
         ref = read_image(reference_path(scene, res))[..., :3].astype(np.float64)
-        curves = {name: run_ours(scene, res, ref, m, g, budget) for name, (m, g) in OURS.items()}
+        curves = {name: run_ours(scene, res, ref, budget, *how) for name, how in OURS.items()}
         curves.update({name: run_peer(scene, res, ref, name.split()[1], budget) for name in PEERS})
         times = {name: {f"{t:.2f}": time_to(c, t) for t in TARGETS} for name, c in curves.items()}
         best_peer = {f"{t:.2f}": min((times[p][f"{t:.2f}"] for p in PEERS if times[p][f"{t:.2f}"] is not None),

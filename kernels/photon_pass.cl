@@ -23,7 +23,7 @@ __kernel void photon_pass(
     __global const float4* surf_a, __global const float4* surf_b,
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
     ulong seed, uint pass, int max_bounces, uint capacity,
-    int nee,                     // 1: no photon is stored at its first hit (direct light is NEE's)
+    int skip_first_hit,          // 1: store nothing at a photon's first hit (direct light is NEE's)
     __global float4* ph_pos,     // xyz position; w: packed surface normal facing the photon (uint bits)
     __global float4* ph_flux,    // rgb flux; w: packed incoming direction (uint bits)
     __global ulong* ph_key,      // selection key for the stochastic hash
@@ -74,7 +74,7 @@ __kernel void photon_pass(
         int type = as_int(sa.w);
         float3 w, nd;
         if (type == MAT_DIFFUSE) {
-            if (bounce > 0 || !nee) {
+            if (bounce > 0 || !skip_first_hit) {
                 float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
                 ulong key = ((ulong)(rng_u32(&rng) >> 4) << 36) | ((ulong)path << 12) | (ulong)bounce;
                 uint slot = atomic_inc(ph_count);

@@ -36,7 +36,7 @@ class PhotonMappingPasses:
         self.integrator = integrator
         self.settings = integrator.settings
         self.dev = device
-        self.nee = i32(self.settings.direct == "nee")  # direct light by next-event estimation (kernels/lights.cl)
+        self.nee = self.settings.direct == "nee"  # direct light by next-event estimation (kernels/lights.cl)
         n = device.arrays.n_pixels
         self.mp_pos = device.buffer(16 * n)  # measurement points: position (w: 1 if present)
         self.mp_nrm = device.buffer(16 * n)  # normal facing the eye path
@@ -75,19 +75,21 @@ class PhotonMappingPasses:
         eye_index = 0 if self.integrator.fixed_points else pass_index
         ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
                                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                i32(self.settings.max_bounces), self.nee, u32(pass_index), self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt,
-                                self.mp_dist, dev.batch_sums)
+                                i32(self.settings.max_bounces), i32(self.nee), u32(pass_index), self.radius,
+                                self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, dev.batch_sums)
         dev.times.add("eye", [ev])
 
-    def _photon_pass(self, pass_index: int) -> int:
-        """Trace the pass's photons; returns how many were stored."""
+    def _photon_pass(self, pass_index: int, first_hits: bool = False) -> int:
+        """Trace the pass's photons; returns how many were stored. With nee, photons store
+        nothing at their first hit unless `first_hits`."""
+        skip_first = i32(self.nee and not first_hits)
         dev = self.dev
         while True:
             events = [dev.fill(self.ph_count, np.uint32(0), 1)]
             events.append(dev.program.launch(
                 dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
                 u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
-                self.nee, self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
+                skip_first, self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.ph_count)
             dev.times.add("trace", events)
@@ -164,7 +166,10 @@ class PhotonMappingPasses:
         dev.zero_sums()
         cl.enqueue_copy(dev.queue, self.radius, np.full(n, probe, np.float32))
         cl.enqueue_copy(dev.queue, self.bias, np.zeros(n, np.float32))
-        self._build_and_gather(self._photon_pass(0), probe, gather="exact")  # every photon counted
+        # Every photon counted, first hits too: with nee the radius is the one photons alone
+        # would get (sized by the density of the photons that are stored, mostly bounced
+        # light, it is up to 5x larger and blurs the caustics that only photons carry).
+        self._build_and_gather(self._photon_pass(0, first_hits=True), probe, gather="exact")
         density = dev.read_sums()["D"]  # M / (pi probe^2): photons per unit area per pass
         dev.times.seconds.clear()  # set-up, not rendering
         lit = density > 0.0
