@@ -6,14 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.error_vs_time import rel_rms
-from tests.analytic import FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, point_plane
+from bench.error_vs_time import reference_path, rel_rms
+from tests.analytic import FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, point_plane, spot_plane
 from tests.conftest import image, render
+from tests.test_unlit_regions import CONE, HEIGHT, POWER, RHO, spot_scene
 from worker.error_estimate import LUMINANCE
 from worker.image_io import read_image
 from worker.integrators.photon_mapping import GatherInputs
 
-CORNELL_REFERENCE = "bench/reference/cornell-box-64x64.exr"  # Mitsuba 3 path tracer, see its .json
+CORNELL_REFERENCE = reference_path("cornell-box", (64, 64))  # Mitsuba 3 path tracer, see its .json
 
 
 def test_furnace_direct_light_is_exact_and_the_total_analytic(make_engine) -> None:
@@ -44,6 +45,23 @@ def test_point_plane_per_pixel_against_the_analytic_radiance(make_engine) -> Non
     assert np.sqrt(np.mean(rel ** 2)) < 0.005, np.sqrt(np.mean(rel ** 2))
     assert np.abs(rel).max() < 0.03, np.abs(rel).max()
     assert np.array_equal(est[..., 0], est[..., 2])  # grey light on a grey plane
+
+
+def test_spot_light_per_pixel_against_the_analytic_radiance(make_engine, tmp_path) -> None:
+    """A spot light over a lone plane: only the light samples light it, inside the cone at
+    rho I h / (pi d^3) (no photon is stored). Pixels wholly inside the cone (some point of
+    theirs inside a cone 3 degrees narrower, a margin wider than a pixel's diagonal) within
+    3% after 32 passes (measured 1.1%: the radiance varies by about 8% across a pixel near
+    the edge, and each pass samples one point of it); pixels the cone's edge crosses are lit
+    at their jittered points, and the image mean agrees within 1% (measured 0.02%)."""
+    eng = make_engine(spot_scene(tmp_path), photons_per_pass=1 << 10, seed=13, direct="nee")
+    est = image(eng, render(eng, 32))[..., 0]
+    truth = spot_plane(eng, RHO, POWER, HEIGHT, CONE).reshape(est.shape)
+    assert eng.passes.photons_stored == 0
+    inside = spot_plane(eng, RHO, POWER, HEIGHT, CONE - 3.0).reshape(est.shape) > 0.0
+    rel = est[inside] / truth[inside] - 1.0
+    assert inside.sum() > 500 and np.abs(rel).max() < 0.03, (inside.sum(), np.abs(rel).max())
+    assert abs(est.mean() / truth.mean() - 1.0) < 0.01, (est.mean(), truth.mean())
 
 
 def test_cornell_box_error_is_lower_at_equal_passes(make_engine) -> None:
