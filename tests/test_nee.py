@@ -4,10 +4,12 @@ light dominates, caustics counted once, and determinism. Real kernels on PoCL.""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from bench.error_vs_time import reference_path, rel_rms
-from tests.analytic import FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, point_plane, spot_plane
+from tests.analytic import FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, _plane_hits, point_plane, spot_plane
 from tests.conftest import image, render
 from tests.test_unlit_regions import CONE, HEIGHT, POWER, RHO, spot_scene
 from worker.error_estimate import LUMINANCE
@@ -62,6 +64,53 @@ def test_spot_light_per_pixel_against_the_analytic_radiance(make_engine, tmp_pat
     rel = est[inside] / truth[inside] - 1.0
     assert inside.sum() > 500 and np.abs(rel).max() < 0.03, (inside.sum(), np.abs(rel).max())
     assert abs(est.mean() / truth.mean() - 1.0) < 0.01, (est.mean(), truth.mean())
+
+
+def _ceiling_lamp_scene(tmp_path, half: float, height: float, radiance: float, albedo: float):  # noqa: ANN202
+    """A floor under a lamp as large as itself (2 half x 2 half, facing down, black) at
+    `height`; the camera between them looks down at the middle of the floor."""
+    scene = {
+        "camera": {"position": [0, 0.9 * height, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": 60,
+                   "resolution": [32, 32]},
+        "materials": {"floor": {"type": "diffuse", "albedo": [albedo] * 3},
+                      "lamp": {"type": "diffuse", "albedo": [0.0] * 3}},
+        "shapes": [{"type": "quad", "corner": [-half, 0, -half], "edge1": [0, 0, 2 * half],
+                    "edge2": [2 * half, 0, 0], "material": "floor"},
+                   {"type": "quad", "corner": [-half, height, -half], "edge1": [2 * half, 0, 0],
+                    "edge2": [0, 0, 2 * half], "material": "lamp", "emission": [radiance] * 3}],
+    }
+    path = tmp_path / "lamp.json"
+    path.write_text(json.dumps(scene))
+    return path
+
+
+def test_a_large_close_area_light_is_weighted_by_mis(make_engine, tmp_path) -> None:
+    """Where the two techniques matter most: a lamp covering most of the floor's hemisphere.
+    Light samples alone are poor there (relative deviation 2.5 per sample at the middle),
+    BSDF samples find the lamp, and the power heuristic splits each direction between them.
+    The floor's radiance is rho Le F, F the form factor of the lamp's rectangle (the sum of
+    four corner rectangles, A = a/c, B = b/c:
+    F = (A/sqrt(1+A^2) atan(B/sqrt(1+A^2)) + B/sqrt(1+B^2) atan(A/sqrt(1+B^2))) / (2 pi)).
+    Wrong weights (both techniques counted in full, or either dropped) are off by tens of
+    percent; the image mean is within 0.75% (measured 0.1%) and the per-pixel RMS error
+    within 7% after 64 passes (the estimator's own deviation, 0.40 per pass at the middle by
+    a simulation of the same two samples, gives 5%)."""
+    half, height, radiance, rho = 4.0, 1.0, 1.0, 0.5
+    eng = make_engine(_ceiling_lamp_scene(tmp_path, half, height, radiance, rho), photons_per_pass=1 << 10,
+                      seed=3, direct="nee")
+    est = image(eng, render(eng, 64))[..., 0]
+
+    def corner(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        A, B = a / height, b / height
+        return (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+                + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+
+    x, z, pixel_mean = _plane_hits(eng, 8)
+    form_factor = sum(corner(half + sx * x, half + sz * z) for sx in (-1, 1) for sz in (-1, 1))
+    truth = pixel_mean(rho * radiance * form_factor).reshape(est.shape)
+    rel = est / truth - 1.0
+    assert abs(est.mean() / truth.mean() - 1.0) < 0.0075, (est.mean(), truth.mean())
+    assert np.sqrt(np.mean(rel ** 2)) < 0.07, np.sqrt(np.mean(rel ** 2))
 
 
 def test_cornell_box_error_is_lower_at_equal_passes(make_engine) -> None:
