@@ -1,6 +1,7 @@
 """Direct light by next-event estimation at the measurement points (`direct: nee`, issue 12
-step 1): the same answers as photons alone where both converge, lower error where direct
-light dominates, caustics counted once, and determinism. Real kernels on PoCL."""
+step 1): analytic answers for point, spot and area lights (MIS-weighted), the same answers
+as photons alone where both converge, lower error where direct light dominates, caustics
+counted once, and determinism. Real kernels on PoCL."""
 
 from __future__ import annotations
 
