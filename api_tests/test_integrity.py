@@ -214,3 +214,17 @@ def test_batches_of_an_unknown_job_are_not_rendered(tmp_path: Path) -> None:
         assert isinstance(batch, Batch)
     finally:
         server.stop()
+
+
+def test_a_full_job_store_answers_507_not_500(tmp_path: Path) -> None:
+    """Redis runs with a memory cap and no eviction (a job's state is never dropped): once
+    full it refuses writes, and the API says so. A cap below what an empty Redis uses makes
+    it full from the start."""
+    c = Cluster(tmp_path, workers=0, redis_maxmemory="100kb")
+    try:
+        resp = c.http.post("/v1/jobs", json={"scene_name": "furnace"})
+        assert resp.status_code == 507 and "full" in resp.json()["detail"], resp.text
+        assert c.http.get("/v1/jobs").status_code == 200  # reads still work
+        assert c.http.get("/healthz").status_code == 200
+    finally:
+        c.close()

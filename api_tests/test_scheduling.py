@@ -6,7 +6,7 @@ from api_tests.cluster import Cluster, finished
 
 
 def test_small_job_is_not_stuck_behind_a_large_one(cluster: Cluster) -> None:
-    big = cluster.submit(scene_name="cornell-box", settings={"max_seconds": 120, "photons_per_pass": 1 << 17,
+    big = cluster.submit(scene_name="cornell-box", settings={"max_seconds": 900, "photons_per_pass": 1 << 17,
                                                              "resolution": [64, 64]})
     cluster.wait(big["id"], lambda j: j["passes"] >= 2)
     small = cluster.submit(scene_name="furnace", settings={"max_passes": 3, "photons_per_pass": 1 << 12})

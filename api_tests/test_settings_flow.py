@@ -17,7 +17,7 @@ from worker.tasks import engine_for
 CHANGED = {"method": "ppm", "gather": "stochastic", "alpha": 0.55, "photons_per_pass": 4096, "initial_radius": 0.3,
            "hash_entries_per_photon": 2.0, "seed": 99, "resolution": (24, 16), "error_estimation": True,
            "confidence": 0.8, "bias_constant": "dissertation", "max_passes": 3, "max_seconds": 50.0,
-           "error_threshold": 0.02, "priority": "low"}
+           "error_threshold": 0.02, "priority": "low", "max_bounces": 100}
 
 
 def test_every_field_is_changed_by_the_fixture() -> None:

@@ -61,6 +61,7 @@ typedef struct {
 
 __kernel void eye_pass(
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
+    __global const float4* tri_nrm,
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
     __global const float4* surf_a, __global const float4* surf_b,
@@ -75,7 +76,7 @@ __kernel void eye_pass(
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
     Rng rng = rng_make(seed, pass, (uint)gid, DOMAIN_EYE);
 
     int x = gid % width, y = gid / width;
@@ -115,7 +116,8 @@ __kernel void eye_pass(
             break;
         }
         float3 nd, w;
-        if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, &rng, &nd, &w)) break;
+        if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, &rng, &nd, &w)) break;
+        if (h.smooth && shading_bounce(d, nd, h.ng, h.ns, false) == 0.0f) break;
         thr *= w;
         d = nd;
         origin = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);

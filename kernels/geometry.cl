@@ -8,8 +8,10 @@
 
 typedef struct {
     float t;
-    float3 ng;   // geometric normal, oriented as the shape defines its front side
-    int surf;    // surface record index, SURF_NONE on a miss
+    float3 ng;    // geometric normal, oriented as the shape defines its front side
+    float3 ns;    // shading normal, on ng's side: ng itself unless the mesh has normals
+    bool smooth;  // ns is interpolated (ns == ng bit for bit otherwise)
+    int surf;     // surface record index, SURF_NONE on a miss
 } Hit;
 
 // Ray offset that scales with the magnitude of the coordinates it is added to.
@@ -51,6 +53,13 @@ inline float triangle_distance(float3 v0, float3 e1, float3 e2, float3 o, float3
     return (t > tmin && t < tmax) ? t : tmax;
 }
 
+// Barycentrics (u, v) along e1, e2 of where the ray meets the triangle's plane.
+inline float2 triangle_uv(float3 v0, float3 e1, float3 e2, float3 o, float3 d) {
+    float3 p = cross(d, e2), s = o - v0, q = cross(s, e1);
+    float inv = 1.0f / dot(e1, p);
+    return (float2)(dot(s, p) * inv, dot(d, q) * inv);
+}
+
 inline bool box_hit(float4 lo, float4 hi, float3 o, float3 inv_d, float tmax) {
     float3 t0 = (lo.xyz - o) * inv_d, t1 = (hi.xyz - o) * inv_d;
     float3 tn = fmin(t0, t1), tf = fmax(t0, t1);
@@ -61,8 +70,9 @@ inline bool box_hit(float4 lo, float4 hi, float3 o, float3 inv_d, float tmax) {
 
 typedef struct {
     __global const float4* tri_v0;   // w: surface index (int bits)
-    __global const float4* tri_e1;
+    __global const float4* tri_e1;   // w: 1 if the triangle has shading normals
     __global const float4* tri_e2;
+    __global const float4* tri_nrm;  // 3 rows per triangle: corner normals (smooth triangles only)
     __global const float4* node_lo;  // see worker/bvh.py for the layout
     __global const float4* node_hi;
     __global const float4* spheres;  // xyz centre, w radius
@@ -106,11 +116,23 @@ inline Hit intersect(const SceneGeom* g, float3 o, float3 d) {
         }
     }
     if (best_tri >= 0) {
-        h.ng = normalize(cross(g->tri_e1[best_tri].xyz, g->tri_e2[best_tri].xyz));
+        float4 e1 = g->tri_e1[best_tri];
+        h.ng = normalize(cross(e1.xyz, g->tri_e2[best_tri].xyz));
         h.surf = as_int(g->tri_v0[best_tri].w);
+        h.ns = h.ng;
+        h.smooth = e1.w != 0.0f;
+        if (h.smooth) {  // interpolate the corner normals, turned to ng's side
+            float2 uv = triangle_uv(g->tri_v0[best_tri].xyz, e1.xyz, g->tri_e2[best_tri].xyz, o, d);
+            __global const float4* n = g->tri_nrm + 3 * best_tri;
+            float3 ns = (1.0f - uv.x - uv.y) * n[0].xyz + uv.x * n[1].xyz + uv.y * n[2].xyz;
+            float len = length(ns);
+            if (len > 1e-6f) h.ns = dot(ns, h.ng) < 0.0f ? -ns / len : ns / len;
+        }
     } else if (best_sphere >= 0) {
         float4 s = g->spheres[best_sphere];
         h.ng = normalize(o + h.t * d - s.xyz);
+        h.ns = h.ng;
+        h.smooth = false;
         h.surf = g->sphere_surf[best_sphere];
     }
     return h;

@@ -54,10 +54,11 @@ inline float fresnel_dielectric(float cos_i, float cos_t, float eta) {
 // Continue a path through a mirror, glass or glossy surface hit along `d`.
 // Writes the new direction and the throughput factor f*cos/pdf; false if the path ends.
 // Refraction carries no (eta_i/eta_t)^2 radiance factor: eye paths start and end in air
-// in every scene here, where the factors of entering and leaving cancel.
-inline bool scatter_specular(int type, float param, float3 albedo, float3 d, float3 ng, Rng* rng,
+// in every scene here, where the factors of entering and leaving cancel. Lobes turn about
+// the shading normal ns; the geometric ng says which side the path comes from.
+inline bool scatter_specular(int type, float param, float3 albedo, float3 d, float3 ng, float3 ns, Rng* rng,
                              float3* new_d, float3* weight) {
-    float3 n = dot(d, ng) < 0.0f ? ng : -ng;  // faces the incoming path
+    float3 n = dot(d, ng) < 0.0f ? ns : -ns;  // faces the incoming path
     if (type == MAT_MIRROR) {
         *new_d = reflect_dir(d, n);
         *weight = albedo;
@@ -95,6 +96,24 @@ inline bool scatter_specular(int type, float param, float3 albedo, float3 d, flo
     *new_d = w;
     *weight = albedo * ((e + 2.0f) / (e + 1.0f) * cos_theta);
     return true;
+}
+
+// Shading normals (smooth meshes) bend lobes, but sides stay geometric (Veach 1997, sec. 5.3).
+// Photons arriving along d: the flux per geometric area, weighted |wi.ns| / |wi.ng|, is what
+// a BSDF that uses ns sees; 0 for light from below ns.
+inline float shading_arrival(float3 d, float3 ng, float3 ns) {
+    float gi = dot(d, ng), si = dot(d, ns);
+    return gi * si > 0.0f ? si / gi : 0.0f;
+}
+
+// A bounce d -> nd: 0 where a direction lies on different sides of ns and ng (no light leaks
+// through the true surface); else the adjoint BSDF's |wi.ns| |wo.ng| / (|wi.ng| |wo.ns|) for
+// photon paths and 1 for eye paths.
+inline float shading_bounce(float3 d, float3 nd, float3 ng, float3 ns, bool photon) {
+    float arrive = shading_arrival(d, ng, ns);
+    float go = dot(nd, ng), so = dot(nd, ns);
+    if (arrive == 0.0f || go * so <= 0.0f) return 0.0f;
+    return photon ? arrive * go / so : 1.0f;
 }
 
 // Octahedral packing of a unit vector into 2 x 16 bits (photon incoming directions).

@@ -18,6 +18,7 @@
 
 __kernel void photon_pass(
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
+    __global const float4* tri_nrm,
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
     __global const float4* surf_a, __global const float4* surf_b,
@@ -30,7 +31,7 @@ __kernel void photon_pass(
 {
     uint path = (uint)get_global_id(0);
     if (n_emitters == 0) return;
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
     Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
 
     // Pick an emitter in proportion to its power (binary search of the CDF).
@@ -82,15 +83,18 @@ __kernel void photon_pass(
             ulong key = ((ulong)(rng_u32(&rng) >> 4) << 36) | ((ulong)path << 12) | (ulong)bounce;
             uint slot = atomic_inc(ph_count);
             if (slot < capacity) {  // the host re-runs the pass with more room on overflow
-                ph_pos[slot] = (float4)(p, as_float(pack_dir(n)));
-                ph_flux[slot] = (float4)(flux, as_float(pack_dir(-d)));
+                float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
+                ph_pos[slot] = (float4)(p, as_float(pack_dir(n)));  // w: the surface's normal
+                ph_flux[slot] = (float4)(stored, as_float(pack_dir(-d)));
                 ph_key[slot] = key;
             }
-            nd = sample_cosine(n, rng_float(&rng), rng_float(&rng));
+            float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;  // the lobe turns about the shading normal
+            nd = sample_cosine(ns, rng_float(&rng), rng_float(&rng));
             w = sa.xyz;  // f cos / pdf = (rho/pi) cos / (cos/pi)
-        } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, &rng, &nd, &w)) {
+        } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, &rng, &nd, &w)) {
             return;
         }
+        if (h.smooth) w *= shading_bounce(d, nd, h.ng, h.ns, true);
         // Russian roulette on the throughput factor keeps the expected flux unchanged.
         float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));
         if (rng_float(&rng) >= survive) return;

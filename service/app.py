@@ -7,27 +7,37 @@ this process only kicks a new job off and runs the reaper that re-issues lost ba
 from __future__ import annotations
 
 import datetime as dt
+import hmac
 import json
 import logging
 import os
 import tempfile
+import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any, AsyncIterator, Literal
+from typing import Annotated, Any, AsyncIterator, Callable, Literal
 
+import cachetools
 import numpy as np
 import redis
-from fastapi import FastAPI, HTTPException, Query, Request, Response
+from fastapi import FastAPI, HTTPException, Query, Request, Response, Security
+from fastapi import Path as PathParam
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
+from fastapi.security import HTTPBearer
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.metrics import metrics_text, workers
-from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, JobLinks, JobRequest, JobView,
-                            SceneSummary)
+from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, ErrorBody, JobLinks, JobRequest,
+                            JobView, SceneSummary)
 from worker.image_io import error_colours, write_image
-from worker.scene import SCENES_DIR, SceneError, bundled_scene_path, inline_meshes, load_scene_file, parse_scene
+from worker.outputs import write_render
+from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, SceneError, bundled_scene_names,
+                          bundled_scene_path, inline_meshes, load_scene_file, parse_scene)
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
@@ -35,7 +45,22 @@ from worker.store.policy import FINAL
 from worker.store.record import JobLimitReached
 
 log = logging.getLogger("photonfarm.api")
+# Repeated reads come from memory, so pollers do not take CPU from the workers on a shared host:
+ENCODED_CACHE_BYTES = 64 * 1024 * 1024  # encoded images and error maps, by (job, passes merged, format)
+METRICS_SECONDS = 1.0  # a /metrics scrape reads every job from Redis at most this often
 STATIC_DIR = Path(__file__).resolve().parent / "static"
+DOCS_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files, served from the fastapi-offline package
+# Paths without data, open without the token: the viewer page, the API description and its viewers.
+OPEN_PATHS = ("/healthz", "/", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc")
+OPEN_PREFIXES = ("/static/", f"{DOCS_ASSETS}/")
+REASONS = {401: "missing or wrong bearer token (when PHOTONFARM_TOKEN is set)", 404: "no such job or scene",
+           409: "not possible in the job's state", 413: f"body larger than {MAX_BODY_BYTES} bytes",
+           422: "a bad field, named in detail[].loc", 503: "the job store (Redis) is unavailable"}
+
+
+def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` for these error statuses, all with the ErrorBody shape."""
+    return {code: {"model": ErrorBody, "description": REASONS[code]} for code in (*codes, 503)}
 
 
 def _iso(ts: float | None) -> str | None:
@@ -59,11 +84,16 @@ def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
                        error_png=f"{base}/error?format=png", error_exr=f"{base}/error?format=exr"))
 
 
-def encode_image(pixels: np.ndarray, fmt: Literal["png", "exr"], **options: Any) -> bytes:
+def encode_with(fmt: Literal["png", "exr"], write: Callable[[Path], None]) -> bytes:
+    """The bytes `write` puts in a file of format `fmt` (OpenImageIO writes to files)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"image.{fmt}"
-        write_image(path, pixels, **options)
+        write(path)
         return path.read_bytes()
+
+
+def encode_image(pixels: np.ndarray, fmt: Literal["png", "exr"], **options: Any) -> bytes:
+    return encode_with(fmt, lambda path: write_image(path, pixels, **options))
 
 
 MEDIA = {"png": "image/png", "exr": "image/x-exr"}
@@ -80,15 +110,28 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         if running is not None:
             running.stop()
 
-    app = FastAPI(title="photonfarm", version="0.1.0", lifespan=lifespan,
-                  description="Distributed progressive photon mapping (SPPM) render service.")
+    app = FastAPIOffline(title="photonfarm", version="0.1.0", lifespan=lifespan, static_url=DOCS_ASSETS,
+                         description="Distributed progressive photon mapping (SPPM) render service.",
+                         swagger_ui_parameters={"validatorUrl": None})  # no badge fetched from a public host
+    bearer = HTTPBearer(auto_error=False, description="the server's PHOTONFARM_TOKEN")
+    # Declared on every data route when a token is set (the Authorize button of /docs);
+    # enforced by the guard below, before a body is read.
+    secured = [Security(bearer)] if token else []
+    auth = (401,) if token else ()
+
+    def token_matches(presented: str) -> bool:
+        return hmac.compare_digest(presented.encode(), token.encode())  # constant time
 
     @app.middleware("http")
     async def guard(request: Request, call_next):  # type: ignore[no-untyped-def]
-        # The page and its script carry no data; every data route wants the token.
-        open_path = request.url.path in ("/healthz", "/") or request.url.path.startswith("/static/")
-        if token and not open_path and request.headers.get("authorization") != f"Bearer {token}":
-            return JSONResponse({"detail": "missing or wrong bearer token"}, 401, headers={"WWW-Authenticate": "Bearer"})
+        # The page, its script and the API description carry no data; every data route wants the token.
+        path = request.url.path
+        open_path = path in OPEN_PATHS or path.startswith(OPEN_PREFIXES)
+        if token and not open_path:
+            credentials = await bearer(request)  # the scheme compares case-insensitively (RFC 7235)
+            if credentials is None or not token_matches(credentials.credentials):
+                return JSONResponse({"detail": "missing or wrong bearer token"}, 401,
+                                    headers={"WWW-Authenticate": "Bearer"})
         length = request.headers.get("content-length")
         if length is not None and length.isdigit() and int(length) > MAX_BODY_BYTES:
             return JSONResponse({"detail": f"body larger than {MAX_BODY_BYTES} bytes"}, 413)
@@ -103,11 +146,64 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             return await call_next(request)
         except redis.ConnectionError:
             return JSONResponse({"detail": "job store unavailable, retry shortly"}, 503)
+        except redis.exceptions.OutOfMemoryError:  # the memory cap (maxmemory, no eviction)
+            return JSONResponse({"detail": "job store full: delete finished jobs or raise its memory cap"}, 507)
 
     @app.exception_handler(RequestValidationError)
     async def validation(_: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
-        return JSONResponse({"detail": errors}, 422)
+        found = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
+        return JSONResponse({"detail": found}, 422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        # FastAPI answers 400 for a body json.loads cannot take: undecodable bytes
+        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError).
+        if exc.status_code == 400 and isinstance(exc.__cause__, (ValueError, RecursionError)):
+            reason = "nested too deeply" if isinstance(exc.__cause__, RecursionError) else "not UTF-8 JSON"
+            return JSONResponse({"detail": [{"loc": ["body"], "msg": f"body is {reason}", "type": "json_invalid"}]},
+                                422)
+        return await http_exception_handler(request, exc)
+
+    # Encoded bodies keyed by the passes merged: a new merge makes a new key, so nothing stale
+    # is served; concurrent misses of one key wait for a single encode (the condition).
+    encoded = cachetools.LRUCache(maxsize=ENCODED_CACHE_BYTES, getsizeof=lambda value: len(value[0]))
+    encoding = threading.Condition()
+
+    def by_passes(kind: str):  # type: ignore[no-untyped-def]
+        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.passes, fmt),
+                                 condition=encoding)
+
+    @by_passes("image")
+    def image_body(record: JobRecord, fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
+        w, h = record.width, record.height
+        state = jobs.state(record)
+        headers = {"X-Passes": str(record.passes), "X-Photons": str(record.emitted)}
+        if state is None:
+            return encode_image(np.zeros((h, w, 3)), fmt), headers
+        # EXR: with the render's metadata (passes, photons, seed, settings, error estimate)
+        return encode_with(fmt, lambda path: write_render(path, record.integrator, state, w, h, error_layers=False)), \
+            headers
+
+    @by_passes("error")
+    def error_body(record: JobRecord, fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
+        w, h = record.width, record.height
+        state = jobs.state(record)
+        if state is None:
+            raise HTTPException(409, detail="no pass merged yet")
+        est = record.integrator.estimate(state)
+        if est is None:
+            raise HTTPException(409, detail="this job does not estimate its error (error_estimation is off)")
+        if fmt == "png":
+            body = encode_image(error_colours(est.relative, est.measured).reshape(h, w, 3), "png", display=True)
+        else:
+            channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
+            body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
+        return body, {"X-Passes": str(record.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
+
+    @cachetools.cached(cachetools.TTLCache(maxsize=1, ttl=METRICS_SECONDS), key=lambda: "metrics",
+                       condition=threading.Condition())
+    def metrics_body() -> bytes:
+        return metrics_text(jobs)
 
     def existing(job_id: str) -> JobRecord:
         record = jobs.get(job_id)
@@ -122,7 +218,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         """The web viewer: submit, follow, watch the image refine, cancel, download."""
         return FileResponse(STATIC_DIR / "index.html")
 
-    @app.get("/healthz")
+    @app.get("/healthz", responses=errors())
     def healthz() -> dict[str, Any]:
         try:
             ok = bool(conn.ping())
@@ -132,32 +228,34 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             raise HTTPException(503, detail="redis unreachable")
         return {"status": "ok"}
 
-    @app.get("/metrics", response_class=Response)
+    @app.get("/metrics", response_class=Response, dependencies=secured, responses=errors(*auth))
     def metrics() -> Response:
         """Prometheus text format: jobs by status, batches merged, photons per second, merge
         latency, queue depth, workers alive."""
-        return Response(metrics_text(jobs), media_type=CONTENT_TYPE_LATEST)
+        return Response(metrics_body(), media_type=CONTENT_TYPE_LATEST)
 
-    @app.get("/v1/workers")
+    @app.get("/v1/workers", dependencies=secured, responses=errors(*auth))
     def list_workers() -> list[dict[str, Any]]:
         """Every registered worker: host, pid, state, last heartbeat, current job and batch."""
         return workers(jobs)
 
-    @app.get("/v1/scenes", response_model=list[SceneSummary])
+    @app.get("/v1/scenes", response_model=list[SceneSummary], dependencies=secured, responses=errors(*auth))
     def scenes() -> list[SceneSummary]:
         out = []
-        for path in sorted(SCENES_DIR.glob("*.json")):
-            out.append(SceneSummary(name=path.stem, description=json.loads(path.read_text()).get("description", "")))
+        for name in bundled_scene_names():
+            description = json.loads(bundled_scene_path(name).read_text()).get("description", "")
+            out.append(SceneSummary(name=name, description=description))
         return out
 
-    @app.get("/v1/scenes/{name}")
-    def scene(name: str) -> dict[str, Any]:
+    @app.get("/v1/scenes/{name}", dependencies=secured, responses=errors(*auth, 404, 422))
+    def scene(name: Annotated[str, PathParam(pattern=SCENE_NAME_PATTERN, max_length=MAX_SCENE_NAME)]) -> dict[str, Any]:
         try:
             return json.loads(bundled_scene_path(name).read_text())
         except SceneError as exc:
             raise HTTPException(404, detail=exc.message) from None
 
-    @app.post("/v1/jobs", status_code=201, response_model=JobView)
+    @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
+              responses=errors(*auth, 413, 422))
     def submit(body: JobRequest, response: Response) -> JobView:
         try:
             if body.scene_name is not None:
@@ -185,7 +283,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         log.info(f"job submitted: {body.scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
         return job_view(jobs, jobs.get(job_id))
 
-    @app.get("/v1/jobs", response_model=list[JobView])
+    @app.get("/v1/jobs", response_model=list[JobView], dependencies=secured, responses=errors(*auth, 422))
     def list_jobs(response: Response, offset: int = Query(0, ge=0),
                   limit: int = Query(50, ge=1, le=500)) -> list[JobView]:
         """Jobs, newest first, a page at a time; X-Total-Count says how many there are."""
@@ -193,12 +291,13 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         response.headers["X-Total-Count"] = str(jobs.count())
         return [job_view(jobs, record) for record in records if record is not None]
 
-    @app.get("/v1/jobs/{job_id}", response_model=JobView)
+    @app.get("/v1/jobs/{job_id}", response_model=JobView, dependencies=secured, responses=errors(*auth, 404))
     def job(job_id: str) -> JobView:
         return job_view(jobs, existing(job_id), history=True)
 
-    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202,
-                responses={204: {"description": "the finished job and its images were deleted"}})
+    @app.delete("/v1/jobs/{job_id}", response_model=JobView, status_code=202, dependencies=secured,
+                responses={204: {"description": "the finished job and its images were deleted"},
+                           **errors(*auth, 404)})
     def cancel_or_delete(job_id: str) -> Response | JobView:
         """An active job is cancelled (202: it stops within a pass and keeps its image); a
         finished one is deleted with its state and images (204)."""
@@ -209,34 +308,19 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         jobs.cancel(job_id)
         return job_view(jobs, jobs.get(job_id))
 
-    @app.get("/v1/jobs/{job_id}/image", responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}})
+    @app.get("/v1/jobs/{job_id}/image", dependencies=secured,
+             responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 422)})
     def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
-        record = existing(job_id)
-        w, h = record.width, record.height
-        state = jobs.state(record)
-        rgb = record.integrator.image(state).reshape(h, w, 3) if state is not None else np.zeros((h, w, 3))
-        return Response(encode_image(rgb, format), media_type=MEDIA[format],
-                        headers={"X-Passes": str(record.passes), "X-Photons": str(record.emitted)})
+        body, headers = image_body(existing(job_id), format)
+        return Response(body, media_type=MEDIA[format], headers=headers)
 
-    @app.get("/v1/jobs/{job_id}/error", responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}})
+    @app.get("/v1/jobs/{job_id}/error", dependencies=secured,
+             responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 409, 422)})
     def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
         """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
-        record = existing(job_id)
-        w, h = record.width, record.height
-        state = jobs.state(record)
-        if state is None:
-            raise HTTPException(409, detail="no pass merged yet")
-        est = record.integrator.estimate(state)
-        if est is None:
-            raise HTTPException(409, detail="this job does not estimate its error (error_estimation is off)")
-        if format == "png":
-            body = encode_image(error_colours(est.relative, est.measured).reshape(h, w, 3), "png", display=True)
-        else:
-            channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
-            body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
-        return Response(body, media_type=MEDIA[format], headers={"X-Passes": str(record.passes),
-                                                                 "X-Average-Relative-Error": f"{est.average:.6g}"})
+        body, headers = error_body(existing(job_id), format)
+        return Response(body, media_type=MEDIA[format], headers=headers)
 
     return app
 

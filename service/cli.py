@@ -5,6 +5,7 @@ model (worker/settings.py) and are validated by it."""
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -13,7 +14,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_scene_file
+from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_any_scene
 from worker.settings import Settings
 
 # Render flags that are settings fields, by flag name (defaults and help from the model).
@@ -71,13 +72,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="photonfarm", description="Progressive photon mapping render service.")
     sub = parser.add_subparsers(dest="command", required=True)
     render = sub.add_parser("render", help="render a scene on this machine")
-    render.add_argument("scene", help="bundled scene name (see scenes/) or path to a scene .json")
+    render.add_argument("scene", help="bundled scene name (see scenes/), or a scene .json or Mitsuba 3 .xml file "
+                                      "(its meshes beside it)")
     budget = render.add_mutually_exclusive_group(required=True)
     budget.add_argument("--passes", type=_positive(int), help="number of photon passes")
     budget.add_argument("--seconds", type=_positive(float), help="render for this long")
     for name in RENDER_FIELDS:
         _add_setting(render, name)
     render.add_argument("--out", type=_output, required=True, help="output image, .exr (linear) or .png")
+
+    convert = sub.add_parser("convert", help="write our scene JSON from a Mitsuba 3 XML scene")
+    convert.add_argument("scene", type=Path, help="a Mitsuba 3 .xml scene")
+    convert.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                         help="a $NAME substitution (overrides the file's <default>); repeatable")
+    convert.add_argument("--out", type=Path, help="JSON file to write (default: standard output)")
 
     serve = sub.add_parser("serve", help="run the HTTP API (with embedded Redis and local workers by default)")
     serve.add_argument("--host", default="127.0.0.1")
@@ -98,11 +106,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_output_folder(path: Path) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
 def _check_output(path: Path) -> None:
     """Fail before rendering, not after: create missing folders, and probe that the file
     can be written."""
+    _check_output_folder(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         existed = path.exists()
         with open(path, "ab"):
             pass
@@ -116,11 +131,10 @@ def render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from worker.engine import Engine
-    from worker.image_io import write_image
+    from worker.outputs import write_render
     from worker.render_loop import render as render_passes
 
-    path = Path(args.scene) if args.scene.endswith(".json") else bundled_scene_path(args.scene)
-    scene, base_dir = load_scene_file(path)
+    scene, base_dir = load_any_scene(_scene_path(args.scene))
     try:
         settings = Settings(**{name: getattr(args, name) for name in RENDER_FIELDS},
                             max_passes=args.passes, max_seconds=args.seconds)
@@ -128,8 +142,12 @@ def render(args: argparse.Namespace) -> int:
         err = exc.errors()[0]
         raise ValueError(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from None
     _check_output(args.out)
-    engine = Engine(scene, base_dir, settings)
-    state = engine.start()
+    try:
+        engine = Engine(scene, base_dir, settings)
+        state = engine.start()
+    except KeyboardInterrupt:
+        print("interrupted before the first pass: nothing written", file=sys.stderr)
+        return 130
     start = time.perf_counter()
     total = args.passes or args.seconds
     with tqdm(total=total, unit="pass" if args.passes else "s", disable=None, file=sys.stderr,
@@ -143,12 +161,35 @@ def render(args: argparse.Namespace) -> int:
             render_passes(engine, passes=args.passes, seconds=args.seconds, progress=progress, state=state)
         except KeyboardInterrupt:
             interrupted = True
-    a = engine.arrays
-    write_image(args.out, engine.integrator.image(state).reshape(a.height, a.width, 3))
+    write_render(args.out, engine.integrator, state, engine.arrays.width, engine.arrays.height)
     note = " (interrupted: the image so far)" if interrupted else ""
     print(f"wrote {args.out}{note}: {state.passes} passes, {state.emitted} photons, "
           f"{time.perf_counter() - start:.1f} s")
     return 130 if interrupted else 0
+
+
+def _scene_path(scene: str) -> Path:
+    """A scene file by path (.json or .xml), or a bundled scene by name."""
+    return Path(scene) if Path(scene).suffix.lower() in (".json", ".xml") else bundled_scene_path(scene)
+
+
+def convert(args: argparse.Namespace) -> int:
+    from worker.mitsuba_scene import convert_mitsuba
+
+    params = {}
+    for item in args.param:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--param wants NAME=VALUE, got {item!r}")
+        params[name] = value
+    text = json.dumps(convert_mitsuba(args.scene, params), indent=1)
+    if args.out is None:
+        print(text)
+    else:
+        _check_output_folder(args.out)
+        args.out.write_text(text + "\n")
+        print(f"wrote {args.out}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"photonfarm: {exc}", file=sys.stderr)
             return 2
     try:
-        return render(args)
+        return convert(args) if args.command == "convert" else render(args)
     except SceneError as exc:
         print(f"photonfarm: bad scene: {exc}", file=sys.stderr)
         return 2

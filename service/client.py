@@ -12,6 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
+from tqdm import tqdm
 
 from worker.store.policy import FINAL
 
@@ -60,18 +62,41 @@ def _body(args: argparse.Namespace) -> dict[str, Any]:
     return {"scene_name": args.scene, "settings": settings}
 
 
-def _progress(job: dict[str, Any], threshold: float | None) -> str:
-    est = job.get("error_estimate") or {}
-    error = f"error {est['error']:.4f}" if est else "error -"
-    if threshold:
-        frac = min(1.0, threshold / est["error"]) if est else 0.0
-        error += f" -> {threshold}"
-    else:
-        budget = job["settings"].get("max_passes")
-        frac = job["passes"] / budget if budget else min(1.0, job["elapsed_seconds"] / (job["settings"]["max_seconds"] or 1))
-    bar = "#" * int(30 * frac)
-    return (f"\r[{bar:<30}] {job['status']:<16} {job['passes']} passes  "
-            f"{job['photons_per_second'] / 1e6:6.2f} M photons/s  {error}  {job['elapsed_seconds']:7.1f} s")
+def eta_seconds(job: dict[str, Any]) -> float | None:
+    """Seconds left: from the error's slope when the job has a threshold (a power law fitted
+    to its error history, log error against log seconds), else from its budget."""
+    settings = job["settings"]
+    threshold = settings.get("error_threshold")
+    history = [h for h in job.get("error_history") or [] if h.get("error") and h["seconds"] > 0]
+    if threshold and len(history) >= 3:
+        recent = history[len(history) // 2:]
+        t = np.log([h["seconds"] for h in recent])
+        e = np.log([h["error"] for h in recent])
+        slope = float(np.polyfit(t, e, 1)[0]) if np.ptp(t) > 0 else 0.0
+        if slope < 0:  # seconds at which the fitted error meets the threshold
+            return max(0.0, float(np.exp(t[-1] + (np.log(threshold) - e[-1]) / slope)) - job["elapsed_seconds"])
+    if settings.get("max_seconds"):
+        return max(0.0, settings["max_seconds"] - job["elapsed_seconds"])
+    if settings.get("max_passes") and job["passes"] > 0:
+        return job["elapsed_seconds"] * (settings["max_passes"] - job["passes"]) / job["passes"]
+    return None
+
+
+def _watch(client: Client, job: dict[str, Any], poll: float) -> dict[str, Any]:
+    """Follow a job to its end with a progress bar (tqdm; none when stderr is not a terminal)."""
+    with tqdm(total=1.0, file=sys.stderr, disable=None, bar_format="{l_bar}{bar}| {postfix}") as bar:
+        while job["status"] not in FINAL:
+            time.sleep(poll)
+            job = client.call("GET", job["links"]["self"]).json()
+            eta = eta_seconds(job)
+            done = job["elapsed_seconds"] / (job["elapsed_seconds"] + eta) if eta is not None else 0.0
+            est = job.get("error_estimate") or {}
+            bar.n = min(1.0, done)
+            bar.set_postfix_str(f"{job['status']} {job['passes']} passes "
+                                f"{job['photons_per_second'] / 1e6:.2f} M photons/s error "
+                                f"{est.get('error') or float('nan'):.4f} ETA {eta if eta is not None else float('nan'):.0f} s",
+                                refresh=True)
+    return job
 
 
 def submit(args: argparse.Namespace) -> int:
@@ -80,12 +105,7 @@ def submit(args: argparse.Namespace) -> int:
     print(f"job {job['id']} {job['status']}: {args.url.rstrip('/')}{job['links']['self']}")
     if not args.watch:
         return 0
-    while job["status"] not in FINAL:
-        time.sleep(args.poll)
-        job = client.call("GET", job["links"]["self"]).json()
-        sys.stderr.write(_progress(job, args.threshold))
-        sys.stderr.flush()
-    sys.stderr.write("\n")
+    job = _watch(client, job, args.poll)
     if job["status"] == "failed":
         raise ClientError(f"job failed: {job['failure']}")
     out = args.out or Path(f"{Path(args.scene).stem}-{job['id']}.png")

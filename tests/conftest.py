@@ -13,7 +13,7 @@ from worker.engine import Engine
 from worker.error_estimate import ErrorEstimate
 from worker.integrators.base import State
 from worker.render_loop import render as render_passes
-from worker.scene import bundled_scene_path, load_scene_file
+from worker.scene import bundled_scene_path, load_any_scene
 from worker.settings import Settings
 
 
@@ -24,11 +24,12 @@ def ctx() -> cl.Context:
 
 @pytest.fixture(scope="session")
 def make_engine(ctx: cl.Context):
-    """Engine for a bundled scene (by name) or a scene file (Path), with settings fields."""
+    """Engine for a bundled scene (by name) or a scene file (Path: our JSON or Mitsuba XML),
+    with settings fields."""
 
     def make(scene: str | Path, resolution: tuple[int, int] | None = None, **settings: object) -> Engine:
         path = scene if isinstance(scene, Path) else bundled_scene_path(scene)
-        parsed, base = load_scene_file(path)
+        parsed, base = load_any_scene(path)
         return Engine(parsed, base, Settings(resolution=resolution, **settings), ctx=ctx)
 
     return make

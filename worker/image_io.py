@@ -28,9 +28,11 @@ def error_colours(relative: np.ndarray, measured: np.ndarray) -> np.ndarray:
 
 
 def write_image(path: Path | str, pixels_in: np.ndarray, channels: tuple[str, ...] | None = None,
-                display: bool = False) -> None:
-    """Write an (H, W, C) image. .exr: float32, linear, optionally named channels.
-    .png: 8-bit; linear radiance is tone-mapped unless `display` says it already is 0..1."""
+                display: bool = False, metadata: dict[str, object] | None = None) -> None:
+    """Write an (H, W, C) image. .exr: float32, linear, optionally named channels (a name
+    "layer.channel" puts the channel in a layer of the same file) and `metadata` as
+    "photonfarm:<key>" header attributes (strings). .png: 8-bit; linear radiance is
+    tone-mapped unless `display` says it already is 0..1."""
     path = Path(path)
     suffix = path.suffix.lower()
     n_channels = pixels_in.shape[2]
@@ -40,6 +42,8 @@ def write_image(path: Path | str, pixels_in: np.ndarray, channels: tuple[str, ..
         spec.attribute("compression", "zip")
         if channels is not None:
             spec.channelnames = channels
+        for key, value in (metadata or {}).items():
+            spec.attribute(f"photonfarm:{key}", str(value))
     elif suffix == ".png":
         pixels = np.clip(np.round(pixels_in * 255.0), 0, 255).astype(np.uint8) if display else tonemap(pixels_in)
         spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], n_channels, oiio.UINT8)
@@ -70,3 +74,15 @@ def read_channels(path: Path | str) -> dict[str, np.ndarray]:
         raise OSError(f"cannot read {path}: {buf.geterror()}")
     pixels = buf.get_pixels(oiio.FLOAT)
     return {name: pixels[..., i] for i, name in enumerate(buf.spec().channelnames)}
+
+
+def read_metadata(path: Path | str) -> dict[str, str]:
+    """The "photonfarm:<key>" header attributes of an EXR written by write_image."""
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        attribs = image.spec().extra_attribs
+        return {a.name.split(":", 1)[1]: str(a.value) for a in attribs if a.name.startswith("photonfarm:")}
+    finally:
+        image.close()

@@ -1,22 +1,33 @@
 """`photonfarm worker`: an RQ worker for render batches, on this or any machine that
-reaches the Redis server. It needs nothing but the Redis URL: scenes travel inline.
+reaches the Redis server. It needs nothing but the Redis URL (REDIS_URL, password
+included): scenes travel inline.
 
 SimpleWorker runs every batch in this process (no fork), so the OpenCL context and
 compiled kernels live across batches. A lost Redis connection (a Redis restart) is not
 fatal: the worker waits and reconnects; its batch in flight, if any, is re-issued by
-the reaper when its lease expires.
+the reaper when its lease expires. A worker asked to stop (SIGTERM, SIGINT) finishes or
+abandons its batch and exits; it never goes on retrying a Redis that went away with it.
+
+Job arguments travel as JSON (RQ's JSONSerializer: loading runs no code), and a worker
+runs only the render task, whatever function a job in the queue names.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 import uuid
+from types import FrameType
+from typing import Any, Callable
 
 import redis
 from rq import Queue, SimpleWorker
+from rq.job import Job
+from rq.serializers import JSONSerializer
 
 from worker.heartbeat import Heartbeat
 from worker.logs import configure_logging
@@ -24,20 +35,58 @@ from worker.scheduler import QUEUE_NAMES
 from worker.store import Leases
 
 log = logging.getLogger("photonfarm.worker")
+TASKS = ("worker.tasks.run_batch",)  # the only functions a queued job may name
+
+
+class BatchJob(Job):
+    """An RQ job that resolves only to a photonfarm task."""
+
+    @property
+    def func(self) -> Callable[..., Any]:
+        if self.func_name not in TASKS or self.instance is not None:
+            raise ValueError(f"refusing to run {self.func_name!r}: not a photonfarm task")
+        return super().func
+
+
+class BatchWorker(SimpleWorker):
+    """SimpleWorker that remembers a stop request beyond its own work loop."""
+
+    stopping = threading.Event()
+
+    def request_stop(self, signum: int, frame: FrameType | None) -> None:
+        BatchWorker.stopping.set()
+        super().request_stop(signum, frame)
+
+
+def _stop(signum: int, frame: FrameType | None) -> None:
+    BatchWorker.stopping.set()
+
+
+def _handle_stop_signals() -> None:
+    """Between RQ work loops (RQ installs its own handlers inside one): just remember."""
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
 
 
 def run_worker(redis_url: str, burst: bool = False) -> int:
     configure_logging()
     conn = redis.Redis.from_url(redis_url)
-    while True:
+    _handle_stop_signals()
+    while not BatchWorker.stopping.is_set():
         name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"  # says where it runs
         beat = Heartbeat(Leases(conn), name).start()
         try:
-            queues = [Queue(q, connection=conn) for q in QUEUE_NAMES]
-            SimpleWorker(queues, connection=conn, name=name).work(burst=burst, with_scheduler=False)
+            queues = [Queue(q, connection=conn, job_class=BatchJob, serializer=JSONSerializer) for q in QUEUE_NAMES]
+            BatchWorker(queues, connection=conn, name=name, job_class=BatchJob,
+                        serializer=JSONSerializer).work(burst=burst, with_scheduler=False)
             return 0
         except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
+            _handle_stop_signals()
+            if BatchWorker.stopping.is_set():
+                break
             log.warning("redis unavailable; retrying in 1 s: %s", exc)
             time.sleep(1.0)
         finally:
             beat.stop()
+    log.info("stopped while redis was unavailable")
+    return 0

@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import json
 import math
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, load_mesh
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
@@ -26,6 +30,9 @@ MAX_SHAPES = 10_000
 MAX_TRIANGLES = 500_000  # after quads are split and meshes loaded
 MAX_LIGHTS = 64
 MAX_COORD = 1e7  # |coordinate| bound: keeps float32 positions meaningful
+MAX_PATH_CHARS = 255  # a mesh file name: what a file system accepts for one name
+SCENE_NAME_PATTERN = r"^[a-z0-9][a-z0-9-]*$"  # a bundled scene's name: never a path
+MAX_SCENE_NAME = 64
 
 Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = tuple[Coord, Coord, Coord]
@@ -127,17 +134,21 @@ class Quad(_Shape):
 
 
 class Mesh(_Shape):
-    """Triangles given inline or as a Wavefront .obj next to the scene (inside scenes/)."""
+    """Triangles given inline (optionally with per-vertex shading `normals`) or as an .obj
+    or .ply `file`, relative to the scene file and inside the root the caller allows."""
 
     type: Literal["mesh"]
     vertices: list[Vec3] | None = None
     triangles: list[tuple[int, int, int]] | None = None
-    obj: str | None = None
+    normals: list[Vec3] | None = None
+    file: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> "Mesh":
-        if (self.obj is None) == (self.vertices is None or self.triangles is None):
-            raise ValueError("give either obj or both vertices and triangles")
+        if (self.file is None) == (self.vertices is None or self.triangles is None):
+            raise ValueError("give either file or both vertices and triangles")
+        if self.normals is not None and (self.vertices is None or len(self.normals) != len(self.vertices)):
+            raise ValueError("normals need inline vertices, one normal per vertex")
         if self.triangles is not None and len(self.triangles) > MAX_TRIANGLES:
             raise ValueError(f"more than {MAX_TRIANGLES} triangles")
         if self.vertices is not None and self.triangles is not None:
@@ -205,80 +216,95 @@ class Scene(_Model):
 
 
 # ------------------------------------------------------------------------ triangulation
+@dataclass(frozen=True)
+class ShapeGeometry:
+    """A shape as triangles, with per-corner shading normals where the mesh has them."""
+
+    triangles: np.ndarray  # (n, 3, 3) float64
+    normals: np.ndarray | None  # (n, 3, 3) float64, unit length, or None (flat)
+
+
 def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> dict:
-    """The scene as JSON with every .obj mesh replaced by its triangles, so that a worker
-    on any machine renders it with no file at hand. Also runs the checks that need the
-    geometry (mesh paths, triangle limit, zero-area emitters)."""
-    triangles = shape_triangles(scene, base_dir, root)
+    """The scene as JSON with every mesh file replaced by its triangles (and normals), so
+    that a worker on any machine renders it with no file at hand. Also runs the checks
+    that need the geometry (mesh paths, triangle limit, zero-area emitters)."""
+    geometry = shape_geometry(scene, base_dir, root)
     data = scene.model_dump(mode="json", exclude_none=True)
     for i, shape in enumerate(scene.shapes):
-        if isinstance(shape, Mesh) and shape.obj is not None:
-            tris = triangles[i]
-            del data["shapes"][i]["obj"]
-            data["shapes"][i]["vertices"] = tris.reshape(-1, 3).tolist()
-            data["shapes"][i]["triangles"] = np.arange(3 * len(tris)).reshape(-1, 3).tolist()
+        if isinstance(shape, Mesh) and shape.file is not None:
+            geo = geometry[i]
+            assert geo is not None
+            entry = data["shapes"][i]
+            del entry["file"]
+            entry["vertices"] = geo.triangles.reshape(-1, 3).tolist()
+            entry["triangles"] = np.arange(3 * len(geo.triangles)).reshape(-1, 3).tolist()
+            if geo.normals is not None:
+                entry["normals"] = geo.normals.reshape(-1, 3).tolist()
     return data
 
 
-def _load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and (fan-triangulated) faces of a Wavefront .obj; only `v` and `f` matter."""
-    verts: list[list[float]] = []
-    faces: list[tuple[int, int, int]] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
-        parts = line.split()
-        if not parts:
-            continue
+def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path) -> MeshData:
+    """The mesh of a shape: its file (confined to `root`) or its inline arrays."""
+    if shape.file is None:
         try:
-            if parts[0] == "v":
-                if len(parts) < 4:
-                    raise ValueError("a vertex needs three coordinates")
-                verts.append([float(x) for x in parts[1:4]])
-            elif parts[0] == "f":
-                idx = [int(p.split("/")[0]) for p in parts[1:]]
-                if len(idx) < 3 or 0 in idx:
-                    raise ValueError("a face needs three or more 1-based (or negative) vertex indices")
-                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
-                faces.extend((idx[0], idx[k], idx[k + 1]) for k in range(1, len(idx) - 1))
-        except (ValueError, IndexError) as exc:
-            raise ValueError(f"line {lineno}: {exc}") from None
-    v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if f.size and (f.min() < 0 or f.max() >= len(v)):
-        raise ValueError("a face indexes a missing vertex")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("non-finite vertex coordinate")
-    return v, f
+            return check_mesh(np.asarray(shape.vertices, np.float64), np.asarray(shape.triangles, np.int64).reshape(-1, 3),
+                              None if shape.normals is None else np.asarray(shape.normals, np.float64))
+        except MeshError as exc:
+            raise SceneError(field, str(exc)) from None
+    try:
+        path = (base_dir / shape.file).resolve()
+    except (OSError, ValueError):
+        raise SceneError(f"{field}.file", f"mesh file {shape.file!r} not found") from None
+    if not path.is_relative_to(root):
+        raise SceneError(f"{field}.file", "mesh path leaves the scene's directory")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise SceneError(f"{field}.file", f"mesh file {shape.file!r} is neither .obj nor .ply")
+    try:
+        found = path.is_file()
+    except (OSError, ValueError):  # a name the file system refuses (too long in bytes, ...)
+        found = False
+    if not found:
+        raise SceneError(f"{field}.file", f"mesh file {shape.file!r} not found")
+    try:
+        return load_mesh(path)
+    except MeshError as exc:
+        raise SceneError(f"{field}.file", f"{shape.file}: {exc}") from None
 
 
-def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> list[np.ndarray | None]:
-    """Per shape, its triangles as an (n, 3, 3) array (None for spheres).
+def _corner_normals(mesh: MeshData) -> np.ndarray | None:
+    """Unit per-corner normals; corners whose normal is zero take their face's normal."""
+    if mesh.normals is None:
+        return None
+    n = mesh.normals[mesh.triangles]
+    tris = mesh.vertices[mesh.triangles]
+    face = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    length = np.linalg.norm(n, axis=2, keepdims=True)
+    n = np.where(length > 1e-12, n / np.maximum(length, 1e-300), face[:, None, :])
+    return n / np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-300)
 
-    Mesh files are resolved relative to `base_dir` and must lie inside `root`: a scene
-    can never make the renderer read an arbitrary file.
+
+def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> list[ShapeGeometry | None]:
+    """Per shape, its triangles and shading normals (None for spheres).
+
+    Mesh files are resolved relative to `base_dir` and must lie inside `root` (the scene
+    file's folder for the CLI, the upload for the service): a scene can never make the
+    renderer read an arbitrary file.
     """
-    out: list[np.ndarray | None] = []
+    out: list[ShapeGeometry | None] = []
     total = 0
     root = root.resolve()
     for i, shape in enumerate(scene.shapes):
         if isinstance(shape, Sphere):
             out.append(None)
             continue
+        normals = None
         if isinstance(shape, Quad):
             c, e1, e2 = (np.array(x, dtype=np.float64) for x in (shape.corner, shape.edge1, shape.edge2))
             tris = np.array([[c, c + e1, c + e1 + e2], [c, c + e1 + e2, c + e2]])
-        elif shape.obj is not None:
-            path = (base_dir / shape.obj).resolve()
-            if not path.is_relative_to(root):
-                raise SceneError(f"shapes.{i}.obj", "mesh path leaves the scenes directory")
-            if path.suffix.lower() != ".obj" or not path.is_file():
-                raise SceneError(f"shapes.{i}.obj", f"mesh file {shape.obj!r} not found")
-            try:
-                v, f = _load_obj(path)
-            except ValueError as exc:
-                raise SceneError(f"shapes.{i}.obj", f"malformed .obj: {exc}") from None
-            tris = v[f]
         else:
-            tris = np.asarray(shape.vertices, dtype=np.float64)[np.asarray(shape.triangles, dtype=np.int64)]
+            mesh = _mesh_data(shape, f"shapes.{i}", base_dir, root)
+            tris = mesh.vertices[mesh.triangles]
+            normals = _corner_normals(mesh)
         total += len(tris)
         if total > MAX_TRIANGLES:
             raise SceneError(f"shapes.{i}", f"scene has more than {MAX_TRIANGLES} triangles")
@@ -288,8 +314,13 @@ def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> li
             area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1).sum()
             if not area > 0.0:
                 raise SceneError(f"shapes.{i}.emission", "an emitting shape must have non-zero area")
-        out.append(tris)
+        out.append(ShapeGeometry(tris, normals))
     return out
+
+
+def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> list[np.ndarray | None]:
+    """Per shape, its triangles as an (n, 3, 3) array (None for spheres)."""
+    return [None if g is None else g.triangles for g in shape_geometry(scene, base_dir, root)]
 
 
 _UNION_TAGS = {
@@ -334,10 +365,37 @@ def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
     return parse_scene(data), path.resolve().parent
 
 
+def bundled_scene_names() -> list[str]:
+    """The names of the scenes in scenes/, the only names a scene may be asked for by."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.json") if re.match(SCENE_NAME_PATTERN, p.stem))
+
+
+def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
+                   root: Path | None = None) -> tuple[Scene, Path]:
+    """A scene from our JSON or a Mitsuba 3 XML file (by suffix), and its directory.
+
+    The scene comes back self-contained: every mesh file it names is read now, confined
+    to `root` (default: the scene file's folder; the service passes its upload), and
+    inlined, so it renders wherever it is sent. `params` override the XML's <default>s."""
+    path = Path(path)
+    base_dir = path.resolve().parent
+    if path.suffix.lower() == ".xml":
+        from worker.mitsuba_scene import convert_mitsuba  # it builds on this module
+
+        return parse_scene(convert_mitsuba(path, params, root)), base_dir
+    if params:
+        raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
+    scene, base_dir = load_scene_file(path)
+    if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+        scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir))
+    return scene, base_dir
+
+
 def bundled_scene_path(name: str) -> Path:
-    """The file of a bundled scene, by name (e.g. 'cornell-box')."""
-    path = SCENES_DIR / f"{name}.json"
-    if not path.is_file():
-        names = ", ".join(sorted(p.stem for p in SCENES_DIR.glob("*.json")))
-        raise SceneError("scene", f"no bundled scene {name!r} (have: {names})")
-    return path
+    """The file of a bundled scene, by name (e.g. 'cornell-box'). The name is looked up
+    among the bundled scenes, never joined into a path, so no name reads another file."""
+    names = bundled_scene_names()
+    if name not in names:
+        shown = name if len(name) <= MAX_SCENE_NAME else name[:MAX_SCENE_NAME] + "..."
+        raise SceneError("scene", f"no bundled scene {shown!r} (have: {', '.join(names)})")
+    return SCENES_DIR / f"{name}.json"

@@ -20,7 +20,7 @@ from worker.scene import (
     Scene,
     Sphere,
     SpotLight,
-    shape_triangles,
+    shape_geometry,
 )
 
 MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS, MAT_GLOSSY = (MATERIALS[k] for k in ("diffuse", "mirror", "glass", "glossy"))
@@ -33,8 +33,9 @@ class SceneArrays:
     width: int
     height: int
     tri_v0: np.ndarray  # (T, 4) float32, w = surface index bits
-    tri_e1: np.ndarray
+    tri_e1: np.ndarray  # w = 1 where the triangle has shading normals
     tri_e2: np.ndarray
+    tri_nrm: np.ndarray  # (3 T, 4) float32 corner normals where tri_e1.w = 1; empty if no triangle has any
     node_lo: np.ndarray  # (nodes, 4) float32, see worker/bvh.py
     node_hi: np.ndarray
     spheres: np.ndarray  # (S, 4) float32 centre + radius
@@ -69,7 +70,8 @@ def _material_record(material: object) -> tuple[int, float]:
 def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | None = None,
                   root: Path = SCENES_DIR) -> SceneArrays:
     width, height = resolution or scene.camera.resolution
-    per_shape = shape_triangles(scene, base_dir, root)
+    geometry = shape_geometry(scene, base_dir, root)
+    per_shape = [None if g is None else g.triangles for g in geometry]
 
     # Surfaces: one record per shape (material + emission).
     surf_a = np.zeros((len(scene.shapes), 4), np.float32)
@@ -95,6 +97,16 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     tri_v0[:, 3] = _bits(tri_surf)
     tri_e1[:, :3] = tris[:, 1] - tris[:, 0]
     tri_e2[:, :3] = tris[:, 2] - tris[:, 0]
+
+    # Shading normals, per corner, for the triangles of meshes that have them.
+    tri_nrm = np.zeros((0, 4), np.float32)
+    if any(g is not None and g.normals is not None for g in geometry):
+        corner = np.concatenate([g.normals if g.normals is not None else np.zeros_like(g.triangles)
+                                 for g in geometry if g is not None])[order]
+        smooth = np.concatenate([np.full(len(g.triangles), g.normals is not None) for g in geometry if g is not None])[order]
+        tri_e1[:, 3] = smooth
+        tri_nrm = np.zeros((3 * len(tris), 4), np.float32)
+        tri_nrm[:, :3] = corner.reshape(-1, 3)
 
     sphere_idx = [i for i, s in enumerate(scene.shapes) if isinstance(s, Sphere)]
     spheres = np.array([[*scene.shapes[i].center, scene.shapes[i].radius] for i in sphere_idx], np.float32).reshape(-1, 4)
@@ -174,7 +186,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
                        [*(right * tan_x), focus], [*(up * tan_y), 0.0]], np.float32)
 
     return SceneArrays(
-        width=width, height=height, tri_v0=tri_v0, tri_e1=tri_e1, tri_e2=tri_e2,
+        width=width, height=height, tri_v0=tri_v0, tri_e1=tri_e1, tri_e2=tri_e2, tri_nrm=tri_nrm,
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
         surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,

@@ -22,6 +22,7 @@ import redis
 from rq import Queue, Worker
 from rq.exceptions import NoSuchJobError
 from rq.job import Job, JobStatus
+from rq.serializers import JSONSerializer
 
 from worker.settings import PRIORITIES, Priority
 from worker.store import Batch, Jobs, Status
@@ -36,7 +37,7 @@ log = logging.getLogger("photonfarm.scheduler")
 
 
 def queue_for(conn: redis.Redis, priority: Priority) -> Queue:
-    return Queue(QUEUE_NAMES[PRIORITIES.index(priority)], connection=conn)
+    return Queue(QUEUE_NAMES[PRIORITIES.index(priority)], connection=conn, serializer=JSONSerializer)
 
 
 def enqueue(jobs: Jobs, batch: Batch, priority: Priority) -> None:
@@ -76,11 +77,11 @@ def _still_queued(jobs: Jobs, batch: Batch) -> bool:
     if rq_id is None:
         return False
     try:
-        job = Job.fetch(rq_id, connection=jobs.r)
+        job = Job.fetch(rq_id, connection=jobs.r, serializer=JSONSerializer)
     except NoSuchJobError:
         return False
     return job.get_status() == JobStatus.QUEUED and \
-        jobs.r.lpos(Queue(job.origin, connection=jobs.r).key, rq_id) is not None
+        jobs.r.lpos(Queue(job.origin, connection=jobs.r, serializer=JSONSerializer).key, rq_id) is not None
 
 
 def forget_dead_workers(jobs: Jobs) -> int:

@@ -18,7 +18,7 @@ import json
 import time
 import uuid
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import redis
@@ -261,16 +261,8 @@ class Jobs:
             return False
         self.leases.take(batch, worker)
         self.leases.heartbeat(worker, batch.job_id, batch.id)
-        key = keys.job(batch.job_id)
-        with self.r.pipeline() as pipe:
-            try:
-                pipe.watch(key)
-                if pipe.hget(key, "status") == Status.QUEUED.value.encode():
-                    pipe.multi()
-                    pipe.hset(key, mapping={"status": Status.RUNNING.value, "started": time.time()})
-                    pipe.execute()
-            except redis.WatchError:
-                pass  # someone else started it
+        self._transition(batch.job_id, frozenset({Status.QUEUED}), lambda pipe: pipe.hset(
+            keys.job(batch.job_id), mapping={"status": Status.RUNNING.value, "started": time.time()}))
         return True
 
     def renew(self, batch: Batch, worker: str) -> Status | None:
@@ -317,41 +309,39 @@ class Jobs:
             except redis.WatchError:
                 pass  # something changed meanwhile: the next merge or reap decides
 
-    def fail(self, job_id: str, message: str) -> None:
-        key = keys.job(job_id)
-        arrays = self._arrays_of(job_id)
+    def _transition(self, job_id: str, allowed: frozenset[Status],
+                    write: Callable[[redis.client.Pipeline], None]) -> bool:
+        """Atomically: if the job's status is one of `allowed`, run the commands `write`
+        queues, in one transaction. False if the status was not allowed."""
         with self.r.pipeline() as pipe:
             while True:
                 try:
-                    pipe.watch(key)
-                    status = pipe.hget(key, "status")
-                    if status is None or Status(status.decode()) not in policy.ACTIVE:
-                        return
+                    pipe.watch(keys.job(job_id))
+                    status = pipe.hget(keys.job(job_id), "status")
+                    if status is None or Status(status.decode()) not in allowed:
+                        return False
                     pipe.multi()
-                    pipe.hset(key, "error", message[:2000])
-                    self._finish(pipe, job_id, Status.FAILED, arrays, time.time())
+                    write(pipe)
                     pipe.execute()
-                    return
+                    return True
                 except redis.WatchError:
                     continue
+
+    def fail(self, job_id: str, message: str) -> None:
+        arrays = self._arrays_of(job_id)
+
+        def failed(pipe: redis.client.Pipeline) -> None:
+            pipe.hset(keys.job(job_id), "error", message[:2000])
+            self._finish(pipe, job_id, Status.FAILED, arrays, time.time())
+
+        self._transition(job_id, policy.ACTIVE, failed)
 
     def cancel(self, job_id: str) -> Status | None:
         """Request cancellation; returns the resulting status. Batches no worker has taken
         are dropped at once, so a job with nothing rendering ends (and frees its slot) now;
         a worker that takes one of them later finds the job no longer rendering."""
-        key = keys.job(job_id)
-        with self.r.pipeline() as pipe:
-            while True:
-                try:
-                    pipe.watch(key)
-                    status = pipe.hget(key, "status")
-                    if status is not None and Status(status.decode()) in policy.RENDERING:
-                        pipe.multi()
-                        pipe.hset(key, "status", Status.CANCEL_REQUESTED.value)
-                        pipe.execute()
-                    break
-                except redis.WatchError:
-                    continue
+        self._transition(job_id, policy.RENDERING,
+                         lambda pipe: pipe.hset(keys.job(job_id), "status", Status.CANCEL_REQUESTED.value))
         for batch in self.leases.unowned(job_id):
             self.leases.drop(batch)
         self.settle(job_id, Status.CANCEL_REQUESTED, Status.CANCELLED)

@@ -1,0 +1,713 @@
+"""Mitsuba 3 XML scenes converted to our scene JSON (the subset our model holds).
+
+The conversion is element by element (README, "Scene formats"); anything outside the
+subset is a `SceneError` naming the element and its line, never a silent change. Meshes
+are inlined with their `to_world` applied (our meshes have no transform), so the JSON
+is self-contained. Every file the scene names (meshes, includes) must lie inside `root`.
+
+XML is read with expat, which reports the line of every element (ElementTree does not).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from xml.parsers import expat
+
+import numpy as np
+
+from worker.meshes import MeshError, load_mesh
+from worker.scene import MAX_TRIANGLES, SceneError, parse_scene
+
+# Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
+NAMED_IOR = {
+    "vacuum": 1.0, "helium": 1.000036, "hydrogen": 1.000132, "air": 1.000277, "carbon dioxide": 1.00045,
+    "water": 1.3330, "acetone": 1.36, "ethanol": 1.361, "carbon tetrachloride": 1.461, "glycerol": 1.4729,
+    "benzene": 1.501, "silicone oil": 1.52045, "bromine": 1.661, "water ice": 1.31, "fused quartz": 1.458,
+    "pyrex": 1.470, "acrylic glass": 1.49, "polypropylene": 1.49, "bk7": 1.5046, "sodium chloride": 1.544,
+    "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
+}
+DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
+MAX_INCLUDE_DEPTH = 8
+GLOSSY_EXPONENT_MAX = 100_000.0  # the schema's bound on the Phong exponent
+# Settings of the renderer, not of the scene: our jobs take them from their own settings.
+RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
+PROPERTY_TAGS = {"float", "integer", "boolean", "string", "rgb", "spectrum", "point", "vector", "transform", "ref"}
+
+
+# ------------------------------------------------------------------------ XML reading
+@dataclass
+class Node:
+    tag: str
+    attrs: dict[str, str]
+    line: int
+    file: Path
+    children: list[Node] = field(default_factory=list)
+
+    def where(self) -> str:
+        kind = f' type="{self.attrs["type"]}"' if "type" in self.attrs else ""
+        name = f' name="{self.attrs["name"]}"' if "name" in self.attrs and "type" not in self.attrs else ""
+        return f"line {self.line}: <{self.tag}{kind}{name}>"
+
+
+def _error(node: Node, message: str) -> SceneError:
+    return SceneError(node.file.name, f"{node.where()}: {message}")
+
+
+def _read_xml(path: Path) -> Node:
+    """The element tree of an XML file, each element with its line number."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SceneError("", f"scene file {str(path)!r} not found") from None
+    except OSError as exc:
+        raise SceneError("", f"cannot read scene file {str(path)!r}: {exc.strerror or exc}") from None
+    parser = expat.ParserCreate()
+    stack: list[Node] = []
+    roots: list[Node] = []
+
+    def start(tag: str, attrs: dict[str, str]) -> None:
+        node = Node(tag, dict(attrs), parser.CurrentLineNumber, path)
+        (stack[-1].children if stack else roots).append(node)
+        stack.append(node)
+
+    def end(tag: str) -> None:
+        stack.pop()
+
+    def text(data: str) -> None:
+        if data.strip():
+            raise SceneError(path.name, f"line {parser.CurrentLineNumber}: unexpected text {data.strip()[:40]!r}")
+
+    parser.StartElementHandler, parser.EndElementHandler, parser.CharacterDataHandler = start, end, text
+    try:
+        parser.Parse(data, True)
+    except expat.ExpatError as exc:
+        raise SceneError(path.name, f"line {exc.lineno}: malformed XML: {expat.ErrorString(exc.code)}") from None
+    return roots[0]
+
+
+# ----------------------------------------------------------------------- values
+def _floats(node: Node, text: str, count: int | None = None) -> list[float]:
+    try:
+        values = [float(x) for x in re.split(r"[,\s]+", text.strip()) if x]
+    except ValueError:
+        raise _error(node, f"not a list of numbers: {text!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise _error(node, f"non-finite number in {text!r}")
+    if count is not None and len(values) != count:
+        raise _error(node, f"expected {count} numbers, got {len(values)}")
+    return values
+
+
+def _xyz(node: Node, default: float) -> np.ndarray:
+    """A vector given as value="x, y, z" or as x/y/z attributes (missing ones default)."""
+    if "value" in node.attrs:
+        values = _floats(node, node.attrs["value"])
+        if len(values) == 1:
+            values *= 3
+        if len(values) != 3:
+            raise _error(node, "expected one or three numbers")
+        return np.array(values)
+    return np.array([float(_floats(node, node.attrs.get(k, str(default)), 1)[0]) for k in "xyz"])
+
+
+def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """Rotation about `axis` (right-handed, degrees), as a 4x4 matrix (Rodrigues)."""
+    a = axis / np.linalg.norm(axis)  # removes the rounding of a unit axis written in decimals
+    th = math.radians(degrees)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    m = np.eye(4)
+    m[:3, :3] = np.eye(3) + math.sin(th) * k + (1 - math.cos(th)) * (k @ k)
+    return m
+
+
+def look_at(origin: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Mitsuba's lookat: columns (left, up, dir, origin); the camera looks along local +z."""
+    d = target - origin
+    d = d / np.linalg.norm(d)
+    left = np.cross(up, d)
+    left = left / np.linalg.norm(left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, np.cross(d, left), d, origin
+    return m
+
+
+def _transform_op(node: Node) -> np.ndarray:
+    """One child of <transform> as a 4x4 matrix."""
+    a = node.attrs
+    if node.tag == "translate":
+        m = np.eye(4)
+        m[:3, 3] = _xyz(node, 0.0)
+        return m
+    if node.tag == "scale":
+        return np.diag([*_xyz(node, 1.0), 1.0])
+    if node.tag == "rotate":
+        axis = _xyz(node, 0.0)
+        if "angle" not in a:
+            raise _error(node, "rotate needs an axis and an angle")
+        if abs(np.linalg.norm(axis) - 1.0) > 1e-5:  # Mitsuba uses the axis as given: no rotation then
+            raise _error(node, f"the rotation axis must have unit length (has {np.linalg.norm(axis):g})")
+        return _rotation(axis, _floats(node, a["angle"], 1)[0])
+    if node.tag == "matrix":
+        values = _floats(node, a.get("value", ""))
+        if len(values) == 9:
+            m = np.eye(4)
+            m[:3, :3] = np.reshape(values, (3, 3))
+            return m
+        if len(values) != 16:
+            raise _error(node, "a matrix has 9 or 16 numbers (row by row)")
+        return np.reshape(values, (4, 4))
+    if node.tag == "lookat":
+        if not {"origin", "target", "up"} <= a.keys():
+            raise _error(node, "lookat needs origin, target and up")
+        o, t, u = (np.array(_floats(node, a[k], 3)) for k in ("origin", "target", "up"))
+        if not np.linalg.norm(t - o) > 0 or not np.linalg.norm(np.cross(u, t - o)) > 0:
+            raise _error(node, "lookat target equals origin or up is parallel to the view")
+        return look_at(o, t, u)
+    raise _error(node, "unknown transform operation (have: translate, rotate, scale, matrix, lookat)")
+
+
+def to_world_matrix(node: Node) -> np.ndarray:
+    """Compose a <transform>: each operation applies after the ones before it (M = op M)."""
+    m = np.eye(4)
+    for child in node.children:
+        m = _transform_op(child) @ m
+    if not np.all(np.isfinite(m)):
+        raise _error(node, "non-finite transform")
+    return m
+
+
+def _apply(m: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ m[:3, :3].T + m[:3, 3]
+
+
+# ----------------------------------------------------------------------- properties
+class Props:
+    """The properties of one plugin element; each must be used, or it is an error."""
+
+    def __init__(self, owner: Node) -> None:
+        self.owner = owner
+        self.values: dict[str, Node] = {}
+        self.objects: list[Node] = []
+        for child in owner.children:
+            if child.tag in PROPERTY_TAGS and "name" in child.attrs and child.tag != "ref":
+                if child.attrs["name"] in self.values:
+                    raise _error(child, f"property {child.attrs['name']!r} given twice")
+                self.values[child.attrs["name"]] = child
+            else:
+                self.objects.append(child)
+
+    def _take(self, name: str, tags: set[str]) -> Node | None:
+        node = self.values.pop(name, None)
+        if node is not None and node.tag not in tags:
+            raise _error(node, f"{name} must be one of <{'>, <'.join(sorted(tags))}>")
+        return node
+
+    def number(self, name: str, default: float | None = None) -> float | None:
+        node = self._take(name, {"float", "integer"})
+        return default if node is None else _floats(node, node.attrs.get("value", ""), 1)[0]
+
+    def integer(self, name: str, default: int) -> int:
+        node = self._take(name, {"integer"})
+        if node is None:
+            return default
+        try:
+            return int(node.attrs.get("value", ""))
+        except ValueError:
+            raise _error(node, "not an integer") from None
+
+    def boolean(self, name: str, default: bool) -> bool:
+        node = self._take(name, {"boolean"})
+        if node is None:
+            return default
+        value = node.attrs.get("value", "").lower()
+        if value not in ("true", "false"):
+            raise _error(node, "a boolean is true or false")
+        return value == "true"
+
+    def string(self, name: str, default: str | None = None) -> str | None:
+        node = self._take(name, {"string"})
+        return default if node is None else node.attrs.get("value", "")
+
+    def color(self, name: str, default: float) -> tuple[float, float, float]:
+        """rgb, or a float / uniform spectrum (one value); textures are outside the subset."""
+        node = self.values.get(name)
+        if node is None:
+            for obj in self.objects:
+                if obj.tag == "texture" and obj.attrs.get("name") == name:
+                    raise _error(obj, "textures are not supported (constant colours only)")
+            return (default,) * 3
+        node = self._take(name, {"rgb", "spectrum", "float"})
+        values = _floats(node, node.attrs.get("value", ""))
+        if len(values) == 1:
+            values *= 3
+        if len(values) != 3:
+            raise _error(node, "expected one or three values (spectra only as a single uniform value)")
+        return tuple(values)  # type: ignore[return-value]
+
+    def vector(self, name: str, tag: str) -> np.ndarray | None:
+        node = self._take(name, {tag})
+        return None if node is None else _xyz(node, 0.0)
+
+    def transform(self, name: str = "to_world") -> np.ndarray:
+        node = self._take(name, {"transform"})
+        return np.eye(4) if node is None else to_world_matrix(node)
+
+    def node_of(self, name: str) -> Node:
+        return self.values.get(name, self.owner)
+
+    def done(self) -> None:
+        """Refuse properties the conversion did not use."""
+        if self.values:
+            name, node = next(iter(self.values.items()))
+            raise _error(node, f"property {name!r} is not supported on <{self.owner.tag} "
+                               f"type=\"{self.owner.attrs.get('type', '')}\">")
+
+
+# ------------------------------------------------------------------------ conversion
+@dataclass
+class Converter:
+    root: Path
+    params: dict[str, str]
+    materials: dict[str, dict] = field(default_factory=dict)
+    shapes: list[dict] = field(default_factory=list)
+    lights: list[dict] = field(default_factory=list)
+    camera: dict | None = None
+    triangles: int = 0  # so far, against MAX_TRIANGLES before the JSON grows past it
+    origin: dict[str, Node] = field(default_factory=dict)  # our JSON path -> XML element
+
+    # -------------------------------------------------------------- scene walk
+    def substitute(self, node: Node) -> None:
+        """Replace $name in every attribute of node and its children (Mitsuba's parameters)."""
+        def repl(match: re.Match) -> str:
+            if match.group(1) not in self.params:
+                raise _error(node, f"undefined parameter ${match.group(1)}")
+            return self.params[match.group(1)]
+
+        node.attrs = {k: re.sub(r"\$(\w+)", repl, v) for k, v in node.attrs.items()}
+        for child in node.children:
+            self.substitute(child)
+
+    def scene(self, node: Node, depth: int = 0) -> None:
+        if node.tag != "scene":
+            raise _error(node, "the root element must be <scene>")
+        version = node.attrs.get("version", "")
+        if not re.fullmatch(r"[23]\.\d+(\.\d+)?", version):
+            raise _error(node, f"version {version!r}: only Mitsuba 3 (or 2) scenes are read")
+        for child in node.children:
+            if child.tag == "default":
+                if "name" not in child.attrs or "value" not in child.attrs:
+                    raise _error(child, "a default needs name and value")
+                self.params.setdefault(child.attrs["name"], child.attrs["value"])
+                continue
+            self.substitute(child)
+            if child.tag == "include":
+                self.include(child, depth)
+            elif child.tag == "sensor":
+                self.sensor(child)
+            elif child.tag == "bsdf":
+                self.bsdf(child)
+            elif child.tag == "shape":
+                self.shape(child)
+            elif child.tag == "emitter":
+                self.light(child)
+            elif child.tag in RENDER_SETTING_TAGS:
+                continue
+            else:
+                raise _error(child, f"<{child.tag}> is not supported at scene level")
+
+    def resolve(self, node: Node, name: str) -> Path:
+        """A file named by the scene, relative to the XML file that names it, inside root."""
+        path = (node.file.parent / name).resolve()
+        if not path.is_relative_to(self.root):
+            raise _error(node, f"{name!r} leaves the scene's directory")
+        if not path.is_file():
+            raise _error(node, f"file {name!r} not found")
+        return path
+
+    def include(self, node: Node, depth: int) -> None:
+        if depth >= MAX_INCLUDE_DEPTH:
+            raise _error(node, f"includes nested deeper than {MAX_INCLUDE_DEPTH}")
+        if set(node.attrs) != {"filename"}:
+            raise _error(node, "an include takes exactly a filename")
+        path = self.resolve(node, node.attrs["filename"])
+        if path.suffix.lower() != ".xml":
+            raise _error(node, "only XML files can be included")
+        self.scene(_read_xml(path), depth + 1)
+
+    # -------------------------------------------------------------- sensor
+    def sensor(self, node: Node) -> None:
+        if self.camera is not None:
+            raise _error(node, "more than one sensor")
+        kind = node.attrs.get("type")
+        if kind not in ("perspective", "thinlens"):
+            raise _error(node, f"unknown sensor plugin {kind!r} (have: perspective, thinlens)")
+        p = Props(node)
+        m = p.transform()
+        width, height = 768, 576
+        for obj in p.objects:
+            if obj.tag == "film":
+                width, height = self.film(obj)
+            elif obj.tag not in RENDER_SETTING_TAGS:
+                raise _error(obj, f"<{obj.tag}> is not supported in a sensor")
+        # Field of view: `fov` along `fov_axis`, or a `focal_length` on 36 x 24 mm film (the
+        # diagonal's; Mitsuba's default is 50 mm), turned into our vertical angle.
+        if "fov" in p.values:
+            if "focal_length" in p.values:
+                raise _error(p.values["focal_length"], "give fov or focal_length, not both")
+            fov, axis = p.number("fov"), p.string("fov_axis", "x")
+        else:
+            text = p.string("focal_length", "50mm")
+            try:
+                focal = float(text.removesuffix("mm"))
+            except ValueError:
+                raise _error(p.node_of("focal_length"), f"focal_length {text!r} is not in mm") from None
+            if not focal > 0:
+                raise _error(p.node_of("focal_length"), "focal_length must be positive")
+            fov, axis = math.degrees(2 * math.atan(math.hypot(36.0, 24.0) / (2 * focal))), "diagonal"
+        if not 0 < fov < 180:
+            raise _error(p.node_of("fov"), "fov must lie in (0, 180) degrees")
+        tan = math.tan(math.radians(fov) / 2)
+        scale = {"x": height / width, "y": 1.0, "diagonal": height / math.hypot(width, height),
+                 "smaller": height / width if width < height else 1.0,
+                 "larger": height / width if width > height else 1.0}
+        if axis not in scale:
+            raise _error(p.node_of("fov_axis"), f"fov_axis {axis!r} (have: {', '.join(scale)})")
+        fov_y = math.degrees(2 * math.atan(tan * scale[axis]))
+        near = p.number("near_clip", 0.01)
+        p.number("far_clip")  # not applied: everything in front of the camera is visible (README)
+        cam: dict[str, Any] = {"fov": fov_y, "resolution": [width, height], "near_clip": near}
+        if kind == "thinlens":
+            aperture, focus = p.number("aperture_radius"), p.number("focus_distance")
+            if aperture is None or focus is None:
+                raise _error(node, "a thinlens sensor needs aperture_radius and focus_distance")
+            cam["aperture_radius"], cam["focus_distance"] = aperture, focus
+        p.done()
+
+        # The camera frame: Mitsuba looks along local +z with local +x to the image's left.
+        r = m[:3, :3]
+        if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+            raise _error(node, "the sensor's to_world must be a rotation and translation (no scale, shear or mirror)")
+        origin, forward, up = m[:3, 3], r[:, 2], r[:, 1]
+        cam.update(position=origin.tolist(), look_at=(origin + forward).tolist(), up=up.tolist())
+        self.camera = cam
+        self.origin["camera"] = node
+
+    def film(self, node: Node) -> tuple[int, int]:
+        if node.attrs.get("type") != "hdrfilm":
+            raise _error(node, "only hdrfilm is supported")
+        p = Props(node)
+        size = p.integer("width", 768), p.integer("height", 576)
+        for name in ("pixel_format", "component_format", "file_format"):
+            p.string(name)  # output encoding: our jobs choose their own
+        for name in ("banner", "high_quality_edges"):
+            p.boolean(name, False)
+        for obj in p.objects:
+            if obj.tag != "rfilter":
+                raise _error(obj, f"<{obj.tag}> is not supported in a film")
+        p.done()
+        return size
+
+    # -------------------------------------------------------------- materials
+    def bsdf(self, node: Node) -> str:
+        """Convert a <bsdf> (top-level with an id, or nested in a shape); returns our name."""
+        name = node.attrs.get("id") or f"{node.file.stem}-line{node.line}"
+        if name in self.materials:
+            raise _error(node, f"bsdf id {name!r} defined twice")
+        self.materials[name] = self.material(node)
+        self.origin[f"materials.{name}"] = node
+        return name
+
+    def material(self, node: Node) -> dict:
+        kind = node.attrs.get("type")
+        p = Props(node)
+        if kind == "twosided":  # our opaque surfaces reflect on both sides already
+            inner = [o for o in p.objects if o.tag == "bsdf"]
+            if len(inner) != 1 or len(p.objects) != 1:
+                raise _error(node, "twosided takes exactly one nested bsdf (different sides are not supported)")
+            p.done()
+            return self.material(inner[0])
+        convert: dict[str, Callable[[Props], dict]] = {
+            "diffuse": self._diffuse, "conductor": self._conductor, "roughconductor": self._roughconductor,
+            "dielectric": self._dielectric, "roughplastic": self._roughplastic, "plastic": self._plastic,
+        }
+        if kind not in convert:
+            raise _error(node, f"unknown bsdf plugin {kind!r} (have: {', '.join(['twosided', *convert])})")
+        for obj in p.objects:
+            raise _error(obj, f"<{obj.tag}> is not supported in a {kind} bsdf")
+        out = convert[kind](p)
+        p.done()
+        return out
+
+    def _albedo(self, p: Props, name: str, default: float) -> list[float]:
+        rgb = p.color(name, default)
+        if not all(0.0 <= c <= 1.0 for c in rgb):
+            raise _error(p.node_of(name), f"{name} must lie in [0, 1]")
+        return list(rgb)
+
+    def _diffuse(self, p: Props) -> dict:
+        return {"type": "diffuse", "albedo": self._albedo(p, "reflectance", 0.5)}
+
+    def _check_no_fresnel(self, p: Props) -> None:
+        material = p.string("material", "none")
+        if material != "none" or "eta" in p.values or "k" in p.values:
+            raise _error(p.owner, "only material=\"none\" (a perfect reflector) is supported: "
+                                  "our mirror and glossy have no conductor Fresnel term")
+
+    def _conductor(self, p: Props) -> dict:
+        self._check_no_fresnel(p)
+        return {"type": "mirror", "albedo": self._albedo(p, "specular_reflectance", 1.0)}
+
+    def _exponent(self, p: Props) -> float:
+        """Our Phong exponent n for a microfacet roughness alpha: n = (2 / alpha^2 - 2) / 4.
+
+        Walter et al. 2007 match Beckmann's alpha to the exponent m of a Phong lobe about
+        the half vector, m = 2 / alpha^2 - 2 (bench/mitsuba_peer.py uses that correspondence
+        for n, the other way). Our lobe is about the mirror direction, which moves twice as
+        fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so n = m / 4.
+        """
+        distribution = p.string("distribution", "beckmann")
+        if distribution not in ("beckmann", "ggx"):
+            raise _error(p.node_of("distribution"), "distribution must be beckmann or ggx")
+        alpha = p.number("alpha", 0.1)
+        alpha_u, alpha_v = p.number("alpha_u", alpha), p.number("alpha_v", alpha)
+        if alpha_u != alpha_v:
+            raise _error(p.owner, "anisotropic roughness is not supported")
+        p.boolean("sample_visible", True)  # sampling strategy only
+        n = (2.0 / alpha_u ** 2 - 2.0) / 4.0 if alpha_u > 0 else math.inf
+        if not 1.0 <= n <= GLOSSY_EXPONENT_MAX:
+            raise _error(p.node_of("alpha"), f"alpha {alpha_u:g} maps to Phong exponent {n:g}, outside "
+                                             f"[1, {GLOSSY_EXPONENT_MAX:g}] (alpha in [0.0023, 0.577])")
+        return n
+
+    def _roughconductor(self, p: Props) -> dict:
+        self._check_no_fresnel(p)
+        return {"type": "glossy", "albedo": self._albedo(p, "specular_reflectance", 1.0), "exponent": self._exponent(p)}
+
+    def _roughplastic(self, p: Props) -> dict:
+        """A diffuse base under a rough coat, as one Phong lobe: albedo = diffuse_reflectance,
+        exponent from alpha. Approximate (README): the coat's Fresnel reflection is dropped."""
+        self._ior(p, "int_ior", "polypropylene"), self._ior(p, "ext_ior", "air")  # the coat's: dropped
+        p.boolean("nonlinear", False)
+        p.color("specular_reflectance", 1.0)
+        return {"type": "glossy", "albedo": self._albedo(p, "diffuse_reflectance", 0.5), "exponent": self._exponent(p)}
+
+    def _plastic(self, p: Props) -> dict:
+        raise _error(p.owner, "smooth plastic (a mirror coat over a diffuse base) has no counterpart in our "
+                              "materials: use roughplastic, roughconductor or diffuse")
+
+    def _ior(self, p: Props, name: str, default: str) -> float:
+        node = p.values.get(name)
+        if node is not None and node.tag == "string":
+            key = p.string(name, default)
+            if key not in NAMED_IOR:
+                raise _error(node, f"unknown IOR name {key!r}")
+            return NAMED_IOR[key]
+        value = p.number(name)
+        return NAMED_IOR[default] if value is None else value
+
+    def _dielectric(self, p: Props) -> dict:
+        ior = self._ior(p, "int_ior", "bk7") / self._ior(p, "ext_ior", "air")
+        reflect = self._albedo(p, "specular_reflectance", 1.0)
+        transmit = self._albedo(p, "specular_transmittance", 1.0)
+        if reflect != transmit:
+            raise _error(p.owner, "specular_reflectance and specular_transmittance must be equal (our glass has one tint)")
+        if not 1.0 <= ior <= 3.0:
+            raise _error(p.owner, f"int_ior / ext_ior = {ior:g} must lie in [1, 3]")
+        return {"type": "glass", "ior": ior, "albedo": reflect}
+
+    # -------------------------------------------------------------- shapes
+    def shape(self, node: Node) -> None:
+        kind = node.attrs.get("type")
+        p = Props(node)
+        m = p.transform()
+        if not abs(np.linalg.det(m[:3, :3])) > 1e-300:
+            raise _error(p.node_of("to_world"), "the shape's to_world is singular")
+        builders = {"rectangle": self._rectangle, "cube": self._cube, "sphere": self._sphere, "disk": self._disk,
+                    "obj": self._file_mesh, "ply": self._file_mesh}
+        if kind not in builders:
+            raise _error(node, f"unknown shape plugin {kind!r} (have: {', '.join(builders)})")
+        # Its bsdf (nested, referenced, or Mitsuba's default) and its area emitter.
+        material, emission = None, None
+        for obj in p.objects:
+            if obj.tag == "bsdf":
+                if material is not None:
+                    raise _error(obj, "a shape has one bsdf")
+                material = self.bsdf(obj)
+            elif obj.tag == "ref":
+                if material is not None:
+                    raise _error(obj, "a shape has one bsdf")
+                material = obj.attrs.get("id", "")
+                if material not in self.materials:
+                    raise _error(obj, f"no bsdf with id {material!r} defined before this reference")
+            elif obj.tag == "emitter":
+                if obj.attrs.get("type") != "area":
+                    raise _error(obj, "a shape's emitter must be an area emitter")
+                ep = Props(obj)
+                emission = list(ep.color("radiance", 1.0))
+                ep.done()
+            else:
+                raise _error(obj, f"<{obj.tag}> is not supported in a shape")
+        if material is None:  # Mitsuba's default bsdf
+            material = "default-diffuse"
+            self.materials.setdefault(material, {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]})
+        # Its geometry, counted against the triangle limit as the scene grows.
+        flip = p.boolean("flip_normals", False)
+        shape = builders[kind](p, m, flip)
+        p.done()
+        self.triangles += len(shape.get("triangles", ()))
+        if self.triangles > MAX_TRIANGLES:
+            raise _error(node, f"the scene has more than {MAX_TRIANGLES} triangles")
+        shape["material"] = material
+        if emission is not None:
+            shape["emission"] = emission
+        self.origin[f"shapes.{len(self.shapes)}"] = node
+        self.shapes.append(shape)
+
+    @staticmethod
+    def _mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None, flip: bool) -> dict:
+        if flip:
+            triangles = triangles[:, ::-1]
+        out = {"type": "mesh", "vertices": vertices.tolist(), "triangles": triangles.tolist()}
+        if normals is not None:
+            out["normals"] = (-normals if flip else normals).tolist()
+        return out
+
+    def _rectangle(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        corner, c1, c2 = _apply(m, np.array([[-1.0, -1, 0], [1, -1, 0], [-1, 1, 0]]))
+        e1, e2 = c1 - corner, c2 - corner
+        normal = np.linalg.inv(m[:3, :3]).T @ np.array([0, 0, -1.0 if flip else 1.0])  # Mitsuba's front side
+        if np.dot(np.cross(e1, e2), normal) < 0:
+            e1, e2 = e2, e1
+        return {"type": "quad", "corner": corner.tolist(), "edge1": e1.tolist(), "edge2": e2.tolist()}
+
+    def _cube(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        corners = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+        # Two triangles per face, wound counter-clockwise seen from outside.
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+        if np.linalg.det(m[:3, :3]) < 0:
+            tris = tris[:, ::-1]
+        return self._mesh(_apply(m, corners), tris, None, flip)
+
+    def _disk(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        phi = 2 * math.pi * np.arange(DISK_SEGMENTS) / DISK_SEGMENTS
+        ring = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
+        points = np.concatenate([[[0.0, 0.0, 0.0]], ring])
+        k = np.arange(DISK_SEGMENTS)
+        tris = np.stack([np.zeros_like(k), 1 + k, 1 + (k + 1) % DISK_SEGMENTS], axis=1)
+        if np.linalg.det(m[:3, :3]) < 0:
+            tris = tris[:, ::-1]
+        return self._mesh(_apply(m, points), tris, None, flip)
+
+    def _sphere(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        center = p.vector("center", "point")
+        radius = p.number("radius", 1.0)
+        r = m[:3, :3]
+        s = np.cbrt(abs(np.linalg.det(r)))
+        if not np.allclose(r.T @ r, s * s * np.eye(3), rtol=1e-6, atol=1e-9 * max(s * s, 1e-300)):
+            raise _error(p.owner, "a sphere's to_world may only scale uniformly, rotate and translate")
+        c = _apply(m, (center if center is not None else np.zeros(3))[None])[0]
+        if flip:
+            raise _error(p.node_of("flip_normals"), "flip_normals is not supported on spheres")
+        return {"type": "sphere", "center": c.tolist(), "radius": radius * s}
+
+    def _file_mesh(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        filename = p.string("filename")
+        if filename is None:
+            raise _error(p.owner, "a mesh needs a filename")
+        path = self.resolve(p.node_of("filename"), filename)
+        face_normals = p.boolean("face_normals", False)
+        if p.owner.attrs["type"] == "obj":
+            p.boolean("flip_tex_coords", True)  # texture coordinates: not used
+        try:
+            mesh = load_mesh(path)
+        except MeshError as exc:
+            raise _error(p.node_of("filename"), f"{filename}: {exc}") from None
+        tris = mesh.triangles
+        normals = None
+        if not face_normals:  # Mitsuba computes angle-weighted vertex normals where the file has none
+            normals = mesh.normals if mesh.normals is not None else _vertex_normals(mesh.vertices, tris)
+            normals = normals @ np.linalg.inv(m[:3, :3])  # normals transform by the inverse transpose
+        if np.linalg.det(m[:3, :3]) < 0:
+            tris = tris[:, ::-1]
+        return self._mesh(_apply(m, mesh.vertices), tris, normals, flip)
+
+    # -------------------------------------------------------------- lights
+    def light(self, node: Node) -> None:
+        kind = node.attrs.get("type")
+        p = Props(node)
+        for obj in p.objects:
+            raise _error(obj, f"<{obj.tag}> is not supported in an emitter")
+        if kind == "point":
+            m = p.transform()
+            pos = p.vector("position", "point")
+            position = _apply(m, (pos if pos is not None else np.zeros(3))[None])[0]
+            power = 4 * math.pi * np.array(p.color("intensity", 1.0))
+            light = {"type": "point", "position": position.tolist(), "power": power.tolist()}
+        elif kind == "spot":
+            m = p.transform()
+            cutoff = p.number("cutoff_angle", 20.0)
+            beam = p.number("beam_width", 0.75 * cutoff)
+            if beam < cutoff * (1 - 1e-3):
+                raise _error(p.node_of("beam_width"), "our spot light is uniform inside its cone: beam_width "
+                                                       "must equal cutoff_angle (no falloff)")
+            if not 0 < cutoff <= 90:
+                raise _error(p.node_of("cutoff_angle"), "cutoff_angle must lie in (0, 90]")
+            solid_angle = 2 * math.pi * (1 - math.cos(math.radians(cutoff)))
+            power = solid_angle * np.array(p.color("intensity", 1.0))
+            light = {"type": "spot", "position": m[:3, 3].tolist(), "direction": m[:3, 2].tolist(),
+                     "cone_angle": cutoff, "power": power.tolist()}
+        elif kind == "directional":
+            m = p.transform()
+            d = p.vector("direction", "vector")
+            direction = m[:3, :3] @ (d if d is not None else np.array([0.0, 0.0, 1.0]))
+            light = {"type": "directional", "direction": direction.tolist(),
+                     "irradiance": list(p.color("irradiance", 1.0))}
+        elif kind == "area":
+            raise _error(node, "an area emitter belongs inside a shape")
+        else:
+            raise _error(node, f"unknown emitter plugin {kind!r} (have: point, spot, directional, area in a shape)")
+        p.done()
+        self.origin[f"lights.{len(self.lights)}"] = node
+        self.lights.append(light)
+
+    # -------------------------------------------------------------- result
+    def result(self, top: Node) -> dict:
+        if self.camera is None:
+            raise _error(top, "the scene has no sensor")
+        return {"description": f"converted from {top.file.name} (Mitsuba 3)", "camera": self.camera,
+                "materials": self.materials, "shapes": self.shapes, "lights": self.lights}
+
+
+def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them)."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
+    return np.asarray(mesh.vertex_normals, np.float64)
+
+
+def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None) -> dict:
+    """Our scene JSON from a Mitsuba 3 XML file; `params` override its <default>s. Meshes
+    are inlined (transformed). Files it names must lie inside `root` (default: its folder).
+    The result is validated: errors name the XML element and line that produced the value."""
+    path = Path(path).resolve()
+    conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()})
+    top = _read_xml(path)
+    conv.scene(top)
+    data = conv.result(top)
+    try:
+        parse_scene(data)
+    except SceneError as exc:
+        parts = exc.field.split(".")
+        for n in (2, 1):
+            node = conv.origin.get(".".join(parts[:n]))
+            if node is not None:
+                raise SceneError(node.file.name, f"{node.where()}: {exc.field}: {exc.message}") from None
+        raise
+    return data

@@ -1,0 +1,36 @@
+"""What a render writes: the image, its error estimate as layers of the same EXR, and
+the facts that made it (passes, photons, seed, method, settings, error) as metadata."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from worker.image_io import write_image
+from worker.integrators.base import Integrator, State
+
+ERROR_LAYERS = ("bias", "noise", "bound", "relative")  # luminance, per pixel (worker/error_estimate.py)
+
+
+def write_render(path: Path, integrator: Integrator, state: State, width: int, height: int,
+                 error_layers: bool = True) -> None:
+    """The current estimate to `path` (.png tone-mapped, .exr linear with metadata and, when
+    the job estimates its error and `error_layers` is set, the layers error.bias, error.noise,
+    error.bound and error.relative)."""
+    rgb = integrator.image(state).reshape(height, width, 3)
+    if Path(path).suffix.lower() != ".exr":
+        write_image(path, rgb)
+        return
+    settings = integrator.settings
+    metadata: dict[str, object] = {"passes": state.passes, "photons": state.emitted, "seed": settings.seed,
+                                   "method": settings.method, "settings": settings.model_dump_json()}
+    estimate = integrator.estimate(state) if state.passes > 0 else None
+    pixels, channels = rgb, ("R", "G", "B")
+    if estimate is not None:
+        metadata.update(error_estimate=estimate.average, confidence=estimate.confidence)
+        if error_layers:
+            layers = np.stack([getattr(estimate, name) for name in ERROR_LAYERS], axis=-1).reshape(height, width, -1)
+            pixels = np.concatenate([rgb, layers], axis=-1)
+            channels += tuple(f"error.{name}" for name in ERROR_LAYERS)
+    write_image(path, pixels, channels=channels, metadata=metadata)
