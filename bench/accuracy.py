@@ -33,8 +33,17 @@ import numpy as np
 import worker.error_estimate as ee
 from bench.common import BENCH_DIR, bench_engine, save_figure, write_json
 from kernels.contract import LUMINANCE
-from tests.analytic import (SHADOW, SPOT, closed_sphere_scene, edge_pixels, furnace_radiance, shadow_scene,
-                            shadowed_plane, spot_plane, spot_plane_scene)
+from tests.analytic import (
+    SHADOW,
+    SPOT,
+    closed_sphere_scene,
+    edge_pixels,
+    furnace_radiance,
+    shadow_scene,
+    shadowed_plane,
+    spot_plane,
+    spot_plane_scene,
+)
 from tests.test_closed_scenes import concave_corner_pixels
 from worker.engine import Engine
 from worker.image_io import read_image

@@ -154,7 +154,7 @@ def chart(result: dict) -> None:
     axes[3].invert_xaxis()
     axes[3].set_xlabel("error threshold T")
     axes[3].set_ylabel("actual average relative error at termination")
-    axes[3].set_title("overshoot: actual error when the estimate met T (batches of 8)")
+    axes[3].set_title("actual error at termination, batches of 8")
     axes[3].legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, "error_estimation")

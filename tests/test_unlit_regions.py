@@ -18,7 +18,6 @@ from worker.integrators.photon_mapping import sum_layout
 from worker.stats import Accumulators
 
 
-
 def _two_pixels(emitted: int) -> Accumulators:
     """Pixel 0 found photons (density D, luminance 1 per unit density), pixel 1 none."""
     st = Accumulators.start(0.7, np.full(2, 0.5), sum_layout(error_estimation=True))
@@ -26,7 +25,7 @@ def _two_pixels(emitted: int) -> Accumulators:
     st.sums["H"][:] = 10
     st.sums["D"][0] = 1000.0
     st.N[0] = math.pi * 0.1 ** 2 * 1000.0  # radius 0.1
-    st.sums["S"][0] = 1000.0 * 1.0 * emitted / emitted  # Y(S) / D = 1
+    st.sums["S"][0] = 1000.0  # grey, so Y(S) = 1000 and Y(S) / D = 1
     st.sums["X1"][0], st.sums["X2"][0] = 10.0, 10.1
     return st
 
