@@ -61,6 +61,8 @@ confidence c gives rho pi R^2 E <= -ln(1 - c), and so
 
     L <= q (-ln(1 - c)) / (pi R^2 E)       (reported as the pixel's noise; bias 0)
 
+where E counts only the photons of passes in which the pixel had a measurement point.
+
 with q the luminance a photon contributes per unit photon density, Y(S) / D, taken as its
 largest value over pixels that found at least UNLIT_MIN_PHOTONS photons: the assumption is
 that a photon reaching the dark pixel would carry no more than the brightest well-sampled
@@ -134,7 +136,9 @@ def unlit_bound(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confi
     per_photon = np.where(known, lum * state.emitted / np.where(known, state.D, 1.0), 0.0)  # Y(S) / D
     counted = known & (state.D * math.pi * r2 >= UNLIT_MIN_PHOTONS)
     q = float(per_photon[counted].max() if counted.any() else per_photon[known].max())
-    return q * -math.log1p(-confidence) / (math.pi * r2 * state.emitted)
+    exposed = state.emitted * state.H / state.passes  # photons emitted while the pixel had a point
+    with np.errstate(divide="ignore"):
+        return q * -math.log1p(-confidence) / (math.pi * r2 * exposed)
 
 
 def discontinuity_bias(state: "Accumulators", bias: np.ndarray,
