@@ -7,7 +7,10 @@ Overhead: the same job rendered with the error sums compiled in and out, side by
 plus the host's estimate per merge. Coverage: the share of pixels whose bound is at least
 the actual error against the analytic answer (furnace, point-plane) or the cached
 reference (cornell-caustics, photon part only). Termination: passes until the estimated
-average relative error falls to T, for T halving, and the actual error at that point.
+average relative error falls to T, for T halving, with the estimate and the actual error
+(the same definition, worker/error_estimate.actual_average) at that point: a threshold is
+met by the estimate, and the actual error at termination shows how far the job overshot
+(merging one pass at a time, and 8 at once as a worker's batch does).
 Writes bench/out/error_estimation.json and .png.
 """
 
@@ -86,7 +89,10 @@ def coverage(passes: list[int], z_values: list[float]) -> dict:
     return result
 
 
-def termination(thresholds: list[float], max_passes: int) -> dict:
+def termination(thresholds: list[float], max_passes: int, batch: int = 1) -> dict:
+    """Per scene and confidence, for each threshold T (halving): the passes at which the
+    estimated average first fell to T, the estimate and the actual error then. Batches of
+    `batch` passes merge at once, as on a worker, so the estimate is seen only between them."""
     result = {}
     for scene in ("furnace", "point-plane", "cornell-caustics"):
         res, photons, truth_of = CASES[scene]
@@ -95,19 +101,13 @@ def termination(thresholds: list[float], max_passes: int) -> dict:
             truth = truth_of(eng)
             pending = sorted(thresholds, reverse=True)
             rows: list[dict] = []
-
-            def observe(st: object, _: float, truth: object = truth, pending: list = pending,
-                        rows: list = rows, eng: Engine = eng) -> bool:
+            st = eng.start()
+            while pending and st.passes < max_passes:
+                eng.integrator.merge(st, eng.render_batch(st, st.passes, batch))
                 est = eng.integrator.estimate(st)
                 while pending and est.average <= pending[0]:
-                    lum = est.luminance
-                    floor = ee.FLOOR_FRACTION * float(np.mean(truth))
-                    actual = float(np.mean((np.abs(lum - truth) / np.maximum(truth, floor))[est.measured]))
                     rows.append({"threshold": pending.pop(0), "passes": st.passes, "estimated": est.average,
-                                 "actual": actual})
-                return not pending
-
-            render(eng, passes=max_passes, progress=observe)
+                                 "actual": ee.actual_average(est, truth)})
             result[f"{scene} @ {conf}"] = rows
     return result
 
@@ -115,7 +115,7 @@ def termination(thresholds: list[float], max_passes: int) -> dict:
 def chart(result: dict) -> None:
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    fig, axes = plt.subplots(1, 4, figsize=(21, 4.6))
     z = ee.BIAS_SIGNIFICANCE
     for scene, rows in result["coverage"].items():
         for conf, style in ((0.5, "o-"), (0.9, "s--")):
@@ -145,6 +145,17 @@ def chart(result: dict) -> None:
     axes[2].set_ylabel("passes to converge")
     axes[2].set_title("termination (Table 6.2)")
     axes[2].legend(fontsize=7)
+    for name, rows in result["termination_batch_8"].items():
+        if rows:
+            axes[3].loglog([r["threshold"] for r in rows], [r["actual"] for r in rows], "o-", label=name)
+    lims = [min(r["threshold"] for rows in result["termination"].values() for r in rows),
+            max(r["threshold"] for rows in result["termination"].values() for r in rows)]
+    axes[3].loglog(lims, lims, "k:", label="actual = T")
+    axes[3].invert_xaxis()
+    axes[3].set_xlabel("error threshold T")
+    axes[3].set_ylabel("actual average relative error at termination")
+    axes[3].set_title("actual error at termination, batches of 8")
+    axes[3].legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, "error_estimation")
 
@@ -158,9 +169,10 @@ def main() -> None:
         "overhead": overhead(40 if args.full else 12),
         "coverage": coverage(passes, [0.0, 1.0, 1.25, 1.5, 2.0]),
         "termination": termination([0.4, 0.2, 0.1, 0.05, 0.025], 4000 if args.full else 1500),
+        "termination_batch_8": termination([0.4, 0.2, 0.1, 0.05, 0.025], 4000 if args.full else 1500, batch=8),
         "bias_significance": ee.BIAS_SIGNIFICANCE,
     }
-    for rows in result["termination"].values():
+    for rows in [*result["termination"].values(), *result["termination_batch_8"].values()]:
         for prev, cur in zip(rows, rows[1:]):
             cur["passes_ratio_to_previous"] = cur["passes"] / prev["passes"]
     write_json("error_estimation", result)
@@ -169,9 +181,11 @@ def main() -> None:
     print(f"per pass: gather {1000 * o['gather_without']:.1f} ms without the error sums, "
           f"{1000 * o['gather_with']:.1f} ms with; host estimate {1000 * o['host_estimate']:.2f} ms; "
           f"pass {1000 * o['wall_without']:.0f} ms: overhead {100 * o['overhead_fraction']:.1f}%")
-    for name, rows in result["termination"].items():
-        print(name, [(r["threshold"], r["passes"], round(r["actual"], 4), round(r.get("passes_ratio_to_previous", 0), 2))
-                     for r in rows])
+    for key in ("termination", "termination_batch_8"):
+        print(f"{key}: threshold, passes, estimated and actual average relative error at termination")
+        for name, rows in result[key].items():
+            print(f"  {name}:", ", ".join(f"T {r['threshold']}: {r['passes']} passes, estimated {r['estimated']:.4f}, "
+                                         f"actual {r['actual']:.4f}" for r in rows))
 
 
 if __name__ == "__main__":

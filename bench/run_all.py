@@ -9,7 +9,8 @@ import subprocess
 import sys
 import time
 
-BENCHES = ("error_vs_time", "stability", "engine_speed", "peer_smallppm", "error_estimation", "service_scaling")
+BENCHES = ("error_vs_time", "stability", "accuracy", "engine_speed", "peer_smallppm", "error_estimation",
+           "service_scaling")
 
 
 def main() -> int:

@@ -34,7 +34,7 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights: what "error"
 # Russian roulette keeps the expected throughput, so the energy the cap cuts is the true
 # throughput still carried after MAX_BOUNCES bounces: at most a^MAX_BOUNCES of the emitted
 # (or seen) energy where every surface reflects at most a. For a = 0.99 that is
-# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2; the 16 bounces of old lost 0.99^16 = 15%.
+# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2; the 16 bounces of old lost 0.99^16 = 85%.
 # Lossless surfaces (albedo 1: ideal mirrors and glass) absorb nothing, so there the cut is
 # the share of paths still trapped among them after 4096 bounces: zero in any scene where
 # such a chain ends at a diffuse surface or escapes (glass: each internal hit stays inside

@@ -26,13 +26,21 @@
 // equally spaced directions turned by a random angle (an unbiased quadrature of the
 // covered weight):  G(s) = int_0^s K(t) t dt / int_0^1 K(t) t dt
 //                        = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7.
-// A surface that ends in empty space (a convex edge) is not detected.
-inline float disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng* rng) {
-    if (r <= 0.0f) return 1.0f;
+// A surface that ends in empty space (a convex edge) is not detected. Returns the coverage
+// of the disc of radius r and (same rays) of radius r/2, for the error estimate's second
+// gather radius (spatial_hash.cl).
+inline float cover_share(float s) {
+    float s2 = s * s;
+    return s2 * (3.5f + s2 * s * (-14.0f + s * (17.5f - 6.0f * s)));
+}
+
+inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng* rng) {
+    if (r <= 0.0f) return (float2)(1.0f);
     float3 t, b;
     onb(n, &t, &b);
     float3 o = x + n * ray_eps(x);
-    float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS), covered = 0.0f;
+    float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS);
+    float2 covered = (float2)(0.0f);
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
@@ -42,8 +50,7 @@ inline float disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng*
             float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
             if (dot(nh, n) <= NORMAL_MATCH_COS) s = h.t / r;
         }
-        float s2 = s * s;
-        covered += s2 * (3.5f + s2 * s * (-14.0f + s * (17.5f - 6.0f * s)));
+        covered += (float2)(cover_share(s), cover_share(fmin(2.0f * s, 1.0f)));
     }
     return covered / COVERAGE_RAYS;
 }
@@ -68,7 +75,7 @@ __kernel void eye_pass(
     uint light_pass,               // the real pass index: seeds the light samples
     __global const float* radius,  // the radius this pass gathers at (0: no coverage)
     __global float4* mp_pos,       // xyz; w: 1 if the pixel has a measurement point
-    __global float4* mp_nrm,       // normal facing the eye path
+    __global float4* mp_nrm,       // normal facing the eye path; w: disc coverage at r/2
     __global float4* mp_wgt,       // throughput * albedo / pi; w: disc coverage
     __global float* mp_dist,       // eye path length to the point (initial radius)
     __global double* batch_sums)   // per-pixel records (kernels/contract.py); += directly seen emission
@@ -109,8 +116,9 @@ __kernel void eye_pass(
         if (type == MAT_DIFFUSE) {
             float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
             pos = (float4)(p, 1.0f);
-            nrm = (float4)(n, 0.0f);
-            wgt = (float4)(thr * sa.xyz / PI_F, disc_coverage(&g, p, n, radius[gid], &rng));
+            float2 cover = disc_coverage(&g, p, n, radius[gid], &rng);
+            nrm = (float4)(n, cover.y);
+            wgt = (float4)(thr * sa.xyz / PI_F, cover.x);
             if (nee) {
                 Rng light_rng = rng_make(seed, light_pass, (uint)gid, DOMAIN_NEE);
                 float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;

@@ -126,6 +126,7 @@ inline float luminance(float3 c) { return dot(c, (float3)(LUM_R, LUM_G, LUM_B));
 typedef struct {
     float3 phi;   // sum of K(t) * flux (rgb)
     float lap;    // sum of lap K * luminance(w * flux)
+    float phi_half;  // sum of K(2t) * luminance(w * flux): the same gather at radius r/2
     float m;      // photons counted (raw)
 } PassSums;
 
@@ -151,15 +152,18 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
     s->phi += k * flux * count;
     s->m += count;
 #ifdef SUM_G
-    s->lap += -30.0f * t * (t - 1.0f) * (5.0f * t - 3.0f) / (r * r) * luminance(wgt * flux) * count;
+    float y = luminance(wgt * flux) * count;
+    s->lap += -30.0f * t * (t - 1.0f) * (5.0f * t - 3.0f) / (r * r) * y;
+    float t2 = fmin(2.0f * t, 1.0f);
+    s->phi_half += (1.0f - t2 * t2 * t2 * (10.0f - 15.0f * t2 + 6.0f * t2 * t2)) * y;
 #endif
 }
 
 // Add one pass's gather to pixel gid's record of the batch sums.
-inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, float coverage, PassSums s,
+inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, float2 coverage, PassSums s,
                        float photons, float bias) {
     __global double* rec = batch_sums + (size_t)gid * SUM_STRIDE;
-    double kr2 = K1 * (double)r * (double)r * (double)coverage;  // the kernel weight of the covered disc
+    double kr2 = K1 * (double)r * (double)r * (double)coverage.x;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
     rec[SUM_S] += flux.x;
     rec[SUM_S + 1] += flux.y;
@@ -173,6 +177,12 @@ inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt
     double x = dot(flux, (double3)(LUM_R, LUM_G, LUM_B)) / (double)photons - (double)bias;
     rec[SUM_X1] += x;
     rec[SUM_X2] += x * x;
+    // The pass's luminance estimate at r less the one at r/2 (same photons): where the
+    // density is smooth this is 3/4 of the bias at r; at an edge it shows the bias directly.
+    double dh = x + (double)bias - (double)s.phi_half / (0.25 * K1 * (double)r * (double)r * (double)coverage.y)
+                                   / (double)photons;
+    rec[SUM_DH] += dh;
+    rec[SUM_DH2] += dh * dh;
 #endif
 }
 
@@ -195,7 +205,7 @@ inline int3 query_cell(QueryCells q, int k) {
 // A pixel's query this pass; false if the pixel has no measurement point.
 typedef struct {
     float3 x, n, wgt;
-    float coverage;  // share of the disc's kernel weight on the point's surface
+    float2 coverage;  // share of the disc's kernel weight on the point's surface, at r and r/2
     float r, r2;
     QueryCells cells;
 } Query;
@@ -208,7 +218,7 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
     q->n = mp_nrm[gid].xyz;
     float4 w = mp_wgt[gid];
     q->wgt = w.xyz;
-    q->coverage = fmax(w.w, MIN_COVERAGE);
+    q->coverage = fmax((float2)(w.w, mp_nrm[gid].w), MIN_COVERAGE);
     q->r = radius[gid];
     q->r2 = q->r * q->r;
     q->cells = query_cells(q->x, inv_cell);
@@ -224,7 +234,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
     int gid = get_global_id(0);
     Query q;
     if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
-    PassSums s = {(float3)(0.0f), 0.0f, 0.0f};
+    PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     for (int k = 0; k < 8; ++k) {
         int3 cell = query_cell(q.cells, k);
         uint h = cell_hash(cell, mask);
@@ -246,7 +256,7 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
     int gid = get_global_id(0);
     Query q;
     if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
-    PassSums s = {(float3)(0.0f), 0.0f, 0.0f};
+    PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     for (int k = 0; k < 8; ++k) {
         int3 cell = query_cell(q.cells, k);
         uint h = cell_hash(cell, mask);

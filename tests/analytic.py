@@ -72,3 +72,89 @@ def spot_plane(eng: Engine, rho: float, power: float, height: float, cone_degree
     cos_cone = math.cos(math.radians(cone_degrees))
     intensity = power / (2.0 * math.pi * (1.0 - cos_cone))
     return pixel_mean(np.where(height / d >= cos_cone, rho * intensity * height / (math.pi * d ** 3), 0.0))
+
+
+def shadowed_plane(eng: Engine, rho: float, power: float, light: tuple[float, float, float],
+                   centre: tuple[float, float, float], radius: float, sub: int = 8) -> np.ndarray:
+    """L per pixel for a point light of `power` over the plane y = 0 (albedo rho) with a
+    black sphere (albedo 0: it reflects nothing) casting a hard shadow: on the plane
+    L = rho I cos(theta) / (pi d^2) where the light is visible, I = power / (4 pi); zero where
+    the sphere hides the light or the camera sees the sphere."""
+    x, z, pixel_mean = _plane_hits(eng, sub)
+    cam = eng.arrays.camera.astype(np.float64)[0, :3]
+    p = np.stack([x, np.zeros_like(x), z], axis=-1)
+    c, lp = np.asarray(centre, np.float64), np.asarray(light, np.float64)
+
+    def blocked(o: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """Whether the segment o -> e (per element) passes through the sphere."""
+        d = e - o
+        oc = o - c
+        a, b, cc = np.sum(d * d, -1), np.sum(oc * d, -1), np.sum(oc * oc, -1) - radius ** 2
+        disc = b * b - a * cc
+        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+        return (disc > 0.0) & (t > 0.0) & (t < 1.0)
+
+    to_light = lp - p
+    d2 = np.sum(to_light ** 2, -1)
+    L = rho * power / (4.0 * math.pi) * to_light[..., 1] / np.sqrt(d2) / (math.pi * d2)
+    seen = ~blocked(np.broadcast_to(cam, p.shape), p)
+    return pixel_mean(np.where(seen & ~blocked(p, np.broadcast_to(lp, p.shape)), L, 0.0))
+
+
+# Scenes written independently of the bundled ones (as JSON dicts), with their answers above.
+SPOT = {"rho": 0.5, "power": 10.0, "height": 1.0, "cone_degrees": 40.0}
+SHADOW = {"rho": 0.5, "power": 4.0 * math.pi, "light": (0.0, 2.0, 0.0), "centre": (0.0, 1.0, 0.0), "radius": 0.3}
+
+
+def closed_sphere_scene(albedo: tuple[float, float, float], power: float = FURNACE_PHI) -> dict:
+    """A point light at the centre of a closed unit sphere, seen from the centre (furnace_radiance)."""
+    return {
+        "camera": {"position": [0, 0, 0], "look_at": [0, 0, -1], "up": [0, 1, 0], "fov": 120, "resolution": [32, 32]},
+        "materials": {"wall": {"type": "diffuse", "albedo": list(albedo)}},
+        "shapes": [{"type": "sphere", "center": [0, 0, 0], "radius": 1.0, "material": "wall"}],
+        "lights": [{"type": "point", "position": [0, 0, 0], "power": [power] * 3}],
+    }
+
+
+def spot_plane_scene(resolution: tuple[int, int] = (64, 64)) -> dict:
+    """SPOT straight down over a plane; the camera sees 1.7 units either side of the light's
+    foot, the cone lights 0.84 of it: 75% of the pixels are never lit (spot_plane)."""
+    return {
+        "camera": {"position": [0, 3, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": 60,
+                   "resolution": list(resolution)},
+        "materials": {"plane": {"type": "diffuse", "albedo": [SPOT["rho"]] * 3}},
+        "shapes": [{"type": "quad", "corner": [-5, 0, -5], "edge1": [0, 0, 10], "edge2": [10, 0, 0],
+                    "material": "plane"}],
+        "lights": [{"type": "spot", "position": [0, SPOT["height"], 0], "direction": [0, -1, 0],
+                    "cone_angle": SPOT["cone_degrees"], "power": [SPOT["power"]] * 3}],
+    }
+
+
+def shadow_scene(resolution: tuple[int, int] = (64, 64)) -> dict:
+    """SHADOW: a black sphere between a point light and a plane, seen obliquely (shadowed_plane)."""
+    return {
+        "camera": {"position": [0, 2.5, 3], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 50,
+                   "resolution": list(resolution)},
+        "materials": {"plane": {"type": "diffuse", "albedo": [SHADOW["rho"]] * 3},
+                      "black": {"type": "diffuse", "albedo": [0, 0, 0]}},
+        "shapes": [{"type": "quad", "corner": [-5, 0, -5], "edge1": [0, 0, 10], "edge2": [10, 0, 0],
+                    "material": "plane"},
+                   {"type": "sphere", "center": list(SHADOW["centre"]), "radius": SHADOW["radius"],
+                    "material": "black"}],
+        "lights": [{"type": "point", "position": list(SHADOW["light"]), "power": [SHADOW["power"]] * 3}],
+    }
+
+
+def edge_pixels(ref: np.ndarray, within: int = 1) -> np.ndarray:
+    """(H, W) mask of the pixels within `within` pixels of a jump in the reference image
+    `ref` (H, W): a pixel whose 4-neighbours differ from it by more than a quarter of
+    max(its value, 5% of the mean lit value)."""
+    floor = 0.05 * ref[ref > 0].mean()
+    pad = np.pad(ref, 1, mode="edge")
+    jumps = np.max([np.abs(pad[1:-1, 1:-1] - pad[:-2, 1:-1]), np.abs(pad[1:-1, 1:-1] - pad[2:, 1:-1]),
+                    np.abs(pad[1:-1, 1:-1] - pad[1:-1, :-2]), np.abs(pad[1:-1, 1:-1] - pad[1:-1, 2:])], axis=0)
+    ys, xs = np.nonzero(jumps > 0.25 * np.maximum(ref, floor))
+    if len(ys) == 0:
+        return np.zeros(ref.shape, bool)
+    yy, xx = np.mgrid[0:ref.shape[0], 0:ref.shape[1]]
+    return np.min(np.hypot(yy[..., None] - ys, xx[..., None] - xs), axis=-1) <= within

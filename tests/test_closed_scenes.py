@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.analytic import furnace_radiance
+from tests.analytic import closed_sphere_scene, furnace_radiance
 from tests.conftest import image, render
 from worker.engine import Engine
 from worker.image_io import read_image
@@ -27,14 +27,8 @@ R0 = 0.05
 
 def closed_sphere(tmp_path: Path, albedo: tuple[float, float, float]) -> Path:
     """A point light of power 4 pi at the centre of a unit sphere, seen from the centre."""
-    scene = {
-        "camera": {"position": [0, 0, 0], "look_at": [0, 0, -1], "up": [0, 1, 0], "fov": 120, "resolution": [32, 32]},
-        "materials": {"wall": {"type": "diffuse", "albedo": list(albedo)}},
-        "shapes": [{"type": "sphere", "center": [0, 0, 0], "radius": 1.0, "material": "wall"}],
-        "lights": [{"type": "point", "position": [0, 0, 0], "power": [POWER] * 3}],
-    }
     path = tmp_path / "closed-sphere.json"
-    path.write_text(json.dumps(scene))
+    path.write_text(json.dumps(closed_sphere_scene(albedo, POWER)))
     return path
 
 

@@ -110,7 +110,7 @@ def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[
         st.merge(eng.render_batch(st, k, 1))  # gathers at the current radius, less the current bias
         if k + 1 in checkpoints:
             for confidence in (0.5, 0.9):
-                est = estimate(st, confidence)
+                est = estimate(st, confidence, discontinuities=gather == "exact")  # as the integrator does
                 known = est.known
                 out[k + 1, confidence] = float(np.mean(est.bound[known] >= np.abs(est.luminance - truth)[known]))
     out["rms_error"] = float(np.sqrt(np.mean((est.luminance - truth)[known] ** 2)))  # at the last checkpoint

@@ -10,9 +10,11 @@ import json
 import numpy as np
 
 from bench.error_vs_time import reference_path, rel_rms
-from tests.analytic import FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, _plane_hits, point_plane, spot_plane
+from tests.analytic import (
+    FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, SPOT, _plane_hits, point_plane, spot_plane,
+)
 from tests.conftest import image, render
-from tests.test_unlit_regions import CONE, HEIGHT, POWER, RHO, spot_scene
+from tests.test_unlit_regions import spot_scene
 from worker.error_estimate import LUMINANCE
 from worker.image_io import read_image
 from worker.integrators.photon_mapping import GatherInputs
@@ -59,9 +61,9 @@ def test_spot_light_per_pixel_against_the_analytic_radiance(make_engine, tmp_pat
     at their jittered points, and the image mean agrees within 1% (measured 0.02%)."""
     eng = make_engine(spot_scene(tmp_path), photons_per_pass=1 << 10, seed=13, direct="nee")
     est = image(eng, render(eng, 32))[..., 0]
-    truth = spot_plane(eng, RHO, POWER, HEIGHT, CONE).reshape(est.shape)
+    truth = spot_plane(eng, **SPOT).reshape(est.shape)
     assert eng.passes.photons_stored == 0
-    inside = spot_plane(eng, RHO, POWER, HEIGHT, CONE - 3.0).reshape(est.shape) > 0.0
+    inside = spot_plane(eng, **{**SPOT, "cone_degrees": SPOT["cone_degrees"] - 3.0}).reshape(est.shape) > 0.0
     rel = est[inside] / truth[inside] - 1.0
     assert inside.sum() > 500 and np.abs(rel).max() < 0.03, (inside.sum(), np.abs(rel).max())
     assert abs(est.mean() / truth.mean() - 1.0) < 0.01, (est.mean(), truth.mean())

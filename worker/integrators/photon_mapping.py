@@ -22,11 +22,12 @@ from worker.stats import Accumulators
 # S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; Ld: directly seen
 # emission (rgb); H: passes with a measurement point. Then the error estimator's sums
 # (only for jobs that estimate their error): G the Laplacian, X1 and X2 the bias-corrected
-# per-pass samples and their squares, L2 the squared per-pass Laplacians; with direct light
-# by next-event estimation (`direct: nee`), Ld2 the squared luminance of each pass's Ld
-# sample (its variance enters the error bound).
+# per-pass samples and their squares, L2 the squared per-pass Laplacians, Dh and Dh2 the
+# per-pass change of the luminance estimate from radius r/2 to r and its square; with
+# direct light by next-event estimation (`direct: nee`), Ld2 the squared luminance of each
+# pass's Ld sample (its variance enters the error bound).
 PHOTON_SUMS = (("S", 3), ("D", 1), ("Ld", 3), ("H", 1))
-ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1))
+ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1), ("Dh", 1), ("Dh2", 1))
 NEE_ERROR_SUMS = (("Ld2", 1),)
 
 
@@ -84,7 +85,8 @@ class PhotonMapping(Integrator):
     def estimate(self, state: Accumulators) -> ErrorEstimate | None:
         if not self.settings.error_estimation:
             return None
-        return estimate(state, self.settings.confidence, self.settings.bias_constant)
+        return estimate(state, self.settings.confidence, self.settings.bias_constant,
+                        discontinuities=self.settings.gather == "exact")
 
 
 class ProgressivePhotonMapping(PhotonMapping):

@@ -227,7 +227,7 @@ class PhotonMappingPasses:
             return np.array([_pack_dir(d) for d in dirs], np.uint32).view(np.float32)
 
         nrm = packed(photon_dir if photon_normal is None else photon_normal)
-        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals)),
+        for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals, 1.0)),
                           (self.mp_wgt, f4(np.ones((n, 3)), 1.0)),
                           (self.ph_pos, f4(photon_pos, nrm)), (self.ph_flux, f4(photon_flux, packed(photon_dir))),
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
