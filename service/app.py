@@ -20,7 +20,7 @@ from typing import Annotated, Any, AsyncIterator, Callable, Literal
 import cachetools
 import numpy as np
 import redis
-from fastapi import FastAPI, HTTPException, Query, Request, Response, Security
+from fastapi import FastAPI, File, Form, HTTPException, Query, Request, Response, Security, UploadFile
 from fastapi import Path as PathParam
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
@@ -29,15 +29,17 @@ from fastapi.security import HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
+from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.metrics import metrics_text, workers
 from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, ErrorBody, JobLinks, JobRequest,
-                            JobView, SceneSummary)
+                            JobSettings, JobView, SceneSummary)
+from service.upload import UploadError, Unpacker, scene_path
 from worker.image_io import error_colours, write_image
 from worker.outputs import write_render
-from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, SceneError, bundled_scene_names,
-                          bundled_scene_path, inline_meshes, load_scene_file, parse_scene)
+from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, Scene, SceneError, bundled_scene_names,
+                          bundled_scene_path, inline_meshes, load_any_scene, load_scene_file, parse_scene)
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
@@ -254,34 +256,87 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         except SceneError as exc:
             raise HTTPException(404, detail=exc.message) from None
 
-    @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
-              responses=errors(*auth, 413, 422))
-    def submit(body: JobRequest, response: Response) -> JobView:
+    def create_job(parsed: Scene, base_dir: Path, root: Path, settings: JobSettings, scene_name: str | None,
+                   scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
+        """The one way a job is made (JSON body or upload): inline the meshes and check the
+        geometry, check the pixels, store the job, issue its batches."""
         try:
-            if body.scene_name is not None:
-                parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
-            else:
-                parsed, base_dir = parse_scene(body.scene), SCENES_DIR
-            scene_json = inline_meshes(parsed, base_dir)
+            scene_json = inline_meshes(parsed, base_dir, root)
         except SceneError as exc:
-            if body.scene_name is not None:
-                raise _unprocessable(["body", "scene_name"], exc.message) from None
-            loc = ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
-            raise _unprocessable(loc, exc.message) from None
-        settings = body.settings
+            raise _unprocessable(scene_loc(exc), exc.message) from None
         width, height = settings.resolution or parsed.camera.resolution
         if width * height > MAX_SERVICE_PIXELS:
-            raise _unprocessable(["body", "scene", "camera", "resolution"],
+            raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
         try:
-            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, body.scene_name,
+            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, scene_name,
                                  max_active=MAX_ACTIVE_JOBS)
         except JobLimitReached as exc:
             raise _unprocessable(["body"], str(exc)) from None
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
-        log.info(f"job submitted: {body.scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
+        log.info(f"job submitted: {scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
         return job_view(jobs, jobs.get(job_id))
+
+    @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
+              responses=errors(*auth, 413, 422))
+    def submit(body: JobRequest, response: Response) -> JobView:
+        if body.scene_name is not None:
+            def scene_loc(_: SceneError) -> list[str | int]:
+                return ["body", "scene_name"]
+        else:
+            def scene_loc(exc: SceneError) -> list[str | int]:
+                return ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
+        try:
+            if body.scene_name is not None:
+                parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
+            else:
+                parsed, base_dir = parse_scene(body.scene), SCENES_DIR
+        except SceneError as exc:
+            raise _unprocessable(scene_loc(exc), exc.message) from None
+        return create_job(parsed, base_dir, SCENES_DIR, body.settings, body.scene_name, scene_loc, response)
+
+    @app.post("/v1/jobs/upload", status_code=201, response_model=JobView, dependencies=secured,
+              responses=errors(*auth, 413, 422))
+    def submit_upload(response: Response,
+                      scene: Annotated[str, Form(description="the scene file inside the upload (.json or .xml)")],
+                      archive: Annotated[UploadFile | None, File(description=".zip or .tar.gz of the scene "
+                                                                             "and its meshes")] = None,
+                      files: Annotated[list[UploadFile] | None, File(description="the scene and its meshes, "
+                                                                                 "each named by its path")] = None,
+                      settings: Annotated[str, Form(description="JobSettings as JSON")] = "{}") -> JobView:
+        """A scene file with its mesh files (and included XML files) in one upload: an archive
+        or several files. Limits apply to the unpacked upload (README, "Limits"); every file
+        the scene names must lie inside it."""
+        try:
+            job_settings = JobSettings.model_validate_json(settings)
+        except ValidationError as exc:
+            raise HTTPException(422, detail=[{"loc": ["body", "settings", *e["loc"]], "msg": e["msg"],
+                                              "type": e["type"]} for e in exc.errors()]) from None
+        if (archive is None) == (not files):
+            raise _unprocessable(["body", "archive"], "give exactly one of archive and files")
+        with tempfile.TemporaryDirectory(prefix="photonfarm-upload-") as tmp:  # mode 0700
+            root = Path(tmp).resolve()
+            unpacker = Unpacker(root)
+            try:
+                if archive is not None:
+                    unpacker.add("archive", archive.filename or "archive", archive.file)
+                else:
+                    for upload in files or []:
+                        unpacker.write("files", upload.filename or "", upload.file)
+                path = scene_path(root, scene)
+            except UploadError as exc:
+                if exc.status == 413:
+                    raise HTTPException(413, detail=exc.message) from None
+                raise _unprocessable(["body", exc.field], exc.message) from None
+
+            def scene_loc(exc: SceneError) -> list[str | int]:
+                return ["body", "scene", *([exc.field] if exc.field else [])]
+            try:
+                parsed, base_dir = load_any_scene(path, root=root)
+            except SceneError as exc:
+                raise _unprocessable(scene_loc(exc), exc.message) from None
+            return create_job(parsed, base_dir, root, job_settings, None, scene_loc, response)
 
     @app.get("/v1/jobs", response_model=list[JobView], dependencies=secured, responses=errors(*auth, 422))
     def list_jobs(response: Response, offset: int = Query(0, ge=0),
