@@ -10,6 +10,7 @@ import datetime as dt
 import hmac
 import json
 import logging
+import math
 import os
 import tempfile
 import threading
@@ -34,7 +35,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.metrics import metrics_text, workers
 from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, ErrorBody, JobLinks, JobRequest,
-                            JobSettings, JobView, SceneSummary)
+                            JobSettings, JobView, PixelView, SceneSummary)
 from service.upload import UploadError, Unpacker, scene_path
 from worker.image_io import error_colours, write_image
 from worker.outputs import write_render
@@ -49,6 +50,7 @@ from worker.store.record import JobLimitReached
 log = logging.getLogger("photonfarm.api")
 # Repeated reads come from memory, so pollers do not take CPU from the workers on a shared host:
 ENCODED_CACHE_BYTES = 64 * 1024 * 1024  # encoded images and error maps, by (job, passes merged, format)
+PIXEL_CACHE_JOBS = 2  # jobs whose per-pixel estimate and error are kept for GET .../pixel (cursor readouts)
 METRICS_SECONDS = 1.0  # a /metrics scrape reads every job from Redis at most this often
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 DOCS_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files, served from the fastapi-offline package
@@ -201,6 +203,20 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
         return body, {"X-Passes": str(record.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
+
+    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.passes),
+                       condition=threading.Condition())
+    def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
+        """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
+        state = jobs.state(record)
+        if state is None:
+            return None
+        shape = (record.height, record.width)
+        arrays = {"rgb": record.integrator.image(state).reshape(*shape, 3)}
+        est = record.integrator.estimate(state)
+        if est is not None:
+            arrays |= {name: getattr(est, name).reshape(shape) for name in ("luminance", "bound", "relative", "measured")}
+        return arrays
 
     @cachetools.cached(cachetools.TTLCache(maxsize=1, ttl=METRICS_SECONDS), key=lambda: "metrics",
                        condition=threading.Condition())
@@ -376,6 +392,28 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
         body, headers = error_body(existing(job_id), format)
         return Response(body, media_type=MEDIA[format], headers=headers)
+
+    @app.get("/v1/jobs/{job_id}/pixel", response_model=PixelView, dependencies=secured,
+             responses=errors(*auth, 404, 409, 422))
+    def pixel(job_id: str, x: int = Query(ge=0), y: int = Query(ge=0)) -> PixelView:
+        """One pixel's linear RGB and its error bound, from the job's current state (the PNG
+        is tone-mapped and browsers read no EXR): the viewer's readout under the cursor."""
+        record = existing(job_id)
+        if x >= record.width:
+            raise _unprocessable(["query", "x"], f"x must be below the width, {record.width}")
+        if y >= record.height:
+            raise _unprocessable(["query", "y"], f"y must be below the height, {record.height}")
+        arrays = pixel_arrays(record)
+        if arrays is None:
+            raise HTTPException(409, detail="no pass merged yet")
+
+        def value(name: str) -> float | None:  # none where unknown (an infinite bound) or not estimated
+            v = float(arrays[name][y, x]) if name in arrays else math.nan
+            return v if math.isfinite(v) else None
+        return PixelView(x=x, y=y, passes=record.passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
+                         luminance=value("luminance"), bound=value("bound"), relative_error=value("relative"),
+                         measured=bool(arrays["measured"][y, x]) if "measured" in arrays else None,
+                         confidence=record.settings.confidence if "relative" in arrays else None)
 
     return app
 
