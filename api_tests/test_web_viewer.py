@@ -129,6 +129,7 @@ def test_job_from_the_page_converges_with_a_live_image_and_chart(page) -> None: 
     _submit(page, "cornell-caustics", **{"#set-error_threshold": "0.1", "#set-resolution": "96x96"})
     page.wait_for_function("Number(document.querySelector('#image').dataset.passes || 0) >= 1", timeout=60_000)
     shown = page.get_attribute("#image", "data-passes")
+    assert page.is_visible("#image") and not page.is_visible("#no-image")  # the image replaced the note
     first = page.locator("#image").screenshot()
     _shot(page, "running")
     page.wait_for_function(f"Number(document.querySelector('#image').dataset.passes) > {shown}", timeout=60_000)
@@ -222,6 +223,11 @@ def test_zoom_1to1_and_the_pixel_under_the_cursor(page, cluster, tmp_path: Path)
     text = page.text_content("#pixel-readout")
     assert f"x {x}, y {y}: RGB" in text and "relative error" in text and "at 90% confidence" in text, text
     _shot(page, "zoom-1to1-readout")
+    page.select_option("#zoom", "fit")  # fit: as wide as the panel allows, up to 512 px
+    fit = page.locator("#image").bounding_box()
+    assert fit["width"] == 512 and fit["height"] == 512 * job["height"] / job["width"], fit
+    page.select_option("#zoom", "4")
+    assert page.locator("#image").bounding_box()["width"] == 4 * job["width"]
     page.select_option("#zoom", "fit")
 
 
@@ -260,6 +266,7 @@ def test_workers_eta_and_cancel_from_the_page(page, cluster) -> None:  # noqa: A
                                                      f" === '{short}').map(r => r.querySelector('td.batch').textContent)")
     assert batch and batch[0] != "-"
     # ETA from the 300 s budget: between 0 and 300 s, and what the client says of the same view
+    assert page.text_content("#status") == "running", page.text_content("#facts")
     eta = float(page.get_attribute("#eta", "data-seconds"))
     assert 0 < eta < 300 and re.fullmatch(r"\d+ s", page.text_content("#eta"))
     assert math.isclose(eta, eta_seconds(page.evaluate("state.job")), rel_tol=1e-9)

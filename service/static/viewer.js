@@ -214,6 +214,7 @@ function select(id) {
   $("placeholder").hidden = Boolean(id);
   $("job-panel").hidden = !id;
   $("image").hidden = true;
+  for (const key of ["passes", "view", "exposure"]) delete $("image").dataset[key];
   $("no-image").hidden = false;
   $("pixel-readout").textContent = "Point at the image for a pixel's linear RGB and its error.";
 }
