@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import stat
 import subprocess
 import sys
@@ -155,6 +156,14 @@ def test_a_bad_upload_gets_one_clear_error_and_the_service_serves_on(cluster: Cl
     _still_serving(cluster)
 
 
+def test_a_malformed_form_is_422_naming_the_body(cluster: Cluster) -> None:
+    resp = cluster.http.post("/v1/jobs/upload", content=b"--x\r\nnot a part",
+                             headers={"content-type": "multipart/form-data"})  # no boundary
+    assert resp.status_code == 422 and resp.json()["detail"][0]["loc"] == ["body"], resp.text
+    assert "not a readable form" in resp.json()["detail"][0]["msg"]
+    _still_serving(cluster)
+
+
 def test_an_archive_that_unpacks_past_the_limit_is_refused_413(cluster: Cluster) -> None:
     """A zip bomb: a small archive (about 130 KB) of zeros that unpacks past the byte limit."""
     buf = io.BytesIO()
@@ -192,6 +201,14 @@ def test_photonfarm_submit_sends_a_scene_with_its_obj_beside_it(cluster: Cluster
     assert run.returncode == 0, run.stderr
     assert "completed: 2 passes, 8192 photons" in run.stdout, run.stdout
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # A Mitsuba scene goes as an upload too, with the XML it includes and its meshes.
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(MITSUBA / "obj-mesh.xml"),
+                          "--url", str(cluster.http.base_url), "--max-passes", "2", "--photons-per-pass", "4096",
+                          "--resolution", "16x16"], capture_output=True, text=True, timeout=60, env=cluster.env)
+    assert run.returncode == 0, run.stderr
+    job_id = re.match(r"job (\S+) ", run.stdout).group(1)
+    done = cluster.wait(job_id, finished, timeout=180)
+    assert done["status"] == "completed" and done["photons"] == 2 * 4096, done
     # The same scene without its mesh beside it is refused by the service, naming the mesh.
     (folder / "gem.obj").unlink()
     run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(folder / "scene.json"),

@@ -161,11 +161,16 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         # FastAPI answers 400 for a body json.loads cannot take: undecodable bytes
-        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError).
-        if exc.status_code == 400 and isinstance(exc.__cause__, (ValueError, RecursionError)):
-            reason = "nested too deeply" if isinstance(exc.__cause__, RecursionError) else "not UTF-8 JSON"
-            return JSONResponse({"detail": [{"loc": ["body"], "msg": f"body is {reason}", "type": "json_invalid"}]},
-                                422)
+        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError);
+        # Starlette for a malformed multipart form (its reason in the detail).
+        if exc.status_code == 400:
+            if isinstance(exc.__cause__, RecursionError):
+                reason, kind = "body is nested too deeply", "json_invalid"
+            elif isinstance(exc.__cause__, ValueError):
+                reason, kind = "body is not UTF-8 JSON", "json_invalid"
+            else:
+                reason, kind = f"body is not a readable form: {exc.detail}", "form_invalid"
+            return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
         return await http_exception_handler(request, exc)
 
     # Encoded bodies keyed by the passes merged: a new merge makes a new key, so nothing stale
