@@ -54,6 +54,14 @@ def _zip_link(name: str, target: str) -> bytes:
     return buf.getvalue()
 
 
+def _encrypted_zip(name: str, data: bytes) -> bytes:
+    """A zip whose member says it is encrypted (flag bit 0): no password is ever sent."""
+    raw = bytearray(_zip({name: data}))
+    for signature, flags_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):  # local and central headers
+        raw[raw.index(signature) + flags_at] |= 0x1
+    return bytes(raw)
+
+
 def _tar(entries: dict[str, bytes], links: dict[str, str] | None = None) -> bytes:
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as t:
@@ -141,6 +149,10 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
                                     "not in the upload"),
         "not an archive": ({"archive": ("a.zip", b"PK\x03\x04 not a zip")}, 422, ["body", "archive"],
                            "not a readable archive"),
+        "truncated archive": ({"archive": ("a.tar.gz", _tar({"s.xml": hair, "room.xml": room})[:200])}, 422,
+                              ["body", "archive"], "not a readable archive"),
+        "encrypted zip": ({"archive": ("a.zip", _encrypted_zip("s.xml", hair))}, 422, ["body", "archive"],
+                          "not a readable archive"),
         "bad settings": ({"files": {"s.xml": hair}, "settings": {"alpha": 7}}, 422, ["body", "settings", "alpha"],
                          "less than"),
     }

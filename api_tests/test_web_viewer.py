@@ -231,6 +231,18 @@ def test_zoom_1to1_and_the_pixel_under_the_cursor(page, cluster, tmp_path: Path)
     page.select_option("#zoom", "fit")
 
 
+def test_the_pixel_endpoint_names_a_bad_coordinate(page, cluster) -> None:  # noqa: ANN001
+    job = page.evaluate("state.job")
+    link = f"/v1/jobs/{job['id']}/pixel"
+    for query, field in (({"x": job["width"], "y": 0}, "x"), ({"x": 0, "y": job["height"]}, "y"),
+                         ({"x": -1, "y": 0}, "x"), ({"x": 0}, "y")):
+        resp = cluster.http.get(link, params=query)
+        assert resp.status_code == 422 and resp.json()["detail"][0]["loc"] == ["query", field], resp.text
+    assert cluster.http.get("/v1/jobs/nonesuch/pixel", params={"x": 0, "y": 0}).status_code == 404
+    last = cluster.http.get(link, params={"x": job["width"] - 1, "y": job["height"] - 1}).json()
+    assert last["passes"] == job["passes"] and len(last["rgb"]) == 3
+
+
 def test_eta_is_the_clients(page) -> None:  # noqa: ANN001
     """The page's ETA against service/client.py's on the same job views."""
     history = [{"passes": i, "photons": 1000 * i, "seconds": 0.5 * i, "error": 0.4 * (0.5 * i) ** -0.5}

@@ -7,6 +7,8 @@ absolute paths, no `..`, no links or devices. Nested archives are stored, not un
 
 from __future__ import annotations
 
+import gzip
+import lzma
 import stat
 import tarfile
 import zipfile
@@ -93,8 +95,8 @@ class Unpacker:
                 self._tar(field, source)
             else:
                 self.write(field, name, source)
-        except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, zlib.error, EOFError,
-                NotImplementedError) as exc:
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, zlib.error, gzip.BadGzipFile,
+                lzma.LZMAError, EOFError, NotImplementedError, RuntimeError) as exc:  # RuntimeError: encrypted zip
             raise UploadError(field, f"{name[:80]!r} is not a readable archive: {exc}") from None
 
     def _zip(self, field: str, source: BinaryIO) -> None:
