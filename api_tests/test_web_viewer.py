@@ -88,6 +88,7 @@ def test_start_state_has_no_broken_images_or_empty_frames(page) -> None:  # noqa
                    : e.tagName === 'CANVAS' ? e.width === 0 || !e.dataset.passes : e.childElementCount === 0)
         .map(e => e.id)""")
     assert blank == []
+    page.wait_for_function("document.querySelector('#jobs-range').textContent !== ''")  # the first poll
     assert page.text_content("#jobs-range") == "none yet"
     _shot(page, "start")
 
