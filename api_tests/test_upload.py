@@ -151,6 +151,8 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
                            "not a readable archive"),
         "truncated archive": ({"archive": ("a.tar.gz", _tar({"s.xml": hair, "room.xml": room})[:200])}, 422,
                               ["body", "archive"], "not a readable archive"),
+        "archive of no known kind": ({"archive": ("scene.rar", b"Rar!")}, 422, ["body", "archive"],
+                                     "an archive is a .zip"),
         "encrypted zip": ({"archive": ("a.zip", _encrypted_zip("s.xml", hair))}, 422, ["body", "archive"],
                           "not a readable archive"),
         "bad settings": ({"files": {"s.xml": hair}, "settings": {"alpha": 7}}, 422, ["body", "settings", "alpha"],

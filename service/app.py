@@ -302,12 +302,10 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
               responses=errors(*auth, 413, 422))
     def submit(body: JobRequest, response: Response) -> JobView:
-        if body.scene_name is not None:
-            def scene_loc(_: SceneError) -> list[str | int]:
+        def scene_loc(exc: SceneError) -> list[str | int]:
+            if body.scene_name is not None:
                 return ["body", "scene_name"]
-        else:
-            def scene_loc(exc: SceneError) -> list[str | int]:
-                return ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
+            return ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
         try:
             if body.scene_name is not None:
                 parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
@@ -341,7 +339,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             unpacker = Unpacker(root)
             try:
                 if archive is not None:
-                    unpacker.add("archive", archive.filename or "archive", archive.file)
+                    unpacker.unpack("archive", archive.filename or "", archive.file)
                 else:
                     for upload in files or []:
                         unpacker.write("files", upload.filename or "", upload.file)

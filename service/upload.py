@@ -3,7 +3,7 @@ several files, unpacked into a private temporary folder that the scene is then r
 
 Limits apply to what is unpacked, counted as it is written (an archive's headers are never
 trusted, so a zip bomb stops at the limit), and every name must stay inside the folder: no
-absolute paths, no `..`, no links or devices. Nested archives are stored, not unpacked."""
+absolute paths, no `..`, no links or devices. Archives inside an archive are stored, not unpacked."""
 
 from __future__ import annotations
 
@@ -85,8 +85,8 @@ class Unpacker:
                     raise UploadError(field, f"unpacked upload larger than {MAX_UPLOAD_BYTES} bytes", 413)
                 out.write(chunk)
 
-    def add(self, field: str, name: str, source: BinaryIO) -> None:
-        """A file as uploaded: an archive (by its name) is unpacked into the root, others stored."""
+    def unpack(self, field: str, name: str, source: BinaryIO) -> None:
+        """An archive, by the suffix of its name, unpacked into the root."""
         lower = name.lower()
         try:
             if lower.endswith(ZIP_SUFFIXES):
@@ -94,7 +94,7 @@ class Unpacker:
             elif lower.endswith(TAR_SUFFIXES):
                 self._tar(field, source)
             else:
-                self.write(field, name, source)
+                raise UploadError(field, f"{name[:80]!r}: an archive is a .zip, .tar.gz, .tgz or .tar file")
         except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, zlib.error, gzip.BadGzipFile,
                 lzma.LZMAError, EOFError, NotImplementedError, RuntimeError) as exc:  # RuntimeError: encrypted zip
             raise UploadError(field, f"{name[:80]!r} is not a readable archive: {exc}") from None
