@@ -230,3 +230,14 @@ def test_photonfarm_submit_sends_a_scene_with_its_obj_beside_it(cluster: Cluster
                          env=cluster.env)
     assert run.returncode != 0 and "HTTP 422" in run.stderr and "gem.obj" in run.stderr, run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_submit_refuses_a_folder_past_the_upload_limits_in_one_line(cluster: Cluster, tmp_path: Path) -> None:
+    for i in range(MAX_UPLOAD_FILES + 1):
+        (tmp_path / f"m{i}.obj").write_text("")
+    (tmp_path / "scene.xml").write_text("<scene version='3.0.0'/>")
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(tmp_path / "scene.xml"),
+                          "--url", str(cluster.http.base_url)], capture_output=True, text=True, timeout=60,
+                         env=cluster.env)
+    assert run.returncode != 0 and "put the scene in a folder of its own" in run.stderr, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1

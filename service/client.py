@@ -70,12 +70,18 @@ def scene_folder_files(scene_file: Path) -> list[tuple[str, Path]]:
     its folder and below, by path relative to it, within the service's upload limits. The
     service reads only what the scene names, and only inside this upload."""
     folder = scene_file.resolve().parent
-    found = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in UPLOAD_SUFFIXES
-                   and not any(part.startswith(".") for part in p.relative_to(folder).parts))
-    if len(found) > MAX_UPLOAD_FILES or sum(p.stat().st_size for p in found) > MAX_BODY_BYTES:
-        raise ClientError(f"{folder} holds more scene and mesh files than one upload takes "
-                          f"({MAX_UPLOAD_FILES} files, {MAX_BODY_BYTES} bytes): put the scene in a folder of its own")
-    return [(p.relative_to(folder).as_posix(), p) for p in found]
+    found: list[Path] = []
+    size = 0
+    for path in folder.rglob("*"):  # stops at the limits, so a large folder is not walked through
+        if path.suffix.lower() not in UPLOAD_SUFFIXES or not path.is_file() \
+                or any(part.startswith(".") for part in path.relative_to(folder).parts):
+            continue
+        found.append(path)
+        size += path.stat().st_size
+        if len(found) > MAX_UPLOAD_FILES or size > MAX_BODY_BYTES:
+            raise ClientError(f"{folder} holds more scene and mesh files than one upload takes ({MAX_UPLOAD_FILES} "
+                              f"files, {MAX_BODY_BYTES} bytes): put the scene in a folder of its own")
+    return [(path.relative_to(folder).as_posix(), path) for path in sorted(found)]
 
 
 def _post_job(client: "Client", args: argparse.Namespace) -> dict[str, Any]:
