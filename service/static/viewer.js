@@ -194,13 +194,16 @@ function ago(seconds) {
   return `${(seconds / 3600).toFixed(1)} h ago`;
 }
 
+// A worker's heartbeat keeps the job and batch it rendered last: greyed while it is not busy.
+const lastWork = (w) => (w.state === "busy" ? "" : ` title="its last job and batch (the worker is ${escape(w.state)})"`);
+
 async function loadWorkers() {
   const workers = await (await api("/v1/workers")).json();
   $("workers").querySelector("tbody").innerHTML = workers.map((w) => `
     <tr class="${w.alive ? "" : "gone"}" data-name="${escape(w.name)}">
       <td class="host">${escape(w.hostname)}</td><td>${w.pid}</td><td class="state">${escape(w.state)}${w.alive ? "" : " (gone)"}</td>
       <td class="beat">${ago(w.last_seen_seconds_ago)}</td>
-      <td class="job">${w.job ? w.job.slice(0, 8) : "-"}</td><td class="batch">${escape(w.batch || "-")}</td>
+      <td class="job"${lastWork(w)}>${w.job ? w.job.slice(0, 8) : "-"}</td><td class="batch"${lastWork(w)}>${escape(w.batch || "-")}</td>
     </tr>`).join("");
   $("workers-count").textContent = `${workers.filter((w) => w.alive).length} alive`;
 }
