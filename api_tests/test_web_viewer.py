@@ -354,6 +354,14 @@ def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> 
     page.wait_for_function("document.querySelector('#submit-error').textContent.includes('unknown bsdf plugin')")
     assert page.text_content("#submit-error").startswith("HTTP 422: scene.bad.xml: line")
     _shot(page, "upload-error")
+    # a folder: its files go by their paths inside it (the folder's name first)
+    page.set_input_files("#upload-folder", MITSUBA)
+    assert page.eval_on_selector("#upload-files", "e => e.files.length") == 0  # the folder replaced the files
+    assert page.input_value("#upload-scene") == ""  # three scenes in the folder: the user names one
+    page.fill("#upload-scene", "mitsuba/obj-mesh.xml")
+    short = _click_render(page)
+    _status(page, "completed")
+    assert cluster.http.get(f"/v1/jobs/{_full_id(cluster, short)}").json()["photons"] == 3 * 4096
     page.check("input[name=source][value=bundled]")
 
 

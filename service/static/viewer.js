@@ -101,13 +101,16 @@ function uploadedFiles() {
   return files.map((file) => ({ file, name: file.webkitRelativePath || file.name }));
 }
 
-function guessSceneFile() {
+// Choosing files (or a folder) replaces the other choice and picks the upload; the scene
+// file is filled in when the choice holds exactly one.
+function chooseUpload(other) {
+  $(other).value = "";
   const scenes = uploadedFiles().filter((f) => SCENE_FILE.test(f.name));
   document.querySelector("input[name=source][value=upload]").checked = true;
-  if (scenes.length === 1 && !$("upload-scene").value) $("upload-scene").value = scenes[0].name;
+  $("upload-scene").value = scenes.length === 1 ? scenes[0].name : "";
 }
-$("upload-files").addEventListener("change", guessSceneFile);
-$("upload-folder").addEventListener("change", guessSceneFile);
+$("upload-files").addEventListener("change", () => chooseUpload("upload-folder"));
+$("upload-folder").addEventListener("change", () => chooseUpload("upload-files"));
 
 // The same request as the API's POST /v1/jobs/upload: an archive, or files named by their paths.
 function uploadBody(settings) {
