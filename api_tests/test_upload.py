@@ -62,9 +62,15 @@ def _encrypted_zip(name: str, data: bytes) -> bytes:
     return bytes(raw)
 
 
-def _tar(entries: dict[str, bytes], links: dict[str, str] | None = None) -> bytes:
+def _tar(entries: dict[str, bytes], links: dict[str, str] | None = None, top: bool = False,
+         folders: list[str] | None = None) -> bytes:
+    """A .tar.gz; `top` adds the "./" folder entry that `tar -C DIR .` writes first."""
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as t:
+        for name in (["./"] if top else []) + (folders or []):
+            folder = tarfile.TarInfo(name)
+            folder.type = tarfile.DIRTYPE
+            t.addfile(folder)
         for name, data in entries.items():
             info = tarfile.TarInfo(name)
             info.size = len(data)
@@ -92,13 +98,17 @@ def _still_serving(c: Cluster) -> None:
     assert c.http.get("/v1/jobs").status_code == 200
 
 
-@pytest.mark.parametrize("form", ["zip", "tar.gz", "files"])
+@pytest.mark.parametrize("form", ["zip", "tar.gz", "tar.gz of ./", "files"])
 def test_mitsuba_xml_with_its_ply_renders_to_the_exact_totals(cluster: Cluster, form: str) -> None:
     entries = _files(PLY_SCENE)
     if form == "files":
         resp = _upload(cluster, "ply-mesh.xml", files=entries)
+    elif form == "zip":
+        resp = _upload(cluster, "ply-mesh.xml", archive=("scene.zip", _zip(entries)))
     else:
-        resp = _upload(cluster, "ply-mesh.xml", archive=(f"scene.{form}", (_zip if form == "zip" else _tar)(entries)))
+        dot = form == "tar.gz of ./"
+        archive = _tar({f"./{name}" if dot else name: data for name, data in entries.items()}, top=dot)
+        resp = _upload(cluster, "ply-mesh.xml", archive=("scene.tar.gz", archive))
     assert resp.status_code == 201, resp.text
     job = resp.json()
     assert resp.headers["location"] == f"/v1/jobs/{job['id']}"
@@ -138,6 +148,8 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
                                          ["body", "scene", "s.xml"], "leaves the scene's directory"),
         "archive entry with ..": ({"archive": ("a.zip", _zip({"s.xml": hair, "../evil.ply": ply}))}, 422,
                                   ["body", "archive"], "outside the upload"),
+        "archive folder ..": ({"archive": ("a.tar.gz", _tar({"s.xml": hair}, folders=["../"]))}, 422,
+                              ["body", "archive"], "outside the upload"),
         "absolute archive entry": ({"archive": ("a.tar.gz", _tar({"/tmp/evil.ply": ply}))}, 422,
                                    ["body", "archive"], "outside the upload"),
         "symlink in the archive": ({"archive": ("a.tar.gz", _tar({"s.xml": hair}, {"m.ply": "/etc/passwd"}))}, 422,

@@ -65,6 +65,8 @@ class Unpacker:
 
     def folder(self, field: str, name: str) -> None:
         self._count_entry(field)
+        if name and not PurePosixPath(name).parts:  # "./", the archive's own top (tar -C DIR .)
+            return
         (self.root / relative_name(field, name)).mkdir(parents=True, exist_ok=True)
 
     def write(self, field: str, name: str, source: BinaryIO) -> None:
