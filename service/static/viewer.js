@@ -216,7 +216,10 @@ function select(id) {
   state.selected = id;
   state.shownPasses = -1;
   state.bitmap = null;
+  state.job = null;
   $("job-id").textContent = id ? id.slice(0, 8) : "-";
+  $("status").textContent = "";
+  for (const button of ["cancel", "delete", "download-png", "download-exr"]) $(button).disabled = true;
   $("placeholder").hidden = Boolean(id);
   $("job-panel").hidden = !id;
   $("image").hidden = true;
