@@ -313,7 +313,7 @@ def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
     assert first == everything[:5] and page.is_disabled("#prev")
     _shot(page, "job-list-page-1")
     page.click("#next")
-    page.wait_for_function(f"document.querySelector('#jobs-range').textContent.startsWith('6-')")
+    page.wait_for_function("document.querySelector('#jobs-range').textContent.startsWith('6-')")
     second = page.eval_on_selector_all("#jobs tr[data-id]", "rows => rows.map(r => r.dataset.id)")
     assert second == everything[5:10] and page.is_enabled("#prev")
     page.click("#prev")
