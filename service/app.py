@@ -10,6 +10,7 @@ import datetime as dt
 import hmac
 import json
 import logging
+import math
 import os
 import tempfile
 import threading
@@ -20,7 +21,7 @@ from typing import Annotated, Any, AsyncIterator, Callable, Literal
 import cachetools
 import numpy as np
 import redis
-from fastapi import FastAPI, HTTPException, Query, Request, Response, Security
+from fastapi import FastAPI, File, Form, HTTPException, Query, Request, Response, Security, UploadFile
 from fastapi import Path as PathParam
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
@@ -29,15 +30,17 @@ from fastapi.security import HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
+from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.metrics import metrics_text, workers
 from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, ErrorBody, JobLinks, JobRequest,
-                            JobView, SceneSummary)
+                            JobSettings, JobView, PixelView, SceneSummary)
+from service.upload import UploadError, Unpacker, scene_path
 from worker.image_io import error_colours, write_image
 from worker.outputs import write_render
-from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, SceneError, bundled_scene_names,
-                          bundled_scene_path, inline_meshes, load_scene_file, parse_scene)
+from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, Scene, SceneError, bundled_scene_names,
+                          bundled_scene_path, inline_meshes, load_any_scene, load_scene_file, parse_scene)
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
@@ -47,6 +50,7 @@ from worker.store.record import JobLimitReached
 log = logging.getLogger("photonfarm.api")
 # Repeated reads come from memory, so pollers do not take CPU from the workers on a shared host:
 ENCODED_CACHE_BYTES = 64 * 1024 * 1024  # encoded images and error maps, by (job, passes merged, format)
+PIXEL_CACHE_JOBS = 2  # jobs whose per-pixel estimate and error are kept for GET .../pixel (cursor readouts)
 METRICS_SECONDS = 1.0  # a /metrics scrape reads every job from Redis at most this often
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 DOCS_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files, served from the fastapi-offline package
@@ -157,11 +161,16 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         # FastAPI answers 400 for a body json.loads cannot take: undecodable bytes
-        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError).
-        if exc.status_code == 400 and isinstance(exc.__cause__, (ValueError, RecursionError)):
-            reason = "nested too deeply" if isinstance(exc.__cause__, RecursionError) else "not UTF-8 JSON"
-            return JSONResponse({"detail": [{"loc": ["body"], "msg": f"body is {reason}", "type": "json_invalid"}]},
-                                422)
+        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError);
+        # Starlette for a malformed multipart form (its reason in the detail).
+        if exc.status_code == 400:
+            if isinstance(exc.__cause__, RecursionError):
+                reason, kind = "body is nested too deeply", "json_invalid"
+            elif isinstance(exc.__cause__, ValueError):
+                reason, kind = "body is not UTF-8 JSON", "json_invalid"
+            else:
+                reason, kind = f"body is not a readable form: {exc.detail}", "form_invalid"
+            return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
         return await http_exception_handler(request, exc)
 
     # Encoded bodies keyed by the passes merged: a new merge makes a new key, so nothing stale
@@ -199,6 +208,20 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
         return body, {"X-Passes": str(record.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
+
+    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.passes),
+                       condition=threading.Condition())
+    def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
+        """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
+        state = jobs.state(record)
+        if state is None:
+            return None
+        shape = (record.height, record.width)
+        arrays = {"rgb": record.integrator.image(state).reshape(*shape, 3)}
+        est = record.integrator.estimate(state)
+        if est is not None:
+            arrays |= {name: getattr(est, name).reshape(shape) for name in ("luminance", "bound", "relative", "measured")}
+        return arrays
 
     @cachetools.cached(cachetools.TTLCache(maxsize=1, ttl=METRICS_SECONDS), key=lambda: "metrics",
                        condition=threading.Condition())
@@ -254,34 +277,85 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         except SceneError as exc:
             raise HTTPException(404, detail=exc.message) from None
 
-    @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
-              responses=errors(*auth, 413, 422))
-    def submit(body: JobRequest, response: Response) -> JobView:
+    def create_job(parsed: Scene, base_dir: Path, root: Path, settings: JobSettings, scene_name: str | None,
+                   scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
+        """The one way a job is made (JSON body or upload): inline the meshes and check the
+        geometry, check the pixels, store the job, issue its batches."""
         try:
-            if body.scene_name is not None:
-                parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
-            else:
-                parsed, base_dir = parse_scene(body.scene), SCENES_DIR
-            scene_json = inline_meshes(parsed, base_dir)
+            scene_json = inline_meshes(parsed, base_dir, root)
         except SceneError as exc:
-            if body.scene_name is not None:
-                raise _unprocessable(["body", "scene_name"], exc.message) from None
-            loc = ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
-            raise _unprocessable(loc, exc.message) from None
-        settings = body.settings
+            raise _unprocessable(scene_loc(exc), exc.message) from None
         width, height = settings.resolution or parsed.camera.resolution
         if width * height > MAX_SERVICE_PIXELS:
-            raise _unprocessable(["body", "scene", "camera", "resolution"],
+            raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
         try:
-            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, body.scene_name,
+            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, scene_name,
                                  max_active=MAX_ACTIVE_JOBS)
         except JobLimitReached as exc:
             raise _unprocessable(["body"], str(exc)) from None
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
-        log.info(f"job submitted: {body.scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
+        log.info(f"job submitted: {scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
         return job_view(jobs, jobs.get(job_id))
+
+    @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
+              responses=errors(*auth, 413, 422))
+    def submit(body: JobRequest, response: Response) -> JobView:
+        def scene_loc(exc: SceneError) -> list[str | int]:
+            if body.scene_name is not None:
+                return ["body", "scene_name"]
+            return ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
+        try:
+            if body.scene_name is not None:
+                parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
+            else:
+                parsed, base_dir = parse_scene(body.scene), SCENES_DIR
+        except SceneError as exc:
+            raise _unprocessable(scene_loc(exc), exc.message) from None
+        return create_job(parsed, base_dir, SCENES_DIR, body.settings, body.scene_name, scene_loc, response)
+
+    @app.post("/v1/jobs/upload", status_code=201, response_model=JobView, dependencies=secured,
+              responses=errors(*auth, 413, 422))
+    def submit_upload(response: Response,
+                      scene: Annotated[str, Form(description="the scene file inside the upload (.json or .xml)")],
+                      archive: Annotated[UploadFile | None, File(description=".zip or .tar.gz of the scene "
+                                                                             "and its meshes")] = None,
+                      files: Annotated[list[UploadFile] | None, File(description="the scene and its meshes, "
+                                                                                 "each named by its path")] = None,
+                      settings: Annotated[str, Form(description="JobSettings as JSON")] = "{}") -> JobView:
+        """A scene file with its mesh files (and included XML files) in one upload: an archive
+        or several files. Limits apply to the unpacked upload (README, "Limits"); every file
+        the scene names must lie inside it."""
+        try:
+            job_settings = JobSettings.model_validate_json(settings)
+        except ValidationError as exc:
+            raise HTTPException(422, detail=[{"loc": ["body", "settings", *e["loc"]], "msg": e["msg"],
+                                              "type": e["type"]} for e in exc.errors()]) from None
+        if (archive is None) == (not files):
+            raise _unprocessable(["body", "archive"], "give exactly one of archive and files")
+        with tempfile.TemporaryDirectory(prefix="photonfarm-upload-") as tmp:  # mode 0700
+            root = Path(tmp).resolve()
+            unpacker = Unpacker(root)
+            try:
+                if archive is not None:
+                    unpacker.unpack("archive", archive.filename or "", archive.file)
+                else:
+                    for upload in files or []:
+                        unpacker.write("files", upload.filename or "", upload.file)
+                path = scene_path(root, scene)
+            except UploadError as exc:
+                if exc.status == 413:
+                    raise HTTPException(413, detail=exc.message) from None
+                raise _unprocessable(["body", exc.field], exc.message) from None
+
+            def scene_loc(exc: SceneError) -> list[str | int]:
+                return ["body", "scene", *([exc.field] if exc.field else [])]
+            try:
+                parsed, base_dir = load_any_scene(path, root=root)
+            except SceneError as exc:
+                raise _unprocessable(scene_loc(exc), exc.message) from None
+            return create_job(parsed, base_dir, root, job_settings, None, scene_loc, response)
 
     @app.get("/v1/jobs", response_model=list[JobView], dependencies=secured, responses=errors(*auth, 422))
     def list_jobs(response: Response, offset: int = Query(0, ge=0),
@@ -321,6 +395,28 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
         body, headers = error_body(existing(job_id), format)
         return Response(body, media_type=MEDIA[format], headers=headers)
+
+    @app.get("/v1/jobs/{job_id}/pixel", response_model=PixelView, dependencies=secured,
+             responses=errors(*auth, 404, 409, 422))
+    def pixel(job_id: str, x: int = Query(ge=0), y: int = Query(ge=0)) -> PixelView:
+        """One pixel's linear RGB and its error bound, from the job's current state (the PNG
+        is tone-mapped and browsers read no EXR): the viewer's readout under the cursor."""
+        record = existing(job_id)
+        if x >= record.width:
+            raise _unprocessable(["query", "x"], f"x must be below the width, {record.width}")
+        if y >= record.height:
+            raise _unprocessable(["query", "y"], f"y must be below the height, {record.height}")
+        arrays = pixel_arrays(record)
+        if arrays is None:
+            raise HTTPException(409, detail="no pass merged yet")
+
+        def value(name: str) -> float | None:  # none where unknown (an infinite bound) or not estimated
+            v = float(arrays[name][y, x]) if name in arrays else math.nan
+            return v if math.isfinite(v) else None
+        return PixelView(x=x, y=y, passes=record.passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
+                         luminance=value("luminance"), bound=value("bound"), relative_error=value("relative"),
+                         measured=bool(arrays["measured"][y, x]) if "measured" in arrays else None,
+                         confidence=record.settings.confidence if "relative" in arrays else None)
 
     return app
 

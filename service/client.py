@@ -4,6 +4,7 @@ scene file, and with --watch follows the job with a progress bar and writes the 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -15,8 +16,11 @@ import httpx
 import numpy as np
 from tqdm import tqdm
 
+from service.models import MAX_BODY_BYTES
+from service.upload import MAX_UPLOAD_FILES
 from worker.store.policy import FINAL
 
+UPLOAD_SUFFIXES = (".json", ".xml", ".obj", ".ply")  # what a scene may name
 
 
 class ClientError(Exception):
@@ -48,18 +52,58 @@ class Client:
         return resp
 
 
-def _body(args: argparse.Namespace) -> dict[str, Any]:
+def _settings(args: argparse.Namespace) -> dict[str, Any]:
     settings: dict[str, Any] = {k: v for k, v in (
         ("error_threshold", args.threshold), ("max_seconds", args.max_seconds), ("max_passes", args.max_passes),
         ("photons_per_pass", args.photons_per_pass), ("confidence", args.confidence)) if v is not None}
     if args.resolution:
         settings["resolution"] = list(args.resolution)
-    if args.scene.endswith(".json"):
-        try:
-            return {"scene": json.loads(Path(args.scene).read_text()), "settings": settings}
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ClientError(f"cannot read scene file {args.scene}: {exc}") from None
-    return {"scene_name": args.scene, "settings": settings}
+    return settings
+
+
+def _names_files(scene: dict[str, Any]) -> bool:
+    return any(isinstance(shape, dict) and "file" in shape for shape in scene.get("shapes") or [])
+
+
+def scene_folder_files(scene_file: Path) -> list[tuple[str, Path]]:
+    """The files sent with a scene file: every scene or mesh file (.json, .xml, .obj, .ply) in
+    its folder and below, by path relative to it, within the service's upload limits. The
+    service reads only what the scene names, and only inside this upload."""
+    folder = scene_file.resolve().parent
+    found: list[Path] = []
+    size = 0
+    for path in folder.rglob("*"):  # stops at the limits, so a large folder is not walked through
+        if path.suffix.lower() not in UPLOAD_SUFFIXES or not path.is_file() \
+                or any(part.startswith(".") for part in path.relative_to(folder).parts):
+            continue
+        found.append(path)
+        size += path.stat().st_size
+        if len(found) > MAX_UPLOAD_FILES or size > MAX_BODY_BYTES:
+            raise ClientError(f"{folder} holds more scene and mesh files than one upload takes ({MAX_UPLOAD_FILES} "
+                              f"files, {MAX_BODY_BYTES} bytes): put the scene in a folder of its own")
+    return [(path.relative_to(folder).as_posix(), path) for path in sorted(found)]
+
+
+def _post_job(client: "Client", args: argparse.Namespace) -> dict[str, Any]:
+    """A bundled scene or a plain JSON scene go as JSON; a scene that names files (meshes,
+    includes) and any Mitsuba .xml go as an upload with the files beside them."""
+    settings = _settings(args)
+    path = Path(args.scene)
+    if path.suffix.lower() not in (".json", ".xml"):
+        return client.call("POST", "/v1/jobs", json={"scene_name": args.scene, "settings": settings}).json()
+    try:
+        scene = json.loads(path.read_text()) if path.suffix.lower() == ".json" else None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ClientError(f"cannot read scene file {args.scene}: {exc}") from None
+    if isinstance(scene, dict) and not _names_files(scene):
+        return client.call("POST", "/v1/jobs", json={"scene": scene, "settings": settings}).json()
+    if not path.is_file():
+        raise ClientError(f"scene file {args.scene} not found")
+    files = scene_folder_files(path)
+    with contextlib.ExitStack() as stack:
+        parts = [("files", (name, stack.enter_context(local.open("rb")))) for name, local in files]
+        return client.call("POST", "/v1/jobs/upload", files=parts,
+                           data={"scene": path.name, "settings": json.dumps(settings)}).json()
 
 
 def eta_seconds(job: dict[str, Any]) -> float | None:
@@ -101,7 +145,7 @@ def _watch(client: Client, job: dict[str, Any], poll: float) -> dict[str, Any]:
 
 def submit(args: argparse.Namespace) -> int:
     client = Client(args.url, args.token)
-    job = client.call("POST", "/v1/jobs", json=_body(args)).json()
+    job = _post_job(client, args)
     print(f"job {job['id']} {job['status']}: {args.url.rstrip('/')}{job['links']['self']}")
     if not args.watch:
         return 0
@@ -118,7 +162,7 @@ def submit(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction, positive_float: Any, positive_int: Any, resolution: Any) -> None:
     p = sub.add_parser("submit", help="submit a job to a running service (HTTP)")
-    p.add_argument("scene", help="bundled scene name, or a scene .json file sent inline")
+    p.add_argument("scene", help="bundled scene name, or a scene .json or Mitsuba .xml file (sent with the scene and mesh files of its folder)")
     p.add_argument("--url", default=os.environ.get("PHOTONFARM_URL", "http://127.0.0.1:8000"))
     p.add_argument("--token", default=os.environ.get("PHOTONFARM_TOKEN") or None)
     p.add_argument("--threshold", type=positive_float, help="stop when the average relative error is this low")

@@ -91,6 +91,22 @@ class JobView(BaseModel):
     links: JobLinks
 
 
+class PixelView(BaseModel):
+    """One pixel of a job's current estimate (the viewer's readout under the cursor)."""
+
+    x: int
+    y: int = Field(description="row from the top, as in the images")
+    passes: int = Field(description="passes merged into the values below")
+    rgb: tuple[float, float, float] = Field(description="linear radiance, as in the EXR")
+    luminance: float | None = Field(description="the luminance the error is relative to (none without "
+                                                "error estimation)")
+    bound: float | None = Field(description="error bound at the job's confidence, absolute (luminance)")
+    relative_error: float | None = Field(description="bound / max(luminance, floor); 1 where unknown, as in the "
+                                                     "error map")
+    measured: bool | None = Field(description="the pixel had a measurement point (its error counts in the average)")
+    confidence: float | None
+
+
 class SceneSummary(BaseModel):
     name: str
     description: str

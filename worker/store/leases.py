@@ -110,7 +110,8 @@ class Leases:
         batch it renders: a pass may take longer than a lease, a dead process beats no more."""
         pipe = self.r.pipeline()
         now = time.time()
-        pipe.hset(keys.worker(worker), "last_seen", now)
+        idle = {} if batch is not None else {"job": "", "batch": ""}  # an idle worker shows no job
+        pipe.hset(keys.worker(worker), mapping={"last_seen": now, **idle})
         pipe.expire(keys.worker(worker), int(ALIVE_SECONDS))
         pipe.zadd(keys.WORKER_SEEN, {worker: now})
         if batch is not None:

@@ -1,0 +1,255 @@
+"""Scene uploads (POST /v1/jobs/upload) against a real cluster: a Mitsuba XML scene with
+its PLY mesh renders from an archive or from several files; each bad upload gets one clear
+error naming its field (422) or its size (413), and the service keeps serving after it;
+`photonfarm submit` sends a scene with an .obj beside it."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import stat
+import subprocess
+import sys
+import tarfile
+import zipfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import httpx
+import pytest
+
+from api_tests.cluster import Cluster, finished
+from service.upload import MAX_UPLOAD_BYTES, MAX_UPLOAD_FILES
+from worker.scene import SCENES_DIR
+
+MITSUBA = SCENES_DIR / "mitsuba"
+PLY_SCENE = {"ply-mesh.xml": MITSUBA / "ply-mesh.xml", "room.xml": MITSUBA / "room.xml",
+             "meshes/icosphere.ply": MITSUBA / "meshes" / "icosphere.ply"}
+PASSES, P = 3, 4096
+SETTINGS = {"max_passes": PASSES, "photons_per_pass": P, "resolution": [24, 24], "seed": 5}
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    c = Cluster(tmp_path_factory.mktemp("upload"), workers=1)
+    yield c
+    c.close()
+
+
+def _zip(entries: dict[str, bytes]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    return buf.getvalue()
+
+
+def _zip_link(name: str, target: str) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        info = zipfile.ZipInfo(name)
+        info.external_attr = (stat.S_IFLNK | 0o777) << 16
+        z.writestr(info, target)
+    return buf.getvalue()
+
+
+def _encrypted_zip(name: str, data: bytes) -> bytes:
+    """A zip whose member says it is encrypted (flag bit 0): no password is ever sent."""
+    raw = bytearray(_zip({name: data}))
+    for signature, flags_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):  # local and central headers
+        raw[raw.index(signature) + flags_at] |= 0x1
+    return bytes(raw)
+
+
+def _tar(entries: dict[str, bytes], links: dict[str, str] | None = None, top: bool = False,
+         folders: list[str] | None = None) -> bytes:
+    """A .tar.gz; `top` adds the "./" folder entry that `tar -C DIR .` writes first."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as t:
+        for name in (["./"] if top else []) + (folders or []):
+            folder = tarfile.TarInfo(name)
+            folder.type = tarfile.DIRTYPE
+            t.addfile(folder)
+        for name, data in entries.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            t.addfile(info, io.BytesIO(data))
+        for name, target in (links or {}).items():
+            info = tarfile.TarInfo(name)
+            info.type, info.linkname = tarfile.SYMTYPE, target
+            t.addfile(info)
+    return buf.getvalue()
+
+
+def _files(entries: dict[str, Path]) -> dict[str, bytes]:
+    return {name: path.read_bytes() for name, path in entries.items()}
+
+
+def _upload(c: Cluster, scene: str, archive: tuple[str, bytes] | None = None,
+            files: dict[str, bytes] | None = None, settings: dict[str, Any] | None = None) -> httpx.Response:
+    parts = [("archive", archive)] if archive else [("files", (n, d)) for n, d in (files or {}).items()]
+    return c.http.post("/v1/jobs/upload", files=parts,
+                       data={"scene": scene, "settings": json.dumps(settings or SETTINGS)})
+
+
+def _still_serving(c: Cluster) -> None:
+    assert c.http.get("/healthz").status_code == 200
+    assert c.http.get("/v1/jobs").status_code == 200
+
+
+@pytest.mark.parametrize("form", ["zip", "tar.gz", "tar.gz of ./", "files"])
+def test_mitsuba_xml_with_its_ply_renders_to_the_exact_totals(cluster: Cluster, form: str) -> None:
+    entries = _files(PLY_SCENE)
+    if form == "files":
+        resp = _upload(cluster, "ply-mesh.xml", files=entries)
+    elif form == "zip":
+        resp = _upload(cluster, "ply-mesh.xml", archive=("scene.zip", _zip(entries)))
+    else:
+        dot = form == "tar.gz of ./"
+        archive = _tar({f"./{name}" if dot else name: data for name, data in entries.items()}, top=dot)
+        resp = _upload(cluster, "ply-mesh.xml", archive=("scene.tar.gz", archive))
+    assert resp.status_code == 201, resp.text
+    job = resp.json()
+    assert resp.headers["location"] == f"/v1/jobs/{job['id']}"
+    assert (job["width"], job["height"]) == (24, 24) and job["scene_name"] is None
+    done = cluster.wait(job["id"], finished, timeout=180)
+    assert done["status"] == "completed", done
+    assert done["passes"] == PASSES and done["photons"] == PASSES * P, done
+    image = cluster.http.get(job["links"]["image_png"])
+    assert image.status_code == 200 and image.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _scene_xml(shape: str) -> bytes:
+    """ply-mesh.xml with its PLY shape replaced by `shape`."""
+    text = (MITSUBA / "ply-mesh.xml").read_text()
+    start = text.index('<shape type="ply">')
+    end = text.index("</shape>", start) + len("</shape>")
+    return (text[:start] + shape + text[end:]).encode()
+
+
+def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
+    """name: (upload arguments, status, loc, words of the message)."""
+    room = (MITSUBA / "room.xml").read_bytes()
+    ply = (MITSUBA / "meshes" / "icosphere.ply").read_bytes()
+    hair = _scene_xml('<shape type="sphere"><bsdf type="hair"/></shape>')
+    missing = _scene_xml('<shape type="ply"><string name="filename" value="meshes/none.ply"/><ref id="white"/></shape>')
+    outside = _scene_xml(f'<shape type="ply"><string name="filename" value="{MITSUBA / "meshes" / "icosphere.ply"}"/>'
+                         '<ref id="white"/></shape>')
+    return {
+        "unknown plugin": ({"files": {"s.xml": hair, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
+                           "unknown bsdf plugin 'hair'"),
+        "missing mesh": ({"files": {"s.xml": missing, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
+                         "'meshes/none.ply' not found"),
+        "broken PLY": ({"scene": "ply-mesh.xml", "files": {"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(), "room.xml": room,
+                                  "meshes/icosphere.ply": ply[:300]}}, 422, ["body", "scene", "ply-mesh.xml"],
+                       "icosphere.ply"),
+        "mesh path outside the upload": ({"files": {"s.xml": outside, "room.xml": room}}, 422,
+                                         ["body", "scene", "s.xml"], "leaves the scene's directory"),
+        "archive entry with ..": ({"archive": ("a.zip", _zip({"s.xml": hair, "../evil.ply": ply}))}, 422,
+                                  ["body", "archive"], "outside the upload"),
+        "archive folder ..": ({"archive": ("a.tar.gz", _tar({"s.xml": hair}, folders=["../"]))}, 422,
+                              ["body", "archive"], "outside the upload"),
+        "absolute archive entry": ({"archive": ("a.tar.gz", _tar({"/tmp/evil.ply": ply}))}, 422,
+                                   ["body", "archive"], "outside the upload"),
+        "symlink in the archive": ({"archive": ("a.tar.gz", _tar({"s.xml": hair}, {"m.ply": "/etc/passwd"}))}, 422,
+                                   ["body", "archive"], "link"),
+        "symlink in a zip": ({"archive": ("a.zip", _zip_link("meshes/icosphere.ply", "/etc/passwd"))}, 422,
+                             ["body", "archive"], "link"),
+        "file name with ..": ({"files": {"../s.xml": hair}}, 422, ["body", "files"], "outside the upload"),
+        "scene not in the upload": ({"files": {"room.xml": room}, "scene": "s.xml"}, 422, ["body", "scene"],
+                                    "not in the upload"),
+        "not an archive": ({"archive": ("a.zip", b"PK\x03\x04 not a zip")}, 422, ["body", "archive"],
+                           "not a readable archive"),
+        "truncated archive": ({"archive": ("a.tar.gz", _tar({"s.xml": hair, "room.xml": room})[:200])}, 422,
+                              ["body", "archive"], "not a readable archive"),
+        "archive of no known kind": ({"archive": ("scene.rar", b"Rar!")}, 422, ["body", "archive"],
+                                     "an archive is a .zip"),
+        "encrypted zip": ({"archive": ("a.zip", _encrypted_zip("s.xml", hair))}, 422, ["body", "archive"],
+                          "not a readable archive"),
+        "bad settings": ({"files": {"s.xml": hair}, "settings": {"alpha": 7}}, 422, ["body", "settings", "alpha"],
+                         "less than"),
+    }
+
+
+@pytest.mark.parametrize("name", list(_bad_uploads()))
+def test_a_bad_upload_gets_one_clear_error_and_the_service_serves_on(cluster: Cluster, name: str) -> None:
+    args, status, loc, words = _bad_uploads()[name]
+    resp = _upload(cluster, **{"scene": "s.xml", **args})
+    assert resp.status_code == status, resp.text
+    detail = resp.json()["detail"]
+    assert len(detail) == 1 and detail[0]["loc"] == loc and words in detail[0]["msg"], detail
+    _still_serving(cluster)
+
+
+def test_a_malformed_form_is_422_naming_the_body(cluster: Cluster) -> None:
+    resp = cluster.http.post("/v1/jobs/upload", content=b"--x\r\nnot a part",
+                             headers={"content-type": "multipart/form-data"})  # no boundary
+    assert resp.status_code == 422 and resp.json()["detail"][0]["loc"] == ["body"], resp.text
+    assert "not a readable form" in resp.json()["detail"][0]["msg"]
+    _still_serving(cluster)
+
+
+def test_an_archive_that_unpacks_past_the_limit_is_refused_413(cluster: Cluster) -> None:
+    """A zip bomb: a small archive (about 130 KB) of zeros that unpacks past the byte limit."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
+        with z.open("zeros.ply", "w", force_zip64=True) as out:
+            block = bytes(1 << 20)
+            for _ in range(MAX_UPLOAD_BYTES // len(block) + 1):
+                out.write(block)
+    assert len(buf.getvalue()) < MAX_UPLOAD_BYTES // 100
+    resp = _upload(cluster, "s.xml", archive=("bomb.zip", buf.getvalue()))
+    assert resp.status_code == 413 and f"larger than {MAX_UPLOAD_BYTES} bytes" in resp.json()["detail"], resp.text
+    _still_serving(cluster)
+
+
+def test_too_many_files_are_refused_413(cluster: Cluster) -> None:
+    entries = {f"f{i}.ply": b"" for i in range(MAX_UPLOAD_FILES + 1)}
+    resp = _upload(cluster, "f0.ply", archive=("many.tar.gz", _tar(entries)))
+    assert resp.status_code == 413 and f"more than {MAX_UPLOAD_FILES} files" in resp.json()["detail"], resp.text
+    _still_serving(cluster)
+
+
+def test_photonfarm_submit_sends_a_scene_with_its_obj_beside_it(cluster: Cluster, tmp_path: Path) -> None:
+    """A JSON scene naming an .obj in its own folder (not under scenes/): submit uploads both."""
+    folder = tmp_path / "my scene"
+    folder.mkdir()
+    (folder / "gem.obj").write_bytes((MITSUBA / "meshes" / "gem.obj").read_bytes())
+    scene = json.loads((SCENES_DIR / "cornell-box.json").read_text())
+    scene["shapes"].append({"type": "mesh", "file": "gem.obj", "material": "white"})
+    (folder / "scene.json").write_text(json.dumps(scene))
+    out = tmp_path / "out.png"
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(folder / "scene.json"),
+                          "--url", str(cluster.http.base_url), "--max-passes", "2", "--photons-per-pass", "4096",
+                          "--resolution", "16x16", "--watch", "--poll", "0.3", "--out", str(out)],
+                         capture_output=True, text=True, timeout=240, env=cluster.env)
+    assert run.returncode == 0, run.stderr
+    assert "completed: 2 passes, 8192 photons" in run.stdout, run.stdout
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # A Mitsuba scene goes as an upload too, with the XML it includes and its meshes.
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(MITSUBA / "obj-mesh.xml"),
+                          "--url", str(cluster.http.base_url), "--max-passes", "2", "--photons-per-pass", "4096",
+                          "--resolution", "16x16"], capture_output=True, text=True, timeout=60, env=cluster.env)
+    assert run.returncode == 0, run.stderr
+    job_id = re.match(r"job (\S+) ", run.stdout).group(1)
+    done = cluster.wait(job_id, finished, timeout=180)
+    assert done["status"] == "completed" and done["photons"] == 2 * 4096, done
+    # The same scene without its mesh beside it is refused by the service, naming the mesh.
+    (folder / "gem.obj").unlink()
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(folder / "scene.json"),
+                          "--url", str(cluster.http.base_url)], capture_output=True, text=True, timeout=60,
+                         env=cluster.env)
+    assert run.returncode != 0 and "HTTP 422" in run.stderr and "gem.obj" in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr
+
+
+def test_submit_refuses_a_folder_past_the_upload_limits_in_one_line(cluster: Cluster, tmp_path: Path) -> None:
+    for i in range(MAX_UPLOAD_FILES + 1):
+        (tmp_path / f"m{i}.obj").write_text("")
+    (tmp_path / "scene.xml").write_text("<scene version='3.0.0'/>")
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(tmp_path / "scene.xml"),
+                          "--url", str(cluster.http.base_url)], capture_output=True, text=True, timeout=60,
+                         env=cluster.env)
+    assert run.returncode != 0 and "put the scene in a folder of its own" in run.stderr, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1

@@ -1,0 +1,135 @@
+"""Scene uploads: a scene file with its meshes, sent as one archive (.zip, .tar.gz) or as
+several files, unpacked into a private temporary folder that the scene is then read from.
+
+Limits apply to what is unpacked, counted as it is written (an archive's headers are never
+trusted, so a zip bomb stops at the limit), and every name must stay inside the folder: no
+absolute paths, no `..`, no links or devices. Archives inside an archive are stored, not unpacked."""
+
+from __future__ import annotations
+
+import gzip
+import lzma
+import stat
+import tarfile
+import zipfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import BinaryIO
+
+MAX_UPLOAD_BYTES = 128 * 1024 * 1024  # unpacked, all files together
+MAX_UPLOAD_FILES = 256  # entries unpacked (folders count)
+MAX_NAME_CHARS = 1024  # a path inside the upload
+MAX_PART_CHARS = 255  # one folder or file name
+CHUNK = 1 << 16
+ZIP_SUFFIXES = (".zip",)
+TAR_SUFFIXES = (".tar.gz", ".tgz", ".tar")
+SCENE_SUFFIXES = (".json", ".xml")
+
+
+class UploadError(ValueError):
+    """An upload refused: `field` is the form field, `status` 422 or 413 (too large)."""
+
+    def __init__(self, field: str, message: str, status: int = 422) -> None:
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+        self.status = status
+
+
+def relative_name(field: str, name: str) -> PurePosixPath:
+    """A name inside the upload, or UploadError: never absolute, never `..`, no NUL or backslash."""
+    if not name or len(name) > MAX_NAME_CHARS or "\x00" in name or "\\" in name:
+        raise UploadError(field, f"bad file name {name[:80]!r}")
+    path = PurePosixPath(name)
+    if path.is_absolute() or ".." in path.parts:
+        raise UploadError(field, f"path {name[:80]!r} lies outside the upload")
+    parts = [p for p in path.parts if p != "."]
+    if not parts or any(len(p) > MAX_PART_CHARS for p in parts):
+        raise UploadError(field, f"bad file name {name[:80]!r}")
+    return PurePosixPath(*parts)
+
+
+@dataclass
+class Unpacker:
+    """Writes files into `root` while counting entries and bytes against the limits."""
+
+    root: Path
+    entries: int = 0
+    bytes: int = 0
+
+    def _count_entry(self, field: str) -> None:
+        self.entries += 1
+        if self.entries > MAX_UPLOAD_FILES:
+            raise UploadError(field, f"more than {MAX_UPLOAD_FILES} files", 413)
+
+    def folder(self, field: str, name: str) -> None:
+        self._count_entry(field)
+        if name and not PurePosixPath(name).parts:  # "./", the archive's own top (tar -C DIR .)
+            return
+        (self.root / relative_name(field, name)).mkdir(parents=True, exist_ok=True)
+
+    def write(self, field: str, name: str, source: BinaryIO) -> None:
+        """One file, copied in chunks; refused past the byte limit or if the name is taken."""
+        self._count_entry(field)
+        target = self.root / relative_name(field, name)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            out = target.open("xb")
+        except FileExistsError:
+            raise UploadError(field, f"{name[:80]!r} appears twice in the upload") from None
+        except (IsADirectoryError, NotADirectoryError):
+            raise UploadError(field, f"{name[:80]!r} is both a file and a folder") from None
+        with out:
+            while chunk := source.read(CHUNK):
+                self.bytes += len(chunk)
+                if self.bytes > MAX_UPLOAD_BYTES:
+                    raise UploadError(field, f"unpacked upload larger than {MAX_UPLOAD_BYTES} bytes", 413)
+                out.write(chunk)
+
+    def unpack(self, field: str, name: str, source: BinaryIO) -> None:
+        """An archive, by the suffix of its name, unpacked into the root."""
+        lower = name.lower()
+        try:
+            if lower.endswith(ZIP_SUFFIXES):
+                self._zip(field, source)
+            elif lower.endswith(TAR_SUFFIXES):
+                self._tar(field, source)
+            else:
+                raise UploadError(field, f"{name[:80]!r}: an archive is a .zip, .tar.gz, .tgz or .tar file")
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, zlib.error, gzip.BadGzipFile,
+                lzma.LZMAError, EOFError, NotImplementedError, RuntimeError) as exc:  # RuntimeError: encrypted zip
+            raise UploadError(field, f"{name[:80]!r} is not a readable archive: {exc}") from None
+
+    def _zip(self, field: str, source: BinaryIO) -> None:
+        with zipfile.ZipFile(source) as archive:
+            for info in archive.infolist():
+                if stat.S_ISLNK(info.external_attr >> 16):
+                    raise UploadError(field, f"{info.filename[:80]!r} is a link: links are refused")
+                if info.is_dir():
+                    self.folder(field, info.filename)
+                    continue
+                with archive.open(info) as member:
+                    self.write(field, info.filename, member)
+
+    def _tar(self, field: str, source: BinaryIO) -> None:
+        with tarfile.open(fileobj=source, mode="r:*") as archive:
+            for member in archive:  # streamed: one member at a time
+                if member.isdir():
+                    self.folder(field, member.name)
+                elif member.isfile():
+                    extracted = archive.extractfile(member)
+                    assert extracted is not None
+                    self.write(field, member.name, extracted)
+                else:
+                    raise UploadError(field, f"{member.name[:80]!r} is a link or device: only files are taken")
+
+
+def scene_path(root: Path, name: str) -> Path:
+    """The scene file named by the `scene` field, inside the upload."""
+    path = root / relative_name("scene", name)
+    if path.suffix.lower() not in SCENE_SUFFIXES:
+        raise UploadError("scene", f"{name[:80]!r}: the scene must be a .json or .xml file")
+    if not path.is_file():
+        raise UploadError("scene", f"{name[:80]!r} is not in the upload")
+    return path
