@@ -102,7 +102,8 @@ def test_page_lists_the_bundled_scenes(page) -> None:  # noqa: ANN001
 def test_the_form_has_every_job_setting_and_sends_them(page, cluster) -> None:  # noqa: ANN001
     ids = page.eval_on_selector_all("#settings [id^=set-]", "els => els.map(e => e.id.slice(4))")
     assert ids == list(JobSettings.model_fields), ids
-    chosen = {"method": "ppm", "gather": "stochastic", "priority": "high", "bias_constant": "dissertation"}
+    chosen = {"method": "ppm", "gather": "stochastic", "direct": "nee", "priority": "high",
+              "bias_constant": "dissertation"}
     for name, value in chosen.items():
         page.select_option(f"#set-{name}", value)
     typed = {"alpha": "0.6", "seed": "7", "hash_entries_per_photon": "2", "confidence": "0.8",
