@@ -44,7 +44,7 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
-        Hit h = intersect(g, o, u);
+        Hit h = intersect_within(g, o, u, r);  // only what cuts the disc matters: the BVH prunes the rest
         float s = 1.0f;
         if (h.surf != SURF_NONE && h.t < r) {
             float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;

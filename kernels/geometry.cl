@@ -81,13 +81,23 @@ typedef struct {
     int n_spheres;
 } SceneGeom;
 
-inline Hit intersect(const SceneGeom* g, float3 o, float3 d) {
+// No point of the sphere lies within tmax of o: a bounded query skips it (smallppm's walls
+// are spheres of radius 1e5, so the distance is taken in double).
+inline bool sphere_beyond(float4 sph, float3 o, float tmax) {
+    double3 f = convert_double3(o) - (double3)(sph.x, sph.y, sph.z);
+    return fabs(sqrt(dot(f, f)) - (double)sph.w) > (double)tmax;
+}
+
+// The closest hit within distance tmax (SURF_NONE if there is none that close).
+inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) {
     Hit h;
-    h.t = INFINITY;
+    h.t = tmax;
     h.surf = SURF_NONE;
     float tmin = ray_eps(o);
     int best_sphere = -1, best_tri = -1;
+    bool bounded = tmax < INFINITY;
     for (int i = 0; i < g->n_spheres; ++i) {
+        if (bounded && sphere_beyond(g->spheres[i], o, tmax)) continue;
         double t = sphere_distance(g->spheres[i], o, d, (double)tmin, (double)h.t);
         if (t < (double)h.t) { h.t = (float)t; best_sphere = i; }
     }
@@ -137,3 +147,5 @@ inline Hit intersect(const SceneGeom* g, float3 o, float3 d) {
     }
     return h;
 }
+
+inline Hit intersect(const SceneGeom* g, float3 o, float3 d) { return intersect_within(g, o, d, INFINITY); }

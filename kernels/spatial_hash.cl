@@ -34,14 +34,17 @@ __kernel void hash_select(uint n, __global const float4* ph_pos, __global const 
 }
 
 __kernel void hash_store(uint n, __global const float4* ph_pos, __global const float4* ph_flux,
+                         __global const uint2* ph_dirs,
                          __global const ulong* ph_key, float inv_cell, uint mask,
-                         __global const ulong* tab_key, __global float4* tab_pos, __global float4* tab_flux) {
+                         __global const ulong* tab_key, __global float4* tab_pos, __global float4* tab_flux,
+                         __global uint2* tab_dirs) {
     uint i = get_global_id(0);
     if (i >= n) return;
     uint h = cell_hash(cell_of(ph_pos[i].xyz, inv_cell), mask);
     if (tab_key[h] == ph_key[i]) {  // keys are unique: exactly one photon per entry matches
         tab_pos[h] = ph_pos[i];
         tab_flux[h] = ph_flux[i];
+        tab_dirs[h] = ph_dirs[i];
     }
 }
 
@@ -136,12 +139,12 @@ typedef struct {
 // corner from gathering the photons of the perpendicular wall (10% too bright against
 // Mitsuba in the Cornell box's corners); the disc coverage measured in the eye pass then
 // renormalises the estimate for the part of the disc beyond that wall.
-inline bool photon_counts(float3 x, float3 n, float r2, int3 cell, float inv_cell, float4 pp, float4 pf) {
+inline bool photon_counts(float3 x, float3 n, float r2, int3 cell, float inv_cell, float4 pp, uint2 dirs) {
     if (any(cell_of(pp.xyz, inv_cell) != cell)) return false;
     float3 v = pp.xyz - x;
     if (dot(v, v) >= r2) return false;
-    if (dot(unpack_dir(as_uint(pf.w)), n) <= 0.0f) return false;  // arrived on the side the eye sees
-    return dot(unpack_dir(as_uint(pp.w)), n) > NORMAL_MATCH_COS;
+    if (dot(unpack_dir(dirs.x), n) <= 0.0f) return false;  // arrived on the side the eye sees
+    return dot(unpack_dir(dirs.y), n) > NORMAL_MATCH_COS;
 }
 
 inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, float4 pp, float3 flux, float count) {
@@ -230,6 +233,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                                 __global const float* bias, float photons,
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
+                                __global const uint2* tab_dirs,
                                 __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
@@ -240,8 +244,9 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
         uint h = cell_hash(cell, mask);
         uint count = tab_count[h];
         if (count == 0) continue;
-        float4 pp = tab_pos[h], pf = tab_flux[h];
-        if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, (float)count);
+        float4 pp = tab_pos[h];
+        if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, tab_dirs[h]))
+            add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
     }
     accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
@@ -252,6 +257,7 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const uint* sorted,
                            __global const float4* ph_pos, __global const float4* ph_flux,
+                           __global const uint2* ph_dirs,
                            __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
@@ -263,8 +269,9 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
         uint begin = cell_start[h], end = begin + cell_count[h];
         for (uint j = begin; j < end; ++j) {
             uint i = sorted[j];
-            float4 pp = ph_pos[i], pf = ph_flux[i];
-            if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, pf)) add_photon(&s, q.x, q.n, q.r, q.wgt, pp, pf.xyz, 1.0f);
+            float4 pp = ph_pos[i];
+            if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, ph_dirs[i]))
+                add_photon(&s, q.x, q.n, q.r, q.wgt, pp, ph_flux[i].xyz, 1.0f);
         }
     }
     accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);

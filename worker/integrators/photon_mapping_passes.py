@@ -55,6 +55,7 @@ class PhotonMappingPasses:
         self.capacity = capacity
         self.ph_pos = self.dev.buffer(16 * capacity)
         self.ph_flux = self.dev.buffer(16 * capacity)
+        self.ph_dirs = self.dev.buffer(8 * capacity)  # packed incoming direction and surface normal
         self.ph_key = self.dev.buffer(8 * capacity)
         self.sorted = self.dev.buffer(4 * capacity)
 
@@ -66,6 +67,7 @@ class PhotonMappingPasses:
         self.tab_count = self.dev.buffer(4 * entries)
         self.tab_pos = self.dev.buffer(16 * entries)
         self.tab_flux = self.dev.buffer(16 * entries)
+        self.tab_dirs = self.dev.buffer(8 * entries)
         self.cell_start = self.dev.buffer(4 * entries)
         self.cell_fill = self.dev.buffer(4 * entries)
 
@@ -89,7 +91,7 @@ class PhotonMappingPasses:
             events.append(dev.program.launch(
                 dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
                 u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
-                skip_first, self.ph_pos, self.ph_flux, self.ph_key, self.ph_count))
+                skip_first, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.ph_count)
             dev.times.add("trace", events)
@@ -110,10 +112,11 @@ class PhotonMappingPasses:
                      p.launch(dev.queue, "hash_select", n_stored, u32(n_stored), self.ph_pos, self.ph_key,
                               inv_cell, mask, self.tab_key, self.tab_count),
                      p.launch(dev.queue, "hash_store", n_stored, u32(n_stored), self.ph_pos, self.ph_flux,
-                              self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux)]
+                              self.ph_dirs, self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux,
+                              self.tab_dirs)]
             gather_ev = p.launch(dev.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
                                  self.mp_nrm, self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask,
-                                 self.tab_count, self.tab_pos, self.tab_flux, dev.batch_sums)
+                                 self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums)
         else:
             entries = _next_pow2(n_stored)
             self._reserve_table(entries)
@@ -129,7 +132,7 @@ class PhotonMappingPasses:
                               self.sorted, self.ph_key)]
             gather_ev = p.launch(dev.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
                                  self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
-                                 self.tab_count, self.sorted, self.ph_pos, self.ph_flux, dev.batch_sums)
+                                 self.tab_count, self.sorted, self.ph_pos, self.ph_flux, self.ph_dirs, dev.batch_sums)
         gather_ev.wait()
         dev.times.add("build", build)
         dev.times.add("gather", [gather_ev])
@@ -217,19 +220,19 @@ class PhotonMappingPasses:
         if m > self.capacity:
             self._reserve_photons(m)
 
-        def f4(a: np.ndarray, w: float | np.ndarray = 0.0) -> np.ndarray:
+        def f4(a: np.ndarray, w: float = 0.0) -> np.ndarray:
             out = np.zeros((len(a), 4), np.float32)
             out[:, :3] = a
             out[:, 3] = w
             return out
 
         def packed(dirs: np.ndarray) -> np.ndarray:
-            return np.array([_pack_dir(d) for d in dirs], np.uint32).view(np.float32)
+            return np.array([_pack_dir(d) for d in dirs], np.uint32)
 
-        nrm = packed(photon_dir if photon_normal is None else photon_normal)
+        dirs = np.stack([packed(photon_dir), packed(photon_dir if photon_normal is None else photon_normal)], axis=1)
         for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals, 1.0)),
-                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)),
-                          (self.ph_pos, f4(photon_pos, nrm)), (self.ph_flux, f4(photon_flux, packed(photon_dir))),
+                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)), (self.ph_pos, f4(photon_pos)),
+                          (self.ph_flux, f4(photon_flux)), (self.ph_dirs, np.ascontiguousarray(dirs)),
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
             cl.enqueue_copy(dev.queue, buf, host)
         cl.enqueue_copy(dev.queue, self.ph_key, np.arange(m, dtype=np.uint64))
