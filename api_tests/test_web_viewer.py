@@ -7,18 +7,17 @@ Screenshots of each state go to bench/viewer/ (linked from the README)."""
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import re
 import shutil
-import zipfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 import pytest
 
+from api_tests.test_upload import _zip
 from service.client import eta_seconds
 from service.models import JobSettings
 from worker.image_io import read_channels
@@ -320,14 +319,6 @@ def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
     page.click("#prev")
     page.wait_for_function("document.querySelector('#jobs-range').textContent.startsWith('1-')")
     page.select_option("#page-size", "10")
-
-
-def _zip(entries: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for name, data in entries.items():
-            z.writestr(name, data)
-    return buf.getvalue()
 
 
 def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> None:  # noqa: ANN001

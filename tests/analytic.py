@@ -32,16 +32,23 @@ FURNACE_L = float(furnace_radiance(FURNACE_RHO))
 PLANE_RHO, PLANE_I, PLANE_H = 0.5, 1.0, 1.0
 
 
-def _plane_hits(eng: Engine, sub: int):  # noqa: ANN202
-    """Where sub x sub positions per pixel of `eng`'s camera meet the plane y = 0: (x, z) arrays
-    of shape (h * sub, w * sub), and the function that averages such an array per pixel."""
+def camera_rays(eng: Engine, sub: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pinhole camera's origin and the directions of sub x sub positions per pixel,
+    shape (h * sub, w * sub, 3) (kernels/eye_pass.cl's camera, without jitter)."""
     cam = eng.arrays.camera.astype(np.float64)
     w, h = eng.arrays.width, eng.arrays.height
     o, fwd, right, up = cam[0, :3], cam[1, :3], cam[2, :3], cam[3, :3]
     offs = (np.arange(sub) + 0.5) / sub
     sx = 2.0 * (np.arange(w)[:, None] + offs[None, :]).ravel() / w - 1.0
     sy = 1.0 - 2.0 * (np.arange(h)[:, None] + offs[None, :]).ravel() / h
-    d = fwd[None, None, :] + sx[None, :, None] * right + sy[:, None, None] * up
+    return o, fwd[None, None, :] + sx[None, :, None] * right + sy[:, None, None] * up
+
+
+def _plane_hits(eng: Engine, sub: int):  # noqa: ANN202
+    """Where sub x sub positions per pixel of `eng`'s camera meet the plane y = 0: (x, z) arrays
+    of shape (h * sub, w * sub), and the function that averages such an array per pixel."""
+    w, h = eng.arrays.width, eng.arrays.height
+    o, d = camera_rays(eng, sub)
     p = o + (-o[1] / d[..., 1])[..., None] * d
 
     def pixel_mean(a: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.analytic import closed_sphere_scene, furnace_radiance
+from tests.analytic import camera_rays, closed_sphere_scene, furnace_radiance
 from tests.conftest import image, render
 from worker.engine import Engine
 from worker.image_io import read_image
@@ -67,13 +67,8 @@ BOX = 555.0  # the Cornell box's walls: x = 0, x = BOX, y = 0, y = BOX, z = BOX 
 def concave_corner_pixels(eng: Engine, band: float, sub: int = 4) -> np.ndarray:
     """(H, W) mask of the pixels whose whole footprint (sub x sub rays) sees a wall within
     `band` of a perpendicular wall: the Cornell box's concave corners."""
-    cam = eng.arrays.camera.astype(np.float64)
     w, h = eng.arrays.width, eng.arrays.height
-    o, fwd, right, up = cam[0, :3], cam[1, :3], cam[2, :3], cam[3, :3]
-    offs = (np.arange(sub) + 0.5) / sub
-    sx = 2.0 * (np.arange(w)[:, None] + offs[None, :]).ravel() / w - 1.0
-    sy = 1.0 - 2.0 * (np.arange(h)[:, None] + offs[None, :]).ravel() / h
-    d = fwd[None, None, :] + sx[None, :, None] * right + sy[:, None, None] * up
+    o, d = camera_rays(eng, sub)
     walls = [(0, 0.0), (0, BOX), (1, 0.0), (1, BOX), (2, BOX)]
     t_hit, wall_hit = np.full(d.shape[:2], np.inf), np.full(d.shape[:2], -1)
     for k, (axis, c) in enumerate(walls):
