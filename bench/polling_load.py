@@ -19,7 +19,6 @@ bench/out/polling_load.json and .png.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import tempfile
 import threading
@@ -31,9 +30,9 @@ import numpy as np
 import psutil
 
 from api_tests.cluster import Cluster, finished
+from bench.common import save_figure, write_json
 from service.models import JobSettings
 
-OUT = Path(__file__).resolve().parent / "out"
 SCENE = "cornell-caustics"
 RESOLUTION = [128, 128]
 PHOTONS = JobSettings().photons_per_pass  # the service's default
@@ -107,10 +106,7 @@ def run(c: Cluster, seconds: float, pollers: int, interval: float, seed: int) ->
             "latency": {route: _percentiles(latencies[route]) for route in ROUTES} if pollers else None}
 
 
-def chart(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def chart(result: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
@@ -147,7 +143,7 @@ def chart(result: dict, path: Path) -> None:
     axes[2].set_title("latency per route under polling (last round)", fontsize=9)
     axes[2].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, "polling_load")
 
 
 def main() -> None:
@@ -195,9 +191,8 @@ def main() -> None:
         print(f"{label:>22}: mean {v['photons_per_second_mean'] / 1e3:.1f} k photons/s, "
               f"loss {100 * v['loss_vs_quiet']:.1f}% against quiet, API + pollers {100 * v['api_plus_pollers_cpu_share']:.1f}% "
               f"of the machine", flush=True)
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "polling_load.json").write_text(json.dumps(result, indent=2))
-    chart(result, OUT / "polling_load.png")
+    write_json("polling_load", result)
+    chart(result)
 
 
 if __name__ == "__main__":
