@@ -84,7 +84,7 @@ def _bad(cluster: Cluster, body: dict, loc: list) -> None:
     resp = cluster.http.post("/v1/jobs", json=body)
     assert resp.status_code == 422, resp.text
     locs = [d["loc"] for d in resp.json()["detail"]]
-    assert any(l[: len(loc)] == loc for l in locs), (loc, locs)
+    assert any(got[: len(loc)] == loc for got in locs), (loc, locs)
 
 
 @pytest.mark.parametrize("body, loc", [

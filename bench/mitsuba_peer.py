@@ -2,8 +2,8 @@
 path tracer (`path`) or particle tracer (`ptracer`).
 
 The conversion is exact but for one material: Mitsuba 3 has no modified Phong, so `glossy`
-becomes a Beckmann rough conductor with alpha = sqrt(2 / (n + 2)) (Walter et al. 2007's
-Phong-Beckmann correspondence) and no Fresnel falloff: close, not identical, so on the
+becomes a Beckmann rough conductor with the matching roughness (worker/mitsuba_scene.py,
+`beckmann_alpha`, the inverse of the import's mapping) and no Fresnel falloff: close, not identical, so on the
 `glossy` scene the peer converges to a slightly different image. Units match ours:
 emission is radiance, point and spot `power` is flux (intensity = power / solid angle),
 directional `irradiance` is irradiance. Pixels are box-filtered, as SPPM averages them.
@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from worker.mitsuba_scene import beckmann_alpha
 from worker.scene import (DirectionalLight, Glass, Glossy, Mesh, Mirror, PointLight, Quad, Scene, Sphere, SpotLight,
                           shape_triangles)
 
@@ -52,7 +53,7 @@ def _bsdf(material: Any) -> dict[str, Any]:
         inner = {"type": "conductor", "material": "none", "specular_reflectance": _rgb(material.albedo)}
     elif isinstance(material, Glossy):
         inner = {"type": "roughconductor", "material": "none", "distribution": "beckmann",
-                 "alpha": math.sqrt(2.0 / (material.exponent + 2.0)), "specular_reflectance": _rgb(material.albedo)}
+                 "alpha": beckmann_alpha(material.exponent), "specular_reflectance": _rgb(material.albedo)}
     else:
         inner = {"type": "diffuse", "reflectance": _rgb(material.albedo)}
     return {"type": "twosided", "bsdf": inner}

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from tests.conftest import image, render
 from worker.error_estimate import LUMINANCE
 from worker.meshes import MeshError, load_mesh
-from worker.mitsuba_scene import Node, convert_mitsuba, look_at, to_world_matrix
+from worker.mitsuba_scene import Node, beckmann_alpha, convert_mitsuba, look_at, phong_exponent, to_world_matrix
 from worker.scene import (
     SCENES_DIR,
     SceneError,
@@ -238,8 +238,10 @@ def test_materials(tmp_path: Path) -> None:
 @pytest.mark.parametrize("alpha", [0.03, 0.1, 0.2])
 def test_glossy_lobe_width_matches_beckmann(alpha: float) -> None:
     """At normal incidence, the angle from the mirror direction where the lobe falls to half
-    its peak: our cos^n lobe against Beckmann's D(half vector) / cos^4, within 5%."""
-    n = (2 / alpha ** 2 - 2) / 4
+    its peak: our cos^n lobe against Beckmann's D(half vector) / cos^4, within 5%; and the
+    Mitsuba peer's export (`beckmann_alpha`) inverts the import's mapping."""
+    n = phong_exponent(alpha)
+    assert beckmann_alpha(n) == pytest.approx(alpha, rel=1e-12)
     psi = np.linspace(0, 1.2, 200_001)
     phong = np.cos(psi) ** n
     th = psi / 2  # the half vector turns half as far as the reflected direction

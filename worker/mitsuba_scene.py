@@ -39,6 +39,22 @@ RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
 PROPERTY_TAGS = {"float", "integer", "boolean", "string", "rgb", "spectrum", "point", "vector", "transform", "ref"}
 
 
+def phong_exponent(alpha: float) -> float:
+    """Our Phong exponent n for a Beckmann roughness alpha: n = (2 / alpha^2 - 2) / 4.
+
+    Walter et al. 2007 match Beckmann's alpha to the exponent m of a Phong lobe about the
+    half vector, m = 2 / alpha^2 - 2. Our lobe is about the mirror direction, which moves
+    twice as fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so
+    n = m / 4. `beckmann_alpha` is the inverse (the Mitsuba peer's export).
+    """
+    return (2.0 / alpha ** 2 - 2.0) / 4.0
+
+
+def beckmann_alpha(exponent: float) -> float:
+    """The Beckmann roughness whose lobe matches our Phong exponent (inverse of `phong_exponent`)."""
+    return math.sqrt(2.0 / (4.0 * exponent + 2.0))
+
+
 # ------------------------------------------------------------------------ XML reading
 @dataclass
 class Node:
@@ -463,13 +479,7 @@ class Converter:
         return {"type": "mirror", "albedo": self._albedo(p, "specular_reflectance", 1.0)}
 
     def _exponent(self, p: Props) -> float:
-        """Our Phong exponent n for a microfacet roughness alpha: n = (2 / alpha^2 - 2) / 4.
-
-        Walter et al. 2007 match Beckmann's alpha to the exponent m of a Phong lobe about
-        the half vector, m = 2 / alpha^2 - 2 (bench/mitsuba_peer.py uses that correspondence
-        for n, the other way). Our lobe is about the mirror direction, which moves twice as
-        fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so n = m / 4.
-        """
+        """Our Phong exponent for the element's microfacet roughness (see `phong_exponent`)."""
         distribution = p.string("distribution", "beckmann")
         if distribution not in ("beckmann", "ggx"):
             raise _error(p.node_of("distribution"), "distribution must be beckmann or ggx")
@@ -478,7 +488,7 @@ class Converter:
         if alpha_u != alpha_v:
             raise _error(p.owner, "anisotropic roughness is not supported")
         p.boolean("sample_visible", True)  # sampling strategy only
-        n = (2.0 / alpha_u ** 2 - 2.0) / 4.0 if alpha_u > 0 else math.inf
+        n = phong_exponent(alpha_u) if alpha_u > 0 else math.inf
         if not 1.0 <= n <= GLOSSY_EXPONENT_MAX:
             raise _error(p.node_of("alpha"), f"alpha {alpha_u:g} maps to Phong exponent {n:g}, outside "
                                              f"[1, {GLOSSY_EXPONENT_MAX:g}] (alpha in [0.0023, 0.577])")
