@@ -4,10 +4,13 @@ halves are imported where rendering happens (worker/engine.py)."""
 from __future__ import annotations
 
 from worker.integrators.base import Delta, Integrator
+from worker.integrators.connect_merge import BidirectionalPathTracing, ConnectMerge, LightTracing
 from worker.integrators.photon_mapping import PhotonMapping, ProgressivePhotonMapping
 from worker.settings import Settings
 
-INTEGRATORS: dict[str, type[Integrator]] = {cls.name: cls for cls in (PhotonMapping, ProgressivePhotonMapping)}
+INTEGRATORS: dict[str, type[Integrator]] = {
+    cls.name: cls for cls in (PhotonMapping, ProgressivePhotonMapping, ConnectMerge, BidirectionalPathTracing,
+                              LightTracing)}
 
 
 def integrator_for(settings: Settings) -> Integrator:
