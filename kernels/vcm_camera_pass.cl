@@ -18,7 +18,8 @@
 //      radius's normalisation, give the change of the merged estimate between the radii
 //      (the error estimate's bias term; worker/integrators/connect_merge.py);
 //   5. the bounce, Russian roulette, and the update of the quantities.
-// Writes the pixel's camera-side radiance for the pass (w: the merged change).
+// Writes the pixel's camera-side radiance for the pass (w: the merged change), and whether
+// its camera ray hit anything (pixels that see nothing carry no error estimate).
 
 __kernel void vcm_camera_pass(
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
@@ -35,7 +36,7 @@ __kernel void vcm_camera_pass(
     __global const int* path_last,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
     __global const uint* sorted,
-    __global float4* cam_out)
+    __global float4* cam_out, __global int* cam_hit)
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
@@ -52,9 +53,11 @@ __kernel void vcm_camera_pass(
     float dVCM = n_light / camera_ray(&cam, gid, &rng, &o, &d), dVC = 0.0f, dVM = 0.0f;
     float3 thr = (float3)(1.0f), radiance = (float3)(0.0f);
     float merged_change = 0.0f;
+    int hit_any = 0;
     for (int depth = 0; depth < max_bounces; ++depth) {
         Hit h = intersect(&g, o, d);
         if (h.surf == SURF_NONE) break;
+        hit_any = 1;
         float3 p = o + h.t * d;
         float cos_in = fabs(dot(d, h.ng));
         dVCM *= h.t * h.t / cos_in;
@@ -163,4 +166,5 @@ __kernel void vcm_camera_pass(
         o = p + (dot(d, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
     }
     cam_out[gid] = (float4)(radiance, merged_change);
+    cam_hit[gid] = hit_any;
 }

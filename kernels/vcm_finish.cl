@@ -2,11 +2,11 @@
 // plus the light-tracing splats (fixed point, vcm_light_pass.cl). It adds to the batch's
 // per-pixel sums (kernels/contract.py layout): C the radiance, and where the layout has
 // them, Y2 the squared luminance of the pass's sample (the variance of the per-pass
-// samples) and Mh, Mh2 the change of the merged estimate from radius r/2 to r and its
+// samples), H the passes whose camera ray hit a surface, and Mh, Mh2 the change of the merged estimate from radius r/2 to r and its
 // square (the bias term). The splat accumulators are cleared for the next pass.
 
-__kernel void vcm_finish(int n_pixels, __global const float4* cam_out, __global long* splats,
-                         __global double* batch_sums) {
+__kernel void vcm_finish(int n_pixels, __global const float4* cam_out, __global const int* cam_hit,
+                         __global long* splats, __global double* batch_sums) {
     int gid = get_global_id(0);
     if (gid >= n_pixels) return;
     float4 c = cam_out[gid];
@@ -20,6 +20,7 @@ __kernel void vcm_finish(int n_pixels, __global const float4* cam_out, __global 
 #ifdef SUM_Y2
     double y = LUM_R * v.x + LUM_G * v.y + LUM_B * v.z;
     rec[SUM_Y2] += y * y;
+    rec[SUM_H] += (double)cam_hit[gid];
 #endif
 #ifdef SUM_MH
     rec[SUM_MH] += (double)c.w;

@@ -14,7 +14,7 @@ merge by plain addition in any order. R0 is the job's setup array, computed as S
 (worker/integrators/photon_mapping_passes.py: light vertices, which are photons, per pass).
 
 Sums per pixel: C the radiance of every pass; for the error estimate Y2 the squared
-luminance of each pass's sample, and (vcm) Mh, Mh2 the change of the merged estimate from
+luminance of each pass's sample, H the passes whose camera ray hit a surface, and (vcm) Mh, Mh2 the change of the merged estimate from
 radius r/2 to r and its square. The device half is worker/integrators/connect_merge_passes.py.
 """
 
@@ -66,7 +66,7 @@ class ConnectMerge(Integrator):
 
     @property
     def sums(self) -> SumLayout:
-        errors = (("Y2", 1),) + ((("Mh", 1), ("Mh2", 1)) if self.merges else ())
+        errors = (("Y2", 1), ("H", 1)) + ((("Mh", 1), ("Mh2", 1)) if self.merges else ())
         return SumLayout((("C", 3),) + (errors if self.settings.error_estimation else ()))
 
     @property
@@ -125,15 +125,17 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
     bias   = EDGE_FACTOR x the mean change dh of the merged part from radius r/2 to r
              (3/4 of the bias where the density is smooth, 1/2 where it has an edge in the
              disc: the factor covers both), counted beyond BIAS_SIGNIFICANCE standard errors;
-    never-lit pixels (no non-zero sample yet): the one-sided Poisson bound on the rate of a
-             non-zero sample, -ln(1 - c) / i, times the RMS per-pass sample of lit pixels.
+    never-lit pixels (a camera ray hit something, but no non-zero sample yet): the one-sided
+             Poisson bound on the rate of a non-zero sample, -ln(1 - c) / i, times the RMS
+             per-pass sample of lit pixels. Pixels whose camera rays never hit anything
+             (background) are not measured.
     """
     i = state.passes
     n = len(state.C)
     lum = state.C @ LUMINANCE / max(i, 1)
-    measured = np.ones(n, bool)
-    known = state.Y2 > 0.0
-    dark = ~known
+    measured = state.H > 0.0
+    known = measured & (state.Y2 > 0.0)
+    dark = measured & ~known
     bias = np.zeros(n)
     if i >= 2:
         t = student_t(confidence, i - 1)
@@ -151,10 +153,10 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
         bound = noise + significant
     else:
         noise = bound = np.full(n, np.inf)
-    lit = lum > 0.0
+    lit = measured & (lum > 0.0)
     floor = FLOOR_FRACTION * float(lum[lit].mean()) if lit.any() else 1.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where(np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
+        relative = np.where(measured & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
     relative[dark] = np.minimum(relative[dark], 1.0)
     average = image_average(relative, known, dark) if i >= 2 else 1.0
     return ErrorEstimate(luminance=lum, bias=bias, noise=noise, bound=bound, relative=relative,

@@ -38,6 +38,7 @@ class ConnectMergePasses:
         self.n_light = self.settings.photons_per_pass
         n = device.arrays.n_pixels
         self.cam_out = device.buffer(16 * n)
+        self.cam_hit = device.buffer(4 * n)
         self.splats = device.buffer(24 * n)
         device.fill(self.splats, np.int64(0), 3 * n)
         self.path_last = device.buffer(4 * self.n_light)
@@ -116,9 +117,10 @@ class ConnectMergePasses:
             i32(a.width), i32(a.height), u64(self.settings.seed), u32(k), i32(self.settings.max_bounces),
             u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius),
             self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_prev, self.path_last,
-            f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.sorted, self.cam_out)
+            f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.sorted, self.cam_out,
+            self.cam_hit)
         finish = dev.program.launch(dev.queue, "vcm_finish", a.n_pixels, i32(a.n_pixels), self.cam_out,
-                                    self.splats, dev.batch_sums)
+                                    self.cam_hit, self.splats, dev.batch_sums)
         dev.times.add("camera", [cam])
         dev.times.add("finish", [finish])
 
