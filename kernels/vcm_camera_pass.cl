@@ -12,7 +12,8 @@
 //   3. connection to every stored vertex y of light path gid mod N_L: weight
 //      1 / (w_light + 1 + w_cam), w_light = p_x->y,A (eta_vm + dVCM_y + dVC_y p_rev,y),
 //      w_cam = p_y->x,A (eta_vm + dVCM + dVC p_rev,x), area pdfs from solid angle by cos / d^2;
-//   4. merging (vcm) with every stored light vertex within r: the density estimate
+//   4. merging (vcm) with every stored light vertex within r on a matching surface (normals
+//      within 45 degrees, as SPPM's gather): the density estimate
 //      f Phi / (pi r^2 N_L) weighted 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc +
 //      dVM_y p_fwd, w_cam = dVCM eta_vc + dVM p_rev. The same vertices within r/2, at that
 //      radius's normalisation, give the change of the merged estimate between the radii
@@ -131,6 +132,8 @@ __kernel void vcm_camera_pass(
                         float dd = dot(v, v);
                         if (dd >= r2) continue;
                         LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, i);
+                        float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
+                        if (dot(y_side, side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)
                         BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, wo, y.wo);
                         if (e.pdf_fwd <= 0.0f) continue;
                         float w_light = y.dVCM * eta_vc + y.dVM * e.pdf_fwd;

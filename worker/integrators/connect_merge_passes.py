@@ -18,7 +18,7 @@ from kernels.program import f32, i32, u32, u64
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
 from worker.integrators.connect_merge import ConnectMerge, pass_radius
 from worker.integrators.photon_mapping import PhotonMapping
-from worker.integrators.photon_mapping_passes import PhotonMappingPasses, _next_pow2
+from worker.integrators.photon_mapping_passes import R0_FOOTPRINTS, PhotonMappingPasses, _next_pow2
 
 if TYPE_CHECKING:
     from worker.engine import Device
@@ -126,8 +126,11 @@ class ConnectMergePasses:
 
     # -------------------------------------------------------------------- setup
     def setup(self) -> dict[str, np.ndarray]:
-        """R0 as SPPM's (the override, or pass 0's photon density and pixel footprint),
-        from a photon-mapping device on the same context: light vertices are photons."""
+        """R0: the override, or R0_FOOTPRINTS pixel footprints (SPPM's footprint rule, from
+        a photon-mapping eye pass on the same context). Not SPPM's photon-count rule: with
+        few light paths per pass it grows R0 until merging reaches across walls (2.2x the
+        mean on `gap`), and connections already carry the light that merging would smooth;
+        merging is there for the specular paths, where a small radius is what they need."""
         dev = self.dev
         if self.settings.initial_radius is not None:
             return {"R0": np.full(dev.arrays.n_pixels, self.settings.initial_radius)}
@@ -135,7 +138,8 @@ class ConnectMergePasses:
 
         photon_mapping = PhotonMapping(self.settings.model_copy(update={"method": "sppm"}))
         probe = Device(dev.arrays, photon_mapping.sums, dev.ctx)
-        return PhotonMappingPasses(photon_mapping, probe).setup()
+        footprint = PhotonMappingPasses(photon_mapping, probe).pixel_footprint()
+        return {"R0": np.full(dev.arrays.n_pixels, R0_FOOTPRINTS * footprint)}
 
     # -------------------------------------------------------------------- batch
     def run_batch(self, inputs: float, first_pass: int, n_passes: int, keep_going: KeepGoing | None = None) -> Delta:
