@@ -127,7 +127,7 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
              disc: the factor covers both), counted beyond BIAS_SIGNIFICANCE standard errors;
     never-lit pixels (a camera ray hit something, but no non-zero sample yet): the one-sided
              Poisson bound on the rate of a non-zero sample, -ln(1 - c) / i, times the RMS
-             per-pass sample of lit pixels. Pixels whose camera rays never hit anything
+             per-pass sample of the median lit pixel. Pixels whose camera rays never hit anything
              (background) are not measured.
     """
     i = state.passes
@@ -148,7 +148,7 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
             z = student_t(math.erf(BIAS_SIGNIFICANCE / math.sqrt(2.0)), i - 1)
             bias = EDGE_FACTOR * dh
             significant = EDGE_FACTOR * np.maximum(np.abs(dh) - z * dh_se, 0.0)
-        rms = float(np.sqrt(state.Y2[known] / i).mean()) if known.any() else math.inf
+        rms = float(np.median(np.sqrt(state.Y2[known] / i))) if known.any() else math.inf
         noise = np.where(dark, rms * -math.log1p(-confidence) / i, noise)
         bound = noise + significant
     else:
