@@ -113,7 +113,7 @@ __kernel void vcm_camera_pass(
                     float cos_x = fabs(dot(dir, h.ng)), cos_y = fabs(dot(dir, y.ng));
                     float w_light = ex.pdf_fwd * cos_y / d2 * (eta_vm + y.dVCM + y.dVC * ey.pdf_rev);
                     float w_cam = ey.pdf_fwd * cos_x / d2 * (eta_vm + dVCM + dVC * ex.pdf_rev);
-                    float shade = fabs(dot(dir, h.ns)) * fabs(dot(dir, y.ns)) / d2;
+                    float shade = fabs(dot(dir, h.ns)) * cos_y / d2;  // f_y y.thr is radiance per geometric area
                     radiance += thr * y.thr * ex.f * ey.f * (shade / (w_light + 1.0f + w_cam));
                 }
             }

@@ -4,8 +4,9 @@
 //   1. emit from a light chosen by power (vcm_lights.cl), with the initial MIS quantities;
 //   2. at every hit, turn the quantities to the area measure there (times d^2 except after
 //      a directional light, over |cos| of the arrival);
-//   3. at a non-specular hit, store the vertex (for connections and merging) and connect
-//      it to the camera: a light-tracing splat to whichever pixel it projects to;
+//   3. at a non-specular hit, store the vertex (for connections and merging; its throughput
+//      as the flux per geometric area a BSDF about the shading normal sees, as photons) and
+//      connect it to the camera: a light-tracing splat to whichever pixel it projects to;
 //   4. sample the bounce and Russian roulette (survival = the bounce's largest throughput
 //      factor, as photon_pass.cl), and update the quantities: through a specular bounce
 //      dVCM = 0 and dVC, dVM scale by the cosine; else, with the bounce's forward and
@@ -92,12 +93,14 @@ __kernel void vcm_light_pass(
         float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
         int type = as_int(sa.w);
         if (!is_delta(type)) {
+            // The flux per geometric area as a BSDF about the shading normal sees it (materials.cl).
+            float3 arriving = h.smooth ? thr * shading_arrival(d, h.ng, h.ns) : thr;
             // 3a. Store the vertex.
             if (store) {
                 uint slot = atomic_inc(lv_count);
                 if (slot < capacity) {  // the host re-runs the pass with more room on overflow
                     lv_pos[slot] = (float4)(p, as_float(h.surf));
-                    lv_thr[slot] = (float4)(thr, dVCM);
+                    lv_thr[slot] = (float4)(arriving, dVCM);
                     lv_wo[slot] = (float4)(-d, dVC);
                     lv_ng[slot] = (float4)(h.ng, dVM);
                     lv_ns[slot] = (float4)(h.ns, 0.0f);
@@ -112,14 +115,14 @@ __kernel void vcm_light_pass(
                 BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -d, pr.to_camera);
                 if (e.pdf_fwd > 0.0f) {
                     float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
-                    float3 ns = dot(side, h.ns) > 0.0f ? h.ns : -h.ns;
                     Hit block = intersect_within(&g, p + side * ray_eps(p), pr.to_camera, pr.visible);
                     if (block.surf == SURF_NONE) {
-                        float cos_cam_side = fabs(dot(pr.to_camera, h.ng));
-                        float p_cam = pr.importance * cos_cam_side / (pr.dist * pr.dist);
+                        // Radiance f * arriving toward the camera, seen over the solid angle
+                        // cos_y / d^2 of the surface, times the pixel's importance.
+                        float cos_y = fabs(dot(pr.to_camera, h.ng));
+                        float p_cam = pr.importance * cos_y / (pr.dist * pr.dist);
                         float w = connect ? 1.0f / (1.0f + p_cam / n_light * (eta_vm + dVCM + dVC * e.pdf_rev)) : 1.0f;
-                        float3 value = thr * e.f * (dot(pr.to_camera, ns) * pr.importance /
-                                                    (pr.dist * pr.dist * n_light) * w);
+                        float3 value = arriving * e.f * (p_cam / n_light * w);
                         splat(splats, pr.pixel, value);
                     }
                 }
