@@ -15,6 +15,7 @@ import numpy as np
 import pyopencl as cl
 
 from kernels.program import f32, i32, u32, u64
+from worker.integrators import camera_problem
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
 from worker.integrators.connect_merge import ConnectMerge, pass_radius
 from worker.integrators.photon_mapping import PhotonMapping
@@ -30,8 +31,9 @@ class ConnectMergePasses:
     """Light pass, vertex grid, camera pass and pass sums for vcm, bpt and lt."""
 
     def __init__(self, integrator: ConnectMerge, device: "Device") -> None:
-        if float(device.arrays.camera[1, 3]) > 0.0:
-            raise ValueError(f"method {integrator.name} needs a pinhole camera (the scene's camera has a lens)")
+        problem = camera_problem(integrator.settings, float(device.arrays.camera[1, 3]))
+        if problem:
+            raise ValueError(problem)
         self.integrator = integrator
         self.settings = integrator.settings
         self.dev = device
