@@ -1,24 +1,14 @@
 // Light subpaths of the hybrid integrator (vertex connection and merging, Georgiev et al.
-// 2012; its tech report's recursive MIS quantities dVCM, dVC, dVM): one work item per
-// light path. Per path:
-//   1. emit from a light chosen by power (vcm_lights.cl), with the initial MIS quantities;
-//   2. at every hit, turn the quantities to the area measure there (times d^2 except after
-//      a directional light, over |cos| of the arrival);
+// 2012): one work item per light path. Per path:
+//   1. emit from a light chosen by power, with the initial MIS quantities (vcm_lights.cl);
+//   2. at every hit, turn the quantities to the area measure there (vcm_subpath.cl);
 //   3. at a non-specular hit, store the vertex (for connections and merging; its throughput
 //      as the flux per geometric area a BSDF about the shading normal sees, as photons) and
-//      connect it to the camera: a light-tracing splat to whichever pixel it projects to;
-//   4. sample the bounce and Russian roulette (survival = the bounce's largest throughput
-//      factor, as photon_pass.cl), and update the quantities: through a specular bounce
-//      dVCM = 0 and dVC, dVM scale by the cosine; else, with the bounce's forward and
-//      reverse solid-angle pdfs,
-//          dVC  = cos / p_fwd (dVC p_rev + dVCM + eta_vm)
-//          dVM  = cos / p_fwd (dVM p_rev + dVCM eta_vc + 1)
-//          dVCM = 1 / p_fwd
-//      with eta_vm = eta_vcm = pi r^2 N_L where merging is on (else 0) and eta_vc =
-//      1 / eta_vcm where connecting is on (else 0).
-// A splat's weight is 1 / (1 + p_cam / N_L (eta_vm + dVCM + dVC p_rev)), p_cam the area pdf
-// of the pixel's camera ray finding the vertex (vcm_camera.cl); light tracing alone
-// (`connect` off) is the only technique for its paths and weighs 1.
+//   4. connect it to the camera: a light-tracing splat to whichever pixel it projects to,
+//      weighted 1 / (1 + p_cam / N_L (eta_vm + dVCM + dVC p_rev)), p_cam the area pdf of the
+//      pixel's camera ray finding the vertex (vcm_camera.cl); light tracing alone
+//      (`connect` off) is the only technique for its paths and weighs 1;
+//   5. bounce, Russian roulette, and the quantities' update (vcm_subpath.cl).
 //
 // Stored vertices get slots from an atomic counter, so each also records the slot of its
 // path's previous stored vertex (a list from path_last[path] back to -1) and a key
@@ -71,83 +61,56 @@ __kernel void vcm_light_pass(
     SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
     Pinhole cam = pinhole(camera, width, height);
     Rng rng = rng_make(seed, pass, path, DOMAIN_LIGHT_PATH);
-    float eta_vm = merge ? eta_vcm : 0.0f, eta_vc = connect ? 1.0f / eta_vcm : 0.0f;
+    MisEtas eta = mis_etas(connect, merge, eta_vcm);
     float n_light = (float)n_paths;
 
     // 1. Emission.
     Emission em = sample_emission(emitters, emitter_cdf, n_emitters, &rng);
-    float3 o = em.o, d = em.d, thr = em.flux;
-    float dVCM = em.dVCM, dVC = em.dVC, dVM = em.dVC * eta_vc;
+    SubPath s = {em.o, em.d, em.flux, em.dVCM, em.dVC, em.dVC * eta.vc};
     int prev = -1;
 
     for (int bounce = 0; bounce < max_bounces; ++bounce) {
-        Hit h = intersect(&g, o, d);
+        Hit h = intersect(&g, s.o, s.d);
         if (h.surf == SURF_NONE) break;
-        float3 p = o + h.t * d;
+        float3 p = s.o + h.t * s.d;
         // 2. The quantities in the area measure at the hit.
-        float cos_in = fabs(dot(d, h.ng));
-        if (bounce > 0 || !em.infinite) dVCM *= h.t * h.t;
-        dVCM /= cos_in;
-        dVC /= cos_in;
-        dVM /= cos_in;
+        subpath_arrive(&s, &h, bounce > 0 || !em.infinite);
         float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
         int type = as_int(sa.w);
         if (!is_delta(type)) {
-            // The flux per geometric area as a BSDF about the shading normal sees it (materials.cl).
-            float3 arriving = h.smooth ? thr * shading_arrival(d, h.ng, h.ns) : thr;
-            // 3a. Store the vertex.
+            float3 arriving = h.smooth ? s.thr * shading_arrival(s.d, h.ng, h.ns) : s.thr;
+            // 3. Store the vertex.
             if (store) {
                 uint slot = atomic_inc(lv_count);
                 if (slot < capacity) {  // the host re-runs the pass with more room on overflow
                     lv_pos[slot] = (float4)(p, as_float(h.surf));
-                    lv_thr[slot] = (float4)(arriving, dVCM);
-                    lv_wo[slot] = (float4)(-d, dVC);
-                    lv_ng[slot] = (float4)(h.ng, dVM);
+                    lv_thr[slot] = (float4)(arriving, s.dVCM);
+                    lv_wo[slot] = (float4)(-s.d, s.dVC);
+                    lv_ng[slot] = (float4)(h.ng, s.dVM);
                     lv_ns[slot] = (float4)(h.ns, 0.0f);
                     lv_key[slot] = ((ulong)path << 12) | (ulong)bounce;
                     lv_prev[slot] = prev;
                     prev = (int)slot;
                 }
             }
-            // 3b. Light tracing: connect to the camera.
+            // 4. Light tracing: connect to the camera.
             Projection pr;
             if (project(&cam, p, &pr)) {
-                BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -d, pr.to_camera);
-                if (e.pdf_fwd > 0.0f) {
-                    float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
-                    Hit block = intersect_within(&g, p + side * ray_eps(p), pr.to_camera, pr.visible);
-                    if (block.surf == SURF_NONE) {
-                        // Radiance f * arriving toward the camera, seen over the solid angle
-                        // cos_y / d^2 of the surface, times the pixel's importance.
-                        float cos_y = fabs(dot(pr.to_camera, h.ng));
-                        float p_cam = pr.importance * cos_y / (pr.dist * pr.dist);
-                        float w = connect ? 1.0f / (1.0f + p_cam / n_light * (eta_vm + dVCM + dVC * e.pdf_rev)) : 1.0f;
-                        float3 value = arriving * e.f * (p_cam / n_light * w);
-                        splat(splats, pr.pixel, value);
-                    }
+                BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -s.d, pr.to_camera);
+                float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
+                if (e.pdf_fwd > 0.0f
+                    && intersect_within(&g, p + side * ray_eps(p), pr.to_camera, pr.visible).surf == SURF_NONE) {
+                    // Radiance f * arriving toward the camera, over the solid angle cos_y / d^2
+                    // of the surface, times the pixel's importance: p_cam itself.
+                    float p_cam = pr.importance * fabs(dot(pr.to_camera, h.ng)) / (pr.dist * pr.dist);
+                    float w = connect ? 1.0f / (1.0f + p_cam / n_light * (eta.vm + s.dVCM + s.dVC * e.pdf_rev))
+                                      : 1.0f;
+                    splat(splats, pr.pixel, arriving * e.f * (p_cam / n_light * w));
                 }
             }
         }
-        // 4. Bounce, Russian roulette, and the quantities' update.
-        BsdfSample s;
-        if (!bsdf_sample(type, sb.w, sa.xyz, h.ng, h.ns, d, &rng, &s)) break;
-        float3 w = s.weight;
-        if (h.smooth) w *= shading_bounce(d, s.dir, h.ng, h.ns, true);
-        float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));
-        if (rng_float(&rng) >= survive) break;
-        thr *= w / survive;
-        float cos_out = fabs(dot(s.dir, h.ng));
-        if (s.delta) {
-            dVCM = 0.0f;
-            dVC *= cos_out;
-            dVM *= cos_out;
-        } else {
-            dVC = cos_out / s.pdf_fwd * (dVC * s.pdf_rev + dVCM + eta_vm);
-            dVM = cos_out / s.pdf_fwd * (dVM * s.pdf_rev + dVCM * eta_vc + 1.0f);
-            dVCM = 1.0f / s.pdf_fwd;
-        }
-        d = s.dir;
-        o = p + (dot(d, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
+        // 5. Bounce, Russian roulette, and the quantities' update.
+        if (!subpath_bounce(&s, &h, p, sa, sb, true, eta, &rng)) break;
     }
     if (store) path_last[path] = prev;
 }

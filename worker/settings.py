@@ -38,7 +38,8 @@ class Settings(BaseModel):
     direct: Direct = Field("photons", description="direct light at the measurement points: photons (density "
                                                   "estimate), or nee (a light sample and a BSDF sample per pass, "
                                                   "MIS-weighted; photons then skip their first hit)")
-    alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule)")
+    alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule); "
+                                                             "vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1)")
     photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass (light subpaths "
                                                                                "for vcm, bpt, lt)")
     initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
