@@ -28,8 +28,8 @@ METHODS = ("lt", "bpt", "vcm")
 
 def covered(eng, state, truth: np.ndarray) -> float:
     """Share of pixels whose error bound (confidence 0.9) holds the true luminance: within
-    5 points of 90% on these smooth scenes (measured at 48 passes: 0.88 to 0.91; at 50%
-    confidence 0.48 to 0.56)."""
+    5 points of 90% on these smooth scenes (measured at 48 passes: 0.88 to 0.90; at 50%
+    confidence 0.48 to 0.50)."""
     est = eng.integrator.estimate(state)
     return float(np.mean(np.abs(est.luminance - truth) <= est.bound))
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kernels.contract import LUMINANCE, SumLayout
-from worker.error_estimate import BIAS_SIGNIFICANCE, EDGE_FACTOR, FLOOR_FRACTION, ErrorEstimate, image_average, student_t
+from worker.error_estimate import EDGE_FACTOR, EDGE_MARGIN, FLOOR_FRACTION, ErrorEstimate, image_average, student_t
 from worker.integrators.base import Delta, Integrator
 
 
@@ -125,7 +125,8 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
              luminance samples (independent across passes, whatever their radii);
     bias   = EDGE_FACTOR x the mean change dh of the merged part from radius r/2 to r
              (3/4 of the bias where the density is smooth, 1/2 where it has an edge in the
-             disc: the factor covers both), counted beyond BIAS_SIGNIFICANCE standard errors;
+             disc: the factor covers both), counted beyond EDGE_MARGIN standard errors (as the
+             discontinuity bias of SPPM: the change rests on few vertices, so it is noisy);
     never-lit pixels (a camera ray hit something, but no non-zero sample yet): the one-sided
              Poisson bound on the rate of a non-zero sample, -ln(1 - c) / i, times the RMS
              per-pass sample of the median lit pixel. Pixels whose camera rays never hit anything
@@ -146,7 +147,7 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
         if "Mh" in state.sums:
             dh = state.Mh / i
             dh_se = np.sqrt(np.maximum(state.Mh2 - i * dh ** 2, 0.0) / (i - 1) / i)
-            z = student_t(math.erf(BIAS_SIGNIFICANCE / math.sqrt(2.0)), i - 1)
+            z = student_t(math.erf(EDGE_MARGIN / math.sqrt(2.0)), i - 1)
             bias = EDGE_FACTOR * dh
             significant = EDGE_FACTOR * np.maximum(np.abs(dh) - z * dh_se, 0.0)
         rms = float(np.median(np.sqrt(state.Y2[known] / i))) if known.any() else math.inf
