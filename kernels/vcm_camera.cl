@@ -38,15 +38,16 @@ inline Pinhole pinhole(__global const float4* cam, int width, int height) {
     return c;
 }
 
-// A jittered ray through pixel `gid`: origin on the near-clip plane, unit direction, and
-// the solid-angle pdf of the direction (the importance above).
-inline float camera_ray(const Pinhole* c, int gid, Rng* rng, float3* o, float3* d) {
+// A jittered ray through pixel `gid`: origin on the near-clip plane (`skipped` from the
+// pinhole), unit direction, and the solid-angle pdf of the direction (the importance above).
+inline float camera_ray(const Pinhole* c, int gid, Rng* rng, float3* o, float3* d, float* skipped) {
     int x = gid % c->width, y = gid / c->width;
     float sx = 2.0f * ((float)x + rng_float(rng)) / (float)c->width - 1.0f;
     float sy = 1.0f - 2.0f * ((float)y + rng_float(rng)) / (float)c->height;
     float3 dir = c->fwd + sx * c->right + sy * c->up;  // unit length along the axis
     *o = c->pos + c->near * dir;
     *d = normalize(dir);
+    *skipped = c->near * length(dir);
     float cos_t = dot(*d, c->fwd);
     return 1.0f / (c->pixel_area * cos_t * cos_t * cos_t);
 }

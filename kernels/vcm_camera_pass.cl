@@ -137,7 +137,8 @@ __kernel void vcm_camera_pass(
     float merge_norm = 1.0f / (PI_F * r2 * n_light);
 
     SubPath s;
-    s.dVCM = n_light / camera_ray(&cam, gid, &rng, &s.o, &s.d);
+    float skipped;  // the first hit's distance from the pinhole is this more than the ray's
+    s.dVCM = n_light / camera_ray(&cam, gid, &rng, &s.o, &s.d, &skipped);
     s.dVC = s.dVM = 0.0f;
     s.thr = (float3)(1.0f);
     float3 radiance = (float3)(0.0f);
@@ -148,7 +149,7 @@ __kernel void vcm_camera_pass(
         if (h.surf == SURF_NONE) break;
         hit_any = 1;
         float3 p = s.o + h.t * s.d;
-        subpath_arrive(&s, &h, true);
+        subpath_arrive(&s, &h, depth == 0 ? h.t + skipped : h.t);
         float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
         CameraVertex x = {p, -s.d, h.ng, dot(s.d, h.ng) < 0.0f ? h.ng : -h.ng, h.ns, as_int(sa.w), sb.w, sa.xyz};
 

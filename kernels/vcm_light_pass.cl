@@ -74,7 +74,7 @@ __kernel void vcm_light_pass(
         if (h.surf == SURF_NONE) break;
         float3 p = s.o + h.t * s.d;
         // 2. The quantities in the area measure at the hit.
-        subpath_arrive(&s, &h, bounce > 0 || !em.infinite);
+        subpath_arrive(&s, &h, bounce > 0 || !em.infinite ? h.t : 0.0f);
         float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
         int type = as_int(sa.w);
         if (!is_delta(type)) {

@@ -24,9 +24,11 @@ inline MisEtas mis_etas(int connect, int merge, float eta_vcm) {
     return e;
 }
 
-inline void subpath_arrive(SubPath* s, const Hit* h, bool distance_factor) {
+// `dist`: from the previous vertex to the hit (0: no distance factor). It differs from the
+// ray's length only on a camera ray started at the near-clip plane.
+inline void subpath_arrive(SubPath* s, const Hit* h, float dist) {
     float cos_in = fabs(dot(s->d, h->ng));
-    if (distance_factor) s->dVCM *= h->t * h->t;
+    if (dist > 0.0f) s->dVCM *= dist * dist;
     s->dVCM /= cos_in;
     s->dVC /= cos_in;
     s->dVM /= cos_in;
