@@ -23,7 +23,7 @@ from tests.analytic import FURNACE_L, point_plane
 from tests.conftest import render
 from worker.image_io import read_image
 from worker.integrators.base import Delta
-from worker.integrators.connect_merge import hybrid_estimate
+from worker.integrators.connect_merge import HybridState, hybrid_estimate
 from worker.scene import bundled_scene_path, load_scene_file
 
 METHODS = ("lt", "bpt", "vcm")
@@ -62,7 +62,7 @@ def test_point_plane(make_engine, method: str) -> None:
         assert abs(covered(eng, state, truth, confidence) - confidence) <= 0.05
 
 
-def pass_means(eng, passes: int):  # noqa: ANN201
+def pass_means(eng, passes: int) -> tuple[HybridState, float, float]:
     """Render one pass per batch; the state and each pass's image-mean luminance (passes are
     independent samples, so their spread gives the standard error of the image mean)."""
     state = eng.start()
@@ -72,7 +72,7 @@ def pass_means(eng, passes: int):  # noqa: ANN201
         eng.integrator.merge(state, delta)
         means.append(float((delta.C @ LUMINANCE).mean()))
     means = np.array(means)
-    return state, means.mean(), means.std(ddof=1) / np.sqrt(passes)
+    return state, float(means.mean()), float(means.std(ddof=1) / np.sqrt(passes))
 
 
 def test_bpt_matches_mitsuba_on_cornell_box(make_engine) -> None:

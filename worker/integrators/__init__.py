@@ -25,4 +25,4 @@ def camera_problem(settings: Settings, aperture_radius: float) -> str | None:
     return None
 
 
-__all__ = ["Delta", "INTEGRATORS", "Integrator", "camera_problem", "integrator_for"]
+__all__ = ["INTEGRATORS", "Delta", "Integrator", "camera_problem", "integrator_for"]
