@@ -185,3 +185,15 @@ def test_near_clip_camera_against_sppm_reference(make_engine) -> None:
     eng = make_engine("smallppm", resolution=(64, 48), method="bpt", photons_per_pass=64 * 48, seed=7)
     _, mean, se = pass_means(eng, 32)
     assert abs(mean / float((ref @ LUMINANCE).mean()) - 1.0) < 0.03, (mean, se)
+
+
+def test_bpt_matches_mitsuba_on_gap(make_engine) -> None:
+    """The room lit only through a gap (light tracing and connections carry it; NEE sees
+    the hidden lamp almost nowhere): bpt's image mean against the cached Mitsuba 3 path
+    tracing reference (bench/reference/gap-64x64.exr, 100 s, its own per-pixel error 4%)
+    within 3 standard errors of ours (seed 3, 128 passes: measured -2.4%, standard error
+    1.35%; seed 4: -0.6%). A mean within 1% needs about 4x this budget here."""
+    ref = read_image(BENCH_DIR / "reference" / "gap-64x64.exr")[..., :3].astype(np.float64)
+    eng = make_engine("gap", resolution=(64, 64), method="bpt", photons_per_pass=4096, seed=3)
+    _, mean, se = pass_means(eng, 128)
+    assert abs(mean - float((ref @ LUMINANCE).mean())) < 3.0 * se, (mean, se)
