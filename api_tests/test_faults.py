@@ -1,6 +1,7 @@
 """Faults: a worker SIGKILLed mid-batch, the API killed and restarted, Redis killed and
 restarted. Each job must still finish, with every pass merged exactly once: the passes
-and photon totals add up exactly, and the merged batches tile 0..max_passes-1."""
+and photon totals add up exactly, and the merged batches tile 0..max_passes-1. Each with
+SPPM and with the hybrid integrator (vcm), whose sums the store merges the same way."""
 
 from __future__ import annotations
 
@@ -22,8 +23,8 @@ def faulty(tmp_path) -> Cluster:  # noqa: ANN001 - a fresh cluster per fault
     c.close()
 
 
-def _long_job(c: Cluster) -> dict:
-    return c.submit(scene_name="cornell-box", settings={"max_passes": PASSES, "photons_per_pass": P,
+def _long_job(c: Cluster, method: str) -> dict:
+    return c.submit(scene_name="cornell-box", settings={"method": method, "max_passes": PASSES, "photons_per_pass": P,
                                                         "resolution": [96, 96], "seed": 9})
 
 
@@ -47,8 +48,12 @@ def _worker_holding_a_lease(c: Cluster, job_id: str, timeout: float = 30.0) -> i
     raise AssertionError("no worker took a batch")
 
 
-def test_worker_killed_mid_batch(faulty: Cluster) -> None:
-    job = _long_job(faulty)
+METHODS = pytest.mark.parametrize("method", ["sppm", "vcm"])
+
+
+@METHODS
+def test_worker_killed_mid_batch(faulty: Cluster, method: str) -> None:
+    job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 2)
     victim = _worker_holding_a_lease(faulty, job["id"])
     faulty.workers[victim].send_signal(signal.SIGKILL)
@@ -58,8 +63,9 @@ def test_worker_killed_mid_batch(faulty: Cluster) -> None:
     _assert_exact(faulty, job["id"])
 
 
-def test_api_restart(faulty: Cluster) -> None:
-    job = _long_job(faulty)
+@METHODS
+def test_api_restart(faulty: Cluster, method: str) -> None:
+    job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 2)
     faulty.kill_api()
     time.sleep(1.0)  # workers keep rendering and feeding the job without the API
@@ -67,8 +73,9 @@ def test_api_restart(faulty: Cluster) -> None:
     _assert_exact(faulty, job["id"])
 
 
-def test_redis_restart(faulty: Cluster) -> None:
-    job = _long_job(faulty)
+@METHODS
+def test_redis_restart(faulty: Cluster, method: str) -> None:
+    job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 4)
     before = faulty.job(job["id"])["passes"]
     faulty.restart_redis()

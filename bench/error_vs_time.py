@@ -1,9 +1,10 @@
 """Error against time on six scenes, every method measured in one run on this machine:
-SPPM with the exact grid, SPPM with stochastic hashing, PPM (exact grid), and the peer,
+SPPM with the exact grid, SPPM with stochastic hashing, PPM (exact grid), SPPM with NEE,
+the hybrid integrator's bpt and vcm (one light subpath per pixel per pass), and the peer,
 Mitsuba 3 (`scalar_rgb`) path tracer and particle tracer, on the same scene converted
 automatically (bench/mitsuba_peer.py).
 
-    python -m bench.error_vs_time [--full] [--make-references]
+    python -m bench.error_vs_time [--full] [--make-references] [--seconds S] [--scenes A,B]
 
 Error: relative RMS per pixel, sqrt(mean(((image - reference) / max(reference, floor))^2))
 over all pixels and channels, floor = 5% of the reference's mean (as the error estimator's
@@ -39,7 +40,9 @@ REFERENCES = BENCH_DIR / "reference"
 SCENES = {"cornell-box": "path", "cornell-caustics": "path", "gap": "path",
           "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm"}
 OURS = {"sppm exact": ("sppm", "exact"), "sppm stochastic": ("sppm", "stochastic"), "ppm exact": ("ppm", "exact"),
-        "sppm nee": ("sppm", "exact", "nee")}  # (method, gather[, direct])
+        "sppm nee": ("sppm", "exact", "nee"), "bpt": ("bpt", "exact"), "vcm": ("vcm", "exact")}
+# (method, gather[, direct]); the hybrid methods trace one light subpath per pixel per pass
+HYBRID = ("vcm", "bpt", "lt")
 PEERS = ("mitsuba path", "mitsuba ptracer")
 TARGETS = (0.10, 0.05)
 PHOTONS = 1 << 17
@@ -87,7 +90,8 @@ def rel_rms(img: np.ndarray, ref: np.ndarray) -> float:
 def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, budget: float, method: str, gather: str,
              direct: str = "photons") -> list:
     t0 = time.perf_counter()
-    eng = bench_engine(scene, res, method=method, gather=gather, direct=direct, photons_per_pass=PHOTONS, seed=7)
+    photons = res[0] * res[1] if method in HYBRID else PHOTONS
+    eng = bench_engine(scene, res, method=method, gather=gather, direct=direct, photons_per_pass=photons, seed=7)
     state = eng.start()
     setup = time.perf_counter() - t0
     curve = []
@@ -136,11 +140,15 @@ def main() -> None:
     parser.add_argument("--full", action="store_true", help="128-pixel images and 60 s per method")
     parser.add_argument("--make-references", action="store_true")
     parser.add_argument("--reference-seconds", type=float, default=120.0)
+    parser.add_argument("--seconds", type=float, help="budget per method (a smoke run; default 12, --full 60)")
+    parser.add_argument("--scenes", help="comma-separated subset of the scenes")
     args = parser.parse_args()
     side, budget = (128, 60.0) if args.full else (64, 12.0)
+    budget = args.seconds or budget
+    scenes = {name: SCENES[name] for name in args.scenes.split(",")} if args.scenes else SCENES
     report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget, "photons_per_pass": PHOTONS,
               "scenes": {}}
-    for scene, ref_method in SCENES.items():
+    for scene, ref_method in scenes.items():
         res = resolution(scene, side)
         if args.make_references or not reference_path(scene, res).exists():
             make_reference(scene, res, args.reference_seconds)

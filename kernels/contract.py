@@ -22,7 +22,7 @@ MATERIALS = {"diffuse": 0, "mirror": 1, "glass": 2, "glossy": 3}
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
 # Random-number domains: independent streams for eye paths, photon paths and the light
 # samples at the measurement points (kernels/rng.cl).
-RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3}
+RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3, "light_path": 4, "camera_path": 5}
 
 # The smooth kernel K(t) = 1 - 6t^5 + 15t^4 - 10t^3 (dissertation eq. 6.34) and its moments.
 K1 = 2.0 * math.pi / 7.0  # integral of K over the unit disc: the flux normalisation k1 r^2
@@ -42,6 +42,17 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights: what "error"
 # diffuse surface is not defined at all. 4096 = 2^12 is what the photon key's bounce field
 # holds (kernels/photon_pass.cl).
 MAX_BOUNCES = 4096
+
+# The hybrid integrator (kernels/vcm_*.cl): light-tracing splats land on any pixel, so
+# they are summed with 64-bit integer atomics in fixed point (no float atomics on PoCL;
+# integer addition is associative, so the sum is the same bit for bit whatever the order).
+# One unit is 2^-SPLAT_FRACTION_BITS of radiance: 3.7e-9 per splat, far below any noise,
+# and a pixel holds up to 2^(63 - SPLAT_FRACTION_BITS) = 3.4e10 per pass (more saturates).
+SPLAT_FRACTION_BITS = 28
+# The hybrid program builds on the photon-mapping sources (for spatial_hash.cl's grid build),
+# whose eye-pass and gather kernels address these sums unconditionally; a layout without
+# them gets them defined as record offset 0 so the source compiles (those kernels never run).
+PHOTON_RECORD_NAMES = ("S", "D", "H", "LD")
 
 
 @dataclass(frozen=True)
@@ -87,12 +98,15 @@ class SumLayout:
 
 def build_options(layout: SumLayout) -> list[str]:
     """The `-D` options that hand this contract to the kernels."""
+    borrowed = {f"SUM_{name}": 0 for name in PHOTON_RECORD_NAMES if name.upper() not in map(str.upper, layout.names)}
     defines: dict[str, object] = {
         **{f"MAT_{name.upper()}": code for name, code in MATERIALS.items()},
         **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
         **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},
         "K1": repr(K1),
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
+        "SPLAT_SCALE": repr(float(2 ** SPLAT_FRACTION_BITS)),
+        **borrowed,
         **layout.defines(),
     }
     return [f"-D{name}={value}" for name, value in defines.items()]

@@ -23,6 +23,16 @@ SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", 
 PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
                 "grid_scatter", "grid_sort", "gather_stochastic", "gather_exact")
+# The programs an integrator names (Integrator.program): its sources and kernels. The
+# hybrid integrator (vertex connection and merging) builds on the photon-mapping sources
+# (materials, lights, spatial_hash.cl's grid build for its light vertices) with its own.
+PROGRAMS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "photon_mapping": (SOURCES, KERNEL_NAMES),
+    "hybrid": (SOURCES + ("vcm_bsdf.cl", "vcm_lights.cl", "vcm_camera.cl", "vcm_subpath.cl", "vcm_light_pass.cl",
+                          "vcm_camera_pass.cl", "vcm_finish.cl"),
+               ("vcm_light_pass", "vcm_camera_pass", "vcm_finish", "grid_count", "grid_scan", "grid_scatter",
+                "grid_sort")),
+}
 
 
 def create_context() -> cl.Context:
@@ -38,24 +48,25 @@ class Program:
     """Compiled kernels for one context and one layout of per-pixel sums (the contract of
     kernels/contract.py, handed over as build options), with a launcher."""
 
-    def __init__(self, ctx: cl.Context, layout: SumLayout) -> None:
-        source = PREAMBLE + "\n".join((KERNEL_DIR / name).read_text() for name in SOURCES)
+    def __init__(self, ctx: cl.Context, layout: SumLayout, sources: tuple[str, ...] = SOURCES,
+                 kernel_names: tuple[str, ...] = KERNEL_NAMES) -> None:
+        source = PREAMBLE + "\n".join((KERNEL_DIR / name).read_text() for name in sources)
         program = cl.Program(ctx, source).build(options=["-cl-mad-enable", *build_options(layout)])
-        self.kernels = {name: getattr(program, name) for name in KERNEL_NAMES}
+        self.kernels = {name: getattr(program, name) for name in kernel_names}
 
     def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object) -> cl.Event:
         """Run kernel `name` over n work items (kernels bound-check their id)."""
         return self.kernels[name](queue, (max(int(n), 1),), None, *args)
 
 
-_programs: dict[tuple[int, SumLayout], Program] = {}
+_programs: dict[tuple[int, SumLayout, str], Program] = {}
 
 
-def program_for(ctx: cl.Context, layout: SumLayout) -> Program:
-    """The process-wide compiled program for `ctx` and `layout`."""
-    key = (ctx.int_ptr, layout)
+def program_for(ctx: cl.Context, layout: SumLayout, name: str = "photon_mapping") -> Program:
+    """The process-wide compiled program `name` (PROGRAMS) for `ctx` and `layout`."""
+    key = (ctx.int_ptr, layout, name)
     if key not in _programs:
-        _programs[key] = Program(ctx, layout)
+        _programs[key] = Program(ctx, layout, *PROGRAMS[name])
     return _programs[key]
 
 

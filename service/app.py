@@ -38,6 +38,7 @@ from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS,
                             JobSettings, JobView, PixelView, SceneSummary)
 from service.upload import UploadError, Unpacker, scene_path
 from worker.image_io import error_colours, write_image
+from worker.integrators import camera_problem
 from worker.outputs import write_render
 from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, Scene, SceneError, bundled_scene_names,
                           bundled_scene_path, inline_meshes, load_any_scene, load_scene_file, parse_scene)
@@ -285,6 +286,9 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             scene_json = inline_meshes(parsed, base_dir, root)
         except SceneError as exc:
             raise _unprocessable(scene_loc(exc), exc.message) from None
+        problem = camera_problem(settings, parsed.camera.aperture_radius)
+        if problem:
+            raise _unprocessable(["body", "settings", "method"], problem)
         width, height = settings.resolution or parsed.camera.resolution
         if width * height > MAX_SERVICE_PIXELS:
             raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),

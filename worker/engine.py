@@ -49,12 +49,13 @@ class StageTimes:
 class Device:
     """The OpenCL side of one scene: context, queue, program, scene buffers, batch sums."""
 
-    def __init__(self, arrays: SceneArrays, layout: SumLayout, ctx: cl.Context | None = None) -> None:
+    def __init__(self, arrays: SceneArrays, layout: SumLayout, ctx: cl.Context | None = None,
+                 program: str = "photon_mapping") -> None:
         self.arrays = arrays
         self.layout = layout
         self.ctx = ctx or create_context()
         self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
-        self.program: Program = program_for(self.ctx, layout)
+        self.program: Program = program_for(self.ctx, layout, program)
         self.times = StageTimes()
         a = arrays
         self.geometry = [self.const(a.tri_v0), self.const(a.tri_e1), self.const(a.tri_e2), self.const(a.tri_nrm),
@@ -100,7 +101,7 @@ class Engine:
         self.settings = settings
         self.integrator = integrator_for(settings)
         self.arrays: SceneArrays = compile_scene(scene, base_dir, settings.resolution)
-        self.device = Device(self.arrays, self.integrator.sums, ctx)
+        self.device = Device(self.arrays, self.integrator.sums, ctx, self.integrator.program)
         self.passes: Passes = passes_for(self.integrator, self.device)
 
     @property

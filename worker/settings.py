@@ -18,7 +18,7 @@ from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
 MAX_PHOTONS_PER_PASS = 1 << 24
 DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold may be out of reach)
 
-Method = Literal["sppm", "ppm"]
+Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
 Gather = Literal["exact", "stochastic"]
 Direct = Literal["photons", "nee"]
 Priority = Literal["high", "normal", "low"]
@@ -30,14 +30,18 @@ class Settings(BaseModel):
 
     # What is rendered, and how.
     method: Method = Field("sppm", description="sppm: new measurement points every pass (stochastic PPM); "
-                                               "ppm: one fixed set of points")
+                                               "ppm: one fixed set of points; vcm: vertex connection and "
+                                               "merging (bidirectional paths and photon merging, MIS-weighted); "
+                                               "bpt: its connections only (unbiased); lt: light tracing")
     gather: Gather = Field("exact", description="photon lookup: exact grid, or stochastic spatial hashing "
                                                 "(one photon per cell, dissertation ch. 10)")
     direct: Direct = Field("photons", description="direct light at the measurement points: photons (density "
                                                   "estimate), or nee (a light sample and a BSDF sample per pass, "
                                                   "MIS-weighted; photons then skip their first hit)")
-    alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule)")
-    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass")
+    alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule); "
+                                                             "vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1)")
+    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass (light subpaths "
+                                                                               "for vcm, bpt, lt)")
     initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "

@@ -52,6 +52,8 @@ class Integrator(ABC):
     """The host half of a rendering method (see the module docstring)."""
 
     name: ClassVar[str]
+    program: ClassVar[str] = "photon_mapping"  # the OpenCL program it runs (kernels/program.py, PROGRAMS)
+    pinhole_only: ClassVar[bool] = False  # its kernels cannot trace a thin lens (jobs refused up front)
     # Per-pixel arrays fixed once per job by its first batch (first writer wins), e.g. R0.
     setup_arrays: ClassVar[tuple[str, ...]] = ()
     # Per-pixel arrays a batch reads from the job state before it starts.

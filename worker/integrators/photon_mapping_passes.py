@@ -138,6 +138,17 @@ class PhotonMappingPasses:
         dev.times.add("gather", [gather_ev])
 
     # -------------------------------------------------------------------- setup
+    def pixel_footprint(self) -> float:
+        """The median eye-path length to the first diffuse hit times the pixel's angle."""
+        dev, a = self.dev, self.dev.arrays
+        n = a.n_pixels
+        cl.enqueue_copy(dev.queue, self.radius, np.zeros(n, np.float32))  # radius 0: no disc coverage rays
+        self._eye_pass(0)
+        dist = np.empty(n, np.float32)
+        cl.enqueue_copy(dev.queue, dist, self.mp_dist)
+        hit = dist > 0.0
+        return float(np.median(dist[hit])) * a.pixel_angle if hit.any() else a.scene_diagonal / max(a.width, a.height)
+
     def setup(self) -> dict[str, np.ndarray]:
         """R0 for every pixel: the override, or the larger of R0_FOOTPRINTS pixel footprints
         and the radius that holds R0_PHOTONS photons per pass at the median lit pixel.
@@ -156,14 +167,7 @@ class PhotonMappingPasses:
         n = a.n_pixels
         if self.settings.initial_radius is not None:
             return {"R0": np.full(n, self.settings.initial_radius)}
-        # Footprint: the median eye-path length to the first diffuse hit times the pixel's angle.
-        cl.enqueue_copy(dev.queue, self.radius, np.zeros(n, np.float32))  # radius 0: no disc coverage rays
-        self._eye_pass(0)
-        dist = np.empty(n, np.float32)
-        cl.enqueue_copy(dev.queue, dist, self.mp_dist)
-        hit = dist > 0.0
-        footprint = float(np.median(dist[hit])) * a.pixel_angle if hit.any() \
-            else a.scene_diagonal / max(a.width, a.height)
+        footprint = self.pixel_footprint()
         # Density: an exact gather of pass 0's photons at the probe radius.
         probe = PROBE_FOOTPRINTS * footprint
         dev.zero_sums()
