@@ -21,6 +21,7 @@ DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold 
 Method = Literal["sppm", "ppm"]
 Gather = Literal["exact", "stochastic"]
 Direct = Literal["photons", "nee"]
+Sampler = Literal["uniform", "adaptive"]
 Priority = Literal["high", "normal", "low"]
 PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
 
@@ -36,6 +37,13 @@ class Settings(BaseModel):
     direct: Direct = Field("photons", description="direct light at the measurement points: photons (density "
                                                   "estimate), or nee (a light sample and a BSDF sample per pass, "
                                                   "MIS-weighted; photons then skip their first hit)")
+    sampler: Sampler = Field("uniform", description="photon paths: uniform, or adaptive (Markov chains over "
+                                                     "paths that reach a measurement point, replica exchange "
+                                                     "with uniform draws; Hachisuka & Jensen 2011); needs "
+                                                     "gather exact")
+    target_acceptance: float = Field(0.234, gt=0.0, lt=1.0,
+                                     description="adaptive sampler: the mutation acceptance its mutation size "
+                                                 "is adapted toward")
     alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule)")
     photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass")
     initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
@@ -85,6 +93,14 @@ class Settings(BaseModel):
     def _threshold_needs_estimate(self) -> "Settings":
         if self.error_threshold is not None and not self.error_estimation:
             raise ValueError("error_threshold needs error_estimation")
+        return self
+
+    @model_validator(mode="after")
+    def _adaptive_needs_exact_gather(self) -> "Settings":
+        # A stochastic hash entry stands for its photons by their number, not their counts
+        # (a chain state re-counted by rejections is one stored photon counted many times).
+        if self.sampler == "adaptive" and self.gather != "exact":
+            raise ValueError("sampler adaptive needs gather exact")
         return self
 
 
