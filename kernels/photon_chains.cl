@@ -114,6 +114,7 @@ __kernel void photon_chains(
     ulong seed, uint pass, int max_bounces, uint capacity, int skip_first_hit,
     uint n_chains, uint iterations,   // the pass's photon paths: `iterations` split over the chains
     float theta, uint boot_cap,
+    int exchange,                     // 0: no replica exchange once a chain has a state (an ablation, for tests)
     __global const float4* mp_pos, __global const float4* mp_nrm, __global const float* radius,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
     __global const uint* sorted,
@@ -154,8 +155,8 @@ __kernel void photon_chains(
         draw_uniform(&rng, next);
         probe(&tracer, next, record);
         ++draws;
-        int moved = next->sink.visible;
-        visible += moved;
+        visible += next->sink.visible;
+        int moved = next->sink.visible && (exchange || !has_state);
         if (!moved && has_state) {
             // Otherwise mutate the state; the candidate is accepted iff visible.
             mutate(&rng, &states[cur], next, theta);

@@ -34,7 +34,7 @@ COUNTERS = ("draws", "visible", "splats", "mutations", "accepted", "started")
 THETA_STEPS = "theta_steps"  # the sum of the passes' log-theta steps, in THETA_QUANTUM
 THETA_QUANTUM = 2.0 ** -24
 THETA_MIN, THETA_MAX = 1e-3, 64.0  # "bounding theta to a large finite range" (dissertation 8.2)
-THETA_GAIN = 1.0  # gamma_k = THETA_GAIN / sqrt(k + 1), in log theta per unit of acceptance error
+THETA_GAIN = 4.0  # gamma_k = THETA_GAIN / sqrt(k + 1), in log theta per unit of acceptance error
 CHAIN_SHARE = 0.05  # chains = this share of the visible paths a pass expects (a chain's start costs 1 / V_c draws)
 MIN_CHAINS, MAX_CHAINS = 16, 4096
 MIN_BOOT_DRAWS = 256  # a chain's start: at least this many uniform draws, else photons / chains
