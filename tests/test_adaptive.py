@@ -72,7 +72,7 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     so every iteration is an exchange (the paper's uniform limit, dissertation 8.4.4). The radius,
     kept (alpha 1) at almost 3 pixel footprints, leaves no gap between measurement points."""
     path = _scene_file(tmp_path, spot_plane_scene((32, 32)))
-    common = dict(resolution=(32, 32), photons_per_pass=1 << 13, seed=5, initial_radius=0.3, alpha=1.0)
+    common = {"resolution": (32, 32), "photons_per_pass": 1 << 13, "seed": 5, "initial_radius": 0.3, "alpha": 1.0}
     ada = make_engine(path, sampler="adaptive", **common)
     uni = make_engine(path, **common)
     sa, su = render(ada, 24), render(uni, 24)
@@ -110,7 +110,7 @@ def _visible_paths(eng) -> int:
     ps, dev, n = eng.passes, eng.device, eng.arrays.n_pixels
     m = ps.photons_stored
 
-    def read(buf, dtype, shape):  # noqa: ANN001, ANN202
+    def read(buf, dtype, shape):
         out = np.empty(shape, dtype)
         cl.enqueue_copy(dev.queue, out, buf)
         return out
@@ -135,7 +135,7 @@ def _visible_paths(eng) -> int:
 def test_visible_fraction_matches_an_independent_count(make_engine) -> None:
     """The chains' V_c (their uniform draws) and a k-d tree count over a uniform pass's
     photon paths, same measurement points and radius: two binomial samples of one V_c."""
-    common = dict(resolution=(32, 32), photons_per_pass=1 << 14, seed=9, initial_radius=0.15)
+    common = {"resolution": (32, 32), "photons_per_pass": 1 << 14, "seed": 9, "initial_radius": 0.15}
     ada, uni = make_engine("gap", sampler="adaptive", **common), make_engine("gap", **common)
     r = np.full(ada.arrays.n_pixels, 0.15)
     chains = ChainInputs(theta=0.3, chains=64)
@@ -182,7 +182,7 @@ def test_replica_exchange_finds_both_openings_in_proportion(make_engine, tmp_pat
     n = eng.arrays.n_pixels
     inputs = GatherInputs(np.full(n, 0.05), None, ChainInputs(theta=adaptive.THETA_MIN, chains=1))
 
-    def left_share(delta) -> float:  # noqa: ANN001
+    def left_share(delta) -> float:
         lum = (delta.S @ LUMINANCE).reshape(eng.arrays.height, eng.arrays.width)
         return float(lum[:, :eng.arrays.width // 2].sum() / lum.sum())
 
@@ -199,7 +199,7 @@ def test_replica_exchange_finds_both_openings_in_proportion(make_engine, tmp_pat
     assert alone.std() > 0.25 and (np.minimum(alone, 1.0 - alone) < 0.05).sum() >= 2, alone
 
 
-def _adaptive_engine(make_engine):  # noqa: ANN001, ANN202
+def _adaptive_engine(make_engine):
     return make_engine("gap", resolution=(24, 24), photons_per_pass=1 << 12, seed=4, sampler="adaptive")
 
 
@@ -232,3 +232,21 @@ def test_same_seed_same_image(make_engine) -> None:
     assert sa.counters == sb.counters
     for name in sa.sums:
         np.testing.assert_array_equal(sa.sums[name], sb.sums[name])
+
+
+def test_cli_renders_adaptive_and_refuses_it_with_the_stochastic_hash(tmp_path: Path) -> None:
+    from tests.test_cli import SMALL, run
+    from worker.image_io import read_metadata
+
+    out = tmp_path / "gap.exr"
+    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--target-acceptance", "0.3",
+               "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    meta = read_metadata(out)
+    counters = json.loads(meta["counters"])
+    assert counters["draws"] == 3 * 4096 and 0 < counters["visible"] < counters["draws"]
+    assert json.loads(meta["settings"])["sampler"] == "adaptive"
+    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--gather", "stochastic",
+               "--out", str(out))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "sampler adaptive needs gather exact" in proc.stderr
