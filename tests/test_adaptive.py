@@ -15,7 +15,7 @@ from scipy import stats
 from scipy.spatial import cKDTree
 
 from kernels.contract import LUMINANCE
-from tests.analytic import spot_plane_scene
+from tests.analytic import FURNACE_L, point_plane, spot_plane_scene
 from tests.conftest import image, render
 from worker import adaptive
 from worker.integrators.photon_mapping import ChainInputs, GatherInputs
@@ -90,6 +90,26 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     z = (la.ravel() - lu.ravel())[lit] / noise
     assert abs(z.mean()) < 4.0 / math.sqrt(lit.sum()) + 0.05 and z.std() < 1.2
     assert abs(la.mean() / lu.mean() - 1.0) < 0.02
+
+
+@pytest.mark.parametrize("method", ["sppm", "ppm"])
+def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None:
+    """The camera sees part of the furnace (V_c ~ 0.2): the chains' photons crowd into its
+    view, and V_c / splats scales them back to the analytic radiance."""
+    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=3, sampler="adaptive", method=method)
+    state = render(eng, 24)
+    assert 0.05 < adaptive.visible_fraction(state.counters) < 0.5
+    mean = image(eng, state).mean()
+    assert abs(mean / FURNACE_L - 1.0) < 0.02, (mean, FURNACE_L)
+
+
+def test_point_plane_matches_analytic_radiance(make_engine) -> None:
+    """Per pixel against the closed form; every photon gathered (exact grid)."""
+    eng = make_engine("point-plane", photons_per_pass=1 << 17, seed=5, sampler="adaptive")
+    state = render(eng, 32)
+    rel = image(eng, state)[..., 0] / point_plane(eng)[0].reshape(eng.arrays.height, eng.arrays.width) - 1.0
+    assert abs(rel.mean()) < 0.015, rel.mean()
+    assert np.sqrt(np.mean(rel ** 2)) < 0.05, np.sqrt(np.mean(rel ** 2))
 
 
 def _unpack_dirs(bits: np.ndarray) -> np.ndarray:
