@@ -15,7 +15,7 @@ from scipy import stats
 from scipy.spatial import cKDTree
 
 from kernels.contract import LUMINANCE
-from tests.analytic import FURNACE_L, point_plane, spot_plane_scene
+from tests.analytic import FURNACE_L, closed_sphere_scene, furnace_radiance, point_plane, spot_plane_scene
 from tests.conftest import image, render
 from worker import adaptive
 from worker.error_estimate import estimate
@@ -102,6 +102,18 @@ def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None
     assert 0.05 < adaptive.visible_fraction(state.counters) < 0.5
     mean = image(eng, state).mean()
     assert abs(mean / FURNACE_L - 1.0) < 0.02, (mean, FURNACE_L)
+
+
+def test_long_paths_beyond_the_photon_cache(make_engine, tmp_path) -> None:
+    """Albedo 0.9: a path stores 10 photons on average and 18% store more than DEPOSIT_CACHE
+    (16), so their states are traced again at every splat instead of re-counted."""
+    path = _scene_file(tmp_path, closed_sphere_scene((0.9, 0.9, 0.9)))
+    eng = make_engine(path, photons_per_pass=1 << 13, seed=8, sampler="adaptive")
+    state = render(eng, 16)
+    mean = image(eng, state).mean()
+    truth = float(furnace_radiance(0.9))
+    assert abs(mean / truth - 1.0) < 0.02, (mean, truth, state.counters)
+    assert state.counters["mutations"] > 0.01 * state.counters["draws"], state.counters
 
 
 def test_point_plane_matches_analytic_radiance(make_engine) -> None:
