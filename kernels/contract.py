@@ -25,9 +25,11 @@ EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
 RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3, "chain": 4}
 
 # Adaptive photon tracing (kernels/photon_chains.cl): the dimensions of the primary sample
-# space (a path's first PSS_DIM random numbers: emitter 1, emission 4, then per bounce 1-2
-# for the lobe and 1 for Russian roulette; the rest come from a stream seeded by the vector),
-# and how many photons of a chain state are kept to be re-counted without tracing again.
+# space (a path's first PSS_DIM random numbers in the order it asks for them: emitter 1,
+# emission 4, then per bounce 0-2 for the direction or the glass branch and 1 for Russian
+# roulette, so 32 cover about 9 bounces; the rest come from a stream seeded by a hash of the
+# vector, kernels/rng.cl), and how many photons of a chain state are kept to be re-counted
+# without tracing it again (a state with more is traced again at every splat).
 PSS_DIM = 32
 DEPOSIT_CACHE = 16
 

@@ -13,14 +13,16 @@
 // more than DEPOSIT_CACHE photons is traced and stored again instead).
 //
 // Each chain starts the pass from an exact sample of F: uniform draws until one is visible
-// (rejection sampling), at most `boot_cap`. A chain that finds none has no state: until one
-// of its uniform draws is visible it splats nothing (and counts nothing), which keeps every
-// splat an exact sample of F; with nothing visible at all the pass is uniform tracing that
-// found nothing. The image is V_c * (sum of splats) / (splats), with V_c = visible uniform
+// (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their
+// number depends on what they found). A chain that finds none has no state: until one of
+// its main loop's uniform draws is visible it splats nothing (its draws still count toward
+// V_c), which keeps every splat an exact sample of F; with nothing visible at all the pass
+// is uniform tracing that found nothing. The image is V_c * (sum of splats) / (splats), with V_c = visible uniform
 // draws / uniform draws pooled over the job (worker/stats.py): the counters below.
 // theta is frozen for the pass (adapted between passes on the host, worker/adaptive.py).
-// Stored photons' keys are (record << 12) | bounce, record = chain * (max_iters + 1) + 1 +
-// the iteration the photons were stored at (0 for the start state): unique in the pass.
+// Stored photons' keys are (record << 12) | bounce, record = chain * (iterations / chains
+// + 2) + 1 + the iteration that splatted them (+ 0 for the start state): unique in the pass,
+// so the exact gather's sort by key makes the sums the same from run to run.
 
 // Counters a pass adds (uint, one slot each; worker/adaptive.py names them).
 #define CTR_DRAWS 0      // uniform draws of the main loop (I)
