@@ -301,3 +301,18 @@ def test_cli_renders_adaptive_and_refuses_it_with_the_stochastic_hash(tmp_path: 
                "--out", str(out))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "sampler adaptive needs gather exact" in proc.stderr
+
+
+def test_settings_name_the_sampler_in_their_errors() -> None:
+    from pydantic import ValidationError
+
+    from service.models import JobRequest
+
+    for settings, loc, text in (({"sampler": "mcmc"}, ("settings", "sampler"), "'uniform' or 'adaptive'"),
+                                ({"sampler": "adaptive", "gather": "stochastic"}, ("settings",),
+                                 "sampler adaptive needs gather exact"),
+                                ({"target_acceptance": 1.0}, ("settings", "target_acceptance"), "less than 1")):
+        with pytest.raises(ValidationError) as info:
+            JobRequest.model_validate({"scene_name": "gap", "settings": settings})
+        error = info.value.errors()[0]
+        assert error["loc"] == loc and text in error["msg"], error
