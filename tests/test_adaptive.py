@@ -15,7 +15,13 @@ from scipy import stats
 from scipy.spatial import cKDTree
 
 from kernels.contract import LUMINANCE
-from tests.analytic import FURNACE_L, closed_sphere_scene, furnace_radiance, point_plane, spot_plane_scene
+from tests.analytic import (
+    FURNACE_L,
+    closed_sphere_scene,
+    furnace_radiance,
+    point_plane,
+    spot_plane_scene,
+)
 from tests.conftest import image, render
 from worker import adaptive
 from worker.error_estimate import estimate
