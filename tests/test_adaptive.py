@@ -322,3 +322,19 @@ def test_settings_name_the_sampler_in_their_errors() -> None:
             JobRequest.model_validate({"scene_name": "gap", "settings": settings})
         error = info.value.errors()[0]
         assert error["loc"] == loc and text in error["msg"], error
+
+
+def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) -> None:
+    """A point light under the seen plane: no path is ever visible. The chains find no start,
+    every pass is uniform tracing that found nothing: a black image, no NaN, no hang, and
+    the error estimate still answers."""
+    scene = _patch_scene(60.0)
+    scene["lights"][0]["position"] = [0, -1, 0]
+    eng = make_engine(_scene_file(tmp_path, scene), photons_per_pass=1 << 12, seed=2, sampler="adaptive")
+    state = render(eng, 3)
+    c = state.counters
+    assert c["draws"] == 3 * (1 << 12) and c["visible"] == c["splats"] == c["started"] == c["mutations"] == 0
+    img = image(eng, state)
+    assert np.all(img == 0.0)
+    est = eng.integrator.estimate(state)
+    assert np.all(np.isfinite(est.relative)) and est.average == 1.0
