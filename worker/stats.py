@@ -106,22 +106,20 @@ class Accumulators:
         for name, value in delta.counters.items():
             self.counters[name] = self.counters.get(name, 0) + value
 
-    def photon_scale(self) -> float:
-        """What S is multiplied by for the photon density estimate: 1 / E, or V_c / splats."""
-        if self.adaptive:
-            return adaptive.photon_scale(self.counters)
-        return 1.0 / self.emitted if self.emitted > 0 else 0.0
-
     @property
     def effective_emitted(self) -> float:
-        """The photons a uniform sampler would have emitted for the same estimate, 1 / scale
-        (the E of the error estimate's formulas); 0 before any photon counted."""
-        scale = self.photon_scale()
+        """The photons a uniform sampler would have emitted for the same estimate (the E of
+        the error estimate's formulas): E, or splats / V_c; 0 before any photon counted."""
+        if not self.adaptive:
+            return self.emitted
+        scale = adaptive.photon_scale(self.counters)
         return 1.0 / scale if scale > 0.0 else 0.0
 
     def photon_radiance(self) -> np.ndarray:
-        """The density estimate S/E alone, (pixels, 3)."""
-        return self.S * self.photon_scale()
+        """The density estimate S/E alone, (pixels, 3); adaptive photons: V_c S / splats."""
+        if self.adaptive:
+            return self.S * adaptive.photon_scale(self.counters)
+        return self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
 
     def radiance(self) -> np.ndarray:
         """Current estimate L = S/E + Ld/passes, (pixels, 3) float64."""
