@@ -9,8 +9,9 @@
 // otherwise the state is mutated, u + du per dimension with du = sign(2 xi0 - 1) xi1^(1/theta
 // + 1) wrapped into [0,1) (eq. 9), and the candidate is accepted iff visible (eq. 10). Then
 // the state is splatted: a new state's photons are stored with count 1, a state kept again
-// adds 1 to the counts of its stored photons instead of being traced again (a state with
-// more than DEPOSIT_CACHE photons is traced and stored again instead).
+// adds 1 to the counts of its stored photons instead of being traced again (with the
+// stochastic hash it stores them again from its cache; a state with more than
+// DEPOSIT_CACHE photons is traced and stored again).
 //
 // Each chain starts the pass from an exact sample of F: uniform draws until one is visible
 // (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their
@@ -21,8 +22,9 @@
 // draws / uniform draws pooled over the job (worker/stats.py): the counters below.
 // theta is frozen for the pass (adapted between passes on the host, worker/adaptive.py).
 // Stored photons' keys are (record << 12) | bounce, record = chain * (iterations / chains
-// + 2) + 1 + the iteration that splatted them (+ 0 for the start state): unique in the pass,
-// so the exact gather's sort by key makes the sums the same from run to run.
+// + 1) + the iteration that stored them: unique in the pass, so the exact gather's sort
+// by key makes the sums the same from run to run (salted for the stochastic hash,
+// photon_pass.cl).
 
 // Counters a pass adds (uint, one slot each; worker/adaptive.py names them).
 #define CTR_DRAWS 0      // uniform draws of the main loop (I)
@@ -75,22 +77,26 @@ inline void probe(const Tracer* t, ChainState* s, ulong record) {
                  t->skip_first_hit, record, 0, &s->sink);
 }
 
-// Store a cached state's photons with count `count` (0: stored now, counted by later splats).
-inline void store_cached(ChainState* s, float count) {
+// Store a cached state's photons (count 1) as record `record`.
+inline void store_cached(ChainState* s, ulong record) {
     int n = s->sink.n;
     s->first = reserve_photons(&s->sink.store, (uint)n);
-    for (int j = 0; j < n; ++j)
-        write_photon(&s->sink.store, s->first + j, s->sink.c_pos[j].xyz, count, s->sink.c_flux[j].xyz,
-                     s->sink.c_dirs[j], s->sink.c_key[j]);
+    for (int j = 0; j < n; ++j) {
+        ulong key = (record << 12) | (s->sink.c_key[j] & 0xFFFUL);
+        write_photon(&s->sink.store, s->first + j, s->sink.c_pos[j].xyz, 1.0f, s->sink.c_flux[j].xyz,
+                     s->sink.c_dirs[j], s->sink.salted ? salted_key(key) : key);
+    }
     s->stored = 1;
 }
 
-// Count the state once more: add 1 to its stored photons' counts, or (too many photons
-// to cache) trace it again and store its photons as record `record`.
-inline void splat(const Tracer* t, ChainState* s, ulong record) {
+// Count the state once more, as record `record`: with `in_place` (the exact gather, which
+// weights a photon by its count) add 1 to the counts of its stored photons; else (the
+// stochastic hash counts photons, not counts) store them again. A state with too many
+// photons to cache is traced again and stored.
+inline void splat(const Tracer* t, ChainState* s, ulong record, int in_place) {
     if (s->sink.n <= DEPOSIT_CACHE) {
-        if (!s->stored) {
-            store_cached(s, 1.0f);
+        if (!s->stored || !in_place) {
+            store_cached(s, record);
             return;
         }
         for (int j = 0; j < s->sink.n; ++j) {
@@ -117,6 +123,7 @@ __kernel void photon_chains(
     uint n_chains, uint iterations,   // the pass's photon paths: `iterations` split over the chains
     float theta, uint boot_cap,
     int exchange,                     // 0: no replica exchange once a chain has a state (an ablation, for tests)
+    int in_place,                     // 1: re-count kept states in place (exact gather); 0: store them again
     __global const float4* mp_pos, __global const float4* mp_nrm, __global const float* radius,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
     __global const uint* sorted,
@@ -130,12 +137,13 @@ __kernel void photon_chains(
     Tracer tracer = {&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, max_bounces, skip_first_hit};
     Rng rng = rng_make(seed, pass, chain, DOMAIN_CHAIN);
     uint per = iterations / n_chains, iters = per + (chain < iterations % n_chains ? 1u : 0u);
-    ulong record0 = (ulong)chain * (ulong)(per + 2u);
+    ulong record0 = (ulong)chain * (ulong)(per + 1u);  // + the iteration: the photons' record
 
     // Two states, the chain's and the proposal's, sharing the store and the point grid.
     ChainState states[2];
     for (int k = 0; k < 2; ++k) {
         states[k].sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
+        states[k].sink.salted = !in_place;
         states[k].sink.grid = (PointGrid){mp_pos, mp_nrm, radius, cell_start, cell_count, sorted, inv_cell, mask};
     }
     int cur = 0, has_state = 0;
@@ -148,10 +156,9 @@ __kernel void photon_chains(
         has_state = states[cur].sink.visible;
     }
     int started = has_state;
-    if (has_state && states[cur].sink.n <= DEPOSIT_CACHE) store_cached(&states[cur], 0.0f);
 
     for (uint i = 0; i < iters; ++i) {
-        ulong record = record0 + 1 + i;
+        ulong record = record0 + i;
         ChainState* next = &states[1 - cur];
         // Replica exchange with the uniform sampler: a visible uniform path replaces the state.
         draw_uniform(&rng, next);
@@ -172,7 +179,7 @@ __kernel void photon_chains(
             has_state = 1;
         }
         if (has_state) {
-            splat(&tracer, &states[cur], record);
+            splat(&tracer, &states[cur], record, in_place);
             ++splats;
         }
     }

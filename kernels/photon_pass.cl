@@ -45,11 +45,21 @@ inline void write_photon(const PhotonStore* st, uint slot, float3 p, float count
     st->key[slot] = key;
 }
 
+// A chain photon's key for the stochastic hash: its (record << 12) | bounce with the top 28
+// bits replaced by a hash of the low 36 (record mod 2^24, bounce). The hash keeps one photon
+// per entry by the smallest key, which must be a random choice among the entry's photons:
+// a chain state stored again (photon_chains.cl) gets a new record, so each copy draws anew.
+inline ulong salted_key(ulong key) {
+    ulong low = key & 0xFFFFFFFFFUL;
+    return ((mix64(low ^ 0x5851F42D4C957F2DUL) >> 36) << 36) | low;
+}
+
 // Where trace_photon puts its photons: stored at once (probe == 0), or probed: judged
 // against the measurement points (PointGrid, visibility.cl) and the first DEPOSIT_CACHE
 // kept, so an accepted chain state is stored without tracing it again.
 typedef struct {
     PhotonStore store;
+    int salted;                  // store keys as salted_key (chains, for the stochastic hash)
     int probe;
     PointGrid grid;
     int visible;                 // some photon lands in a measurement point's disc
@@ -62,7 +72,7 @@ typedef struct {
 
 inline void sink_photon(PhotonSink* s, float3 p, float3 flux, uint2 dirs, ulong key) {
     if (!s->probe) {
-        write_photon(&s->store, reserve_photons(&s->store, 1), p, 1.0f, flux, dirs, key);
+        write_photon(&s->store, reserve_photons(&s->store, 1), p, 1.0f, flux, dirs, s->salted ? salted_key(key) : key);
         return;
     }
     if (!s->visible) s->visible = photon_visible(&s->grid, p, dirs);
@@ -167,6 +177,7 @@ __kernel void photon_pass(
     PhotonSink sink;
     sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
     sink.probe = 0;
+    sink.salted = 0;
     trace_photon(&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, &rng, max_bounces, skip_first_hit,
                  (ulong)path, 1, &sink);
 }

@@ -39,8 +39,7 @@ class Settings(BaseModel):
                                                   "MIS-weighted; photons then skip their first hit)")
     sampler: Sampler = Field("uniform", description="photon paths: uniform, or adaptive (Markov chains over "
                                                      "paths that reach a measurement point, replica exchange "
-                                                     "with uniform draws; Hachisuka & Jensen 2011); needs "
-                                                     "gather exact")
+                                                     "with uniform draws; Hachisuka & Jensen 2011)")
     target_acceptance: float = Field(0.234, gt=0.0, lt=1.0,
                                      description="adaptive sampler: the mutation acceptance its mutation size "
                                                  "is adapted toward")
@@ -93,14 +92,6 @@ class Settings(BaseModel):
     def _threshold_needs_estimate(self) -> "Settings":
         if self.error_threshold is not None and not self.error_estimation:
             raise ValueError("error_threshold needs error_estimation")
-        return self
-
-    @model_validator(mode="after")
-    def _adaptive_needs_exact_gather(self) -> "Settings":
-        # A stochastic hash entry stands for its photons by their number, not their counts
-        # (a chain state re-counted by rejections is one stored photon counted many times).
-        if self.sampler == "adaptive" and self.gather != "exact":
-            raise ValueError("sampler adaptive needs gather exact")
         return self
 
 

@@ -136,7 +136,7 @@ class PhotonMappingPasses:
                 dev.queue, "photon_chains", chains.chains, *dev.geometry, *dev.emitter_args,
                 u64(settings.seed), u32(pass_index), i32(settings.max_bounces), u32(self.capacity), i32(self.nee),
                 u32(chains.chains), u32(photons), f32(chains.theta), u32(adaptive.boot_draws(chains.chains, photons)),
-                i32(self.replica_exchange),
+                i32(self.replica_exchange), i32(settings.gather == "exact"),
                 self.mp_pos, self.mp_nrm, self.radius, inv_cell, u32(self.mp_entries - 1), self.mp_start,
                 self.mp_count, self.mp_sorted, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count,
                 self.counters, one_per_group=True))
