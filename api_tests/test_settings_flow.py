@@ -14,7 +14,8 @@ from worker.store import Jobs
 from worker.tasks import engine_for
 
 # A value other than the default for every field.
-CHANGED = {"method": "ppm", "gather": "stochastic", "direct": "nee", "alpha": 0.55, "photons_per_pass": 4096, "initial_radius": 0.3,
+CHANGED = {"method": "ppm", "gather": "stochastic", "direct": "nee", "sampler": "adaptive", "target_acceptance": 0.3,
+           "alpha": 0.55, "photons_per_pass": 4096, "initial_radius": 0.3,
            "hash_entries_per_photon": 2.0, "seed": 99, "resolution": (24, 16), "error_estimation": True,
            "confidence": 0.8, "bias_constant": "dissertation", "max_passes": 3, "max_seconds": 50.0,
            "error_threshold": 0.02, "priority": "low", "max_bounces": 100}

@@ -101,17 +101,18 @@ def test_page_lists_the_bundled_scenes(page) -> None:  # noqa: ANN001
 def test_the_form_has_every_job_setting_and_sends_them(page, cluster) -> None:  # noqa: ANN001
     ids = page.eval_on_selector_all("#settings [id^=set-]", "els => els.map(e => e.id.slice(4))")
     assert ids == list(JobSettings.model_fields), ids
-    chosen = {"method": "ppm", "gather": "stochastic", "direct": "nee", "priority": "high",
+    chosen = {"method": "ppm", "gather": "stochastic", "direct": "nee", "sampler": "adaptive", "priority": "high",
               "bias_constant": "dissertation"}
     for name, value in chosen.items():
         page.select_option(f"#set-{name}", value)
     typed = {"alpha": "0.6", "seed": "7", "hash_entries_per_photon": "2", "confidence": "0.8",
-             "initial_radius": "3.5"}
+             "initial_radius": "3.5", "target_acceptance": "0.3"}
     short = _submit(page, "cornell-box", **{f"#set-{k}": v for k, v in typed.items()},
                     **{"#set-max_passes": "2", "#set-max_seconds": "", "#set-photons_per_pass": "4096",
                        "#set-resolution": "32x24"})
     job = cluster.http.get(f"/v1/jobs/{_full_id(cluster, short)}").json()
     expected = {**chosen, "alpha": 0.6, "seed": 7, "hash_entries_per_photon": 2.0, "confidence": 0.8,
+                "target_acceptance": 0.3,
                 "initial_radius": 3.5, "max_passes": 2, "photons_per_pass": 4096, "resolution": [32, 24],
                 "error_estimation": True, "max_seconds": None, "error_threshold": None}
     assert {k: job["settings"][k] for k in expected} == expected

@@ -22,7 +22,16 @@ MATERIALS = {"diffuse": 0, "mirror": 1, "glass": 2, "glossy": 3}
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
 # Random-number domains: independent streams for eye paths, photon paths and the light
 # samples at the measurement points (kernels/rng.cl).
-RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3, "light_path": 4, "camera_path": 5}
+RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3, "light_path": 4, "camera_path": 5, "chain": 6}
+
+# Adaptive photon tracing (kernels/photon_chains.cl): the dimensions of the primary sample
+# space (a path's first PSS_DIM random numbers in the order it asks for them: emitter 1,
+# emission 4, then per bounce 0-2 for the direction or the glass branch and 1 for Russian
+# roulette, so 32 cover about 9 bounces; the rest come from a stream seeded by a hash of the
+# vector, kernels/rng.cl), and how many photons of a chain state are kept to be re-counted
+# without tracing it again (a state with more is traced again at every splat).
+PSS_DIM = 32
+DEPOSIT_CACHE = 16
 
 # The smooth kernel K(t) = 1 - 6t^5 + 15t^4 - 10t^3 (dissertation eq. 6.34) and its moments.
 K1 = 2.0 * math.pi / 7.0  # integral of K over the unit disc: the flux normalisation k1 r^2
@@ -104,6 +113,8 @@ def build_options(layout: SumLayout) -> list[str]:
         **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
         **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},
         "K1": repr(K1),
+        "PSS_DIM": PSS_DIM,
+        "DEPOSIT_CACHE": DEPOSIT_CACHE,
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
         "SPLAT_SCALE": repr(float(2 ** SPLAT_FRACTION_BITS)),
         **borrowed,

@@ -14,32 +14,89 @@
 // Paths end by Russian roulette alone (survival = the bounce's largest throughput factor,
 // so the expected flux is unchanged); `max_bounces` is only a safety cap, and its lost
 // energy is bounded in kernels/contract.py (MAX_BOUNCES).
+//
+// The path itself is trace_photon, shared with the adaptive sampler (photon_chains.cl):
+// where it stores a photon it hands it to a PhotonSink, which either stores it (here) or
+// probes it (visibility, and a small cache the chain stores from later). Each stored
+// photon carries a count in ph_pos.w (1 here; a chain's state re-counted by rejected
+// proposals counts as often as it was splatted), which the exact gather weights by.
 
-__kernel void photon_pass(
-    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
-    __global const float4* tri_nrm,
-    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
-    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
-    __global const float4* surf_a, __global const float4* surf_b,
-    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
-    ulong seed, uint pass, int max_bounces, uint capacity,
-    int skip_first_hit,          // 1: store nothing at a photon's first hit (direct light is NEE's)
-    __global float4* ph_pos,     // xyz position (w: 0)
-    __global float4* ph_flux,    // rgb flux (w: 0)
-    __global uint2* ph_dirs,     // packed incoming direction, packed surface normal facing the photon
-    __global ulong* ph_key,      // selection key for the stochastic hash
-    __global volatile uint* ph_count)
-{
-    uint path = (uint)get_global_id(0);
-    if (n_emitters == 0) return;
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
-    Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
+typedef struct {
+    __global float4* pos;        // xyz position, w: count
+    __global float4* flux;       // rgb flux (w: 0)
+    __global uint2* dirs;        // packed incoming direction, packed surface normal facing the photon
+    __global ulong* key;         // sort and selection key
+    __global volatile uint* count;
+    uint capacity;
+} PhotonStore;
 
+// `n` consecutive slots; the host re-runs the pass with more room when they overflow.
+inline uint reserve_photons(const PhotonStore* st, uint n) { return atomic_add(st->count, n); }
+
+inline void write_photon(const PhotonStore* st, uint slot, float3 p, float count, float3 flux, uint2 dirs,
+                         ulong key) {
+    if (slot >= st->capacity) return;
+    // The packed directions keep out of the float lanes: as floats their bits are
+    // often denormal, and the vector arithmetic on xyz also runs the w lane
+    // (2.5x slower gathers when they lived there).
+    st->pos[slot] = (float4)(p, count);
+    st->flux[slot] = (float4)(flux, 0.0f);
+    st->dirs[slot] = dirs;
+    st->key[slot] = key;
+}
+
+// A chain photon's key for the stochastic hash: its (record << 12) | bounce with the top 28
+// bits replaced by a hash of the low 36 (record mod 2^24, bounce). The hash keeps one photon
+// per entry by the smallest key, which must be a random choice among the entry's photons:
+// a chain state stored again (photon_chains.cl) gets a new record, so each copy draws anew.
+inline ulong salted_key(ulong key) {
+    ulong low = key & 0xFFFFFFFFFUL;
+    return ((mix64(low ^ 0x5851F42D4C957F2DUL) >> 36) << 36) | low;
+}
+
+// Where trace_photon puts its photons: stored at once (probe == 0), or probed: judged
+// against the measurement points (PointGrid, visibility.cl) and the first DEPOSIT_CACHE
+// kept, so an accepted chain state is stored without tracing it again.
+typedef struct {
+    PhotonStore store;
+    int salted;                  // store keys as salted_key (chains, for the stochastic hash)
+    int probe;
+    PointGrid grid;
+    int visible;                 // some photon lands in a measurement point's disc
+    int n;                       // photons of the path (also those beyond the cache)
+    float4 c_pos[DEPOSIT_CACHE];
+    float4 c_flux[DEPOSIT_CACHE];
+    uint2 c_dirs[DEPOSIT_CACHE];
+    ulong c_key[DEPOSIT_CACHE];
+} PhotonSink;
+
+inline void sink_photon(PhotonSink* s, float3 p, float3 flux, uint2 dirs, ulong key) {
+    if (!s->probe) {
+        write_photon(&s->store, reserve_photons(&s->store, 1), p, 1.0f, flux, dirs, s->salted ? salted_key(key) : key);
+        return;
+    }
+    if (!s->visible) s->visible = photon_visible(&s->grid, p, dirs);
+    if (s->n < DEPOSIT_CACHE) {
+        s->c_pos[s->n] = (float4)(p, 0.0f);
+        s->c_flux[s->n] = (float4)(flux, 0.0f);
+        s->c_dirs[s->n] = dirs;
+        s->c_key[s->n] = key;
+    }
+    s->n++;
+}
+
+// One photon path from `rng` (a counter stream, or a primary sample vector: rng.cl).
+// Keys: with `random_key`, (random 28 bits << 36) | (path << 12) | bounce, as the
+// stochastic hash needs; else (path << 12) | bounce, path up to 52 bits.
+inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __global const float4* surf_b,
+                         __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+                         Rng* rng, int max_bounces, int skip_first_hit, ulong path, int random_key,
+                         PhotonSink* sink) {
     // Pick an emitter in proportion to its power.
-    int lo = pick_emitter(emitter_cdf, n_emitters, rng_float(&rng));
+    int lo = pick_emitter(emitter_cdf, n_emitters, rng_float(rng));
     float4 r0 = emitters[4 * lo], r1 = emitters[4 * lo + 1], r2 = emitters[4 * lo + 2], r3 = emitters[4 * lo + 3];
     float3 flux = r3.xyz / r3.w;
-    float u1 = rng_float(&rng), u2 = rng_float(&rng), u3 = rng_float(&rng), u4 = rng_float(&rng);
+    float u1 = rng_float(rng), u2 = rng_float(rng), u3 = rng_float(rng), u4 = rng_float(rng);
     float3 o, d;
     int kind = as_int(r0.w);
     if (kind == EMIT_TRIANGLE) {
@@ -68,7 +125,7 @@ __kernel void photon_pass(
     }
 
     for (int bounce = 0; bounce < max_bounces; ++bounce) {
-        Hit h = intersect(&g, o, d);
+        Hit h = intersect(g, o, d);
         if (h.surf == SURF_NONE) return;
         float3 p = o + h.t * d;
         float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
@@ -77,31 +134,50 @@ __kernel void photon_pass(
         if (type == MAT_DIFFUSE) {
             if (bounce > 0 || !skip_first_hit) {
                 float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
-                ulong key = ((ulong)(rng_u32(&rng) >> 4) << 36) | ((ulong)path << 12) | (ulong)bounce;
-                uint slot = atomic_inc(ph_count);
-                if (slot < capacity) {  // the host re-runs the pass with more room on overflow
-                    float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
-                    // The packed directions keep out of the float lanes: as floats their bits are
-                    // often denormal, and the vector arithmetic on xyz also runs the w lane
-                    // (2.5x slower gathers when they lived there).
-                    ph_pos[slot] = (float4)(p, 0.0f);
-                    ph_flux[slot] = (float4)(stored, 0.0f);
-                    ph_dirs[slot] = (uint2)(pack_dir(-d), pack_dir(n));
-                    ph_key[slot] = key;
-                }
+                ulong key = (path << 12) | (ulong)bounce;
+                if (random_key) key |= (ulong)(rng_u32(rng) >> 4) << 36;
+                float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
+                sink_photon(sink, p, stored, (uint2)(pack_dir(-d), pack_dir(n)), key);
             }
             float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;  // the lobe turns about the shading normal
-            nd = sample_cosine(ns, rng_float(&rng), rng_float(&rng));
+            nd = sample_cosine(ns, rng_float(rng), rng_float(rng));
             w = sa.xyz;  // f cos / pdf = (rho/pi) cos / (cos/pi)
-        } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, &rng, &nd, &w)) {
+        } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, rng, &nd, &w)) {
             return;
         }
         if (h.smooth) w *= shading_bounce(d, nd, h.ng, h.ns, true);
         // Russian roulette on the throughput factor keeps the expected flux unchanged.
         float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));
-        if (rng_float(&rng) >= survive) return;
+        if (rng_float(rng) >= survive) return;
         flux *= w / survive;
         d = nd;
         o = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
     }
+}
+
+__kernel void photon_pass(
+    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
+    __global const float4* tri_nrm,
+    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
+    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
+    __global const float4* surf_a, __global const float4* surf_b,
+    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    ulong seed, uint pass, int max_bounces, uint capacity,
+    int skip_first_hit,          // 1: store nothing at a photon's first hit (direct light is NEE's)
+    __global float4* ph_pos,     // xyz position, w: count (1)
+    __global float4* ph_flux,    // rgb flux (w: 0)
+    __global uint2* ph_dirs,     // packed incoming direction, packed surface normal facing the photon
+    __global ulong* ph_key,      // selection key for the stochastic hash
+    __global volatile uint* ph_count)
+{
+    uint path = (uint)get_global_id(0);
+    if (n_emitters == 0) return;
+    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
+    PhotonSink sink;
+    sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
+    sink.probe = 0;
+    sink.salted = 0;
+    trace_photon(&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, &rng, max_bounces, skip_first_hit,
+                 (ulong)path, 1, &sink);
 }

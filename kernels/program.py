@@ -19,10 +19,11 @@ from kernels.contract import SumLayout, build_options  # noqa: E402
 
 KERNEL_DIR = Path(__file__).resolve().parent
 # Order matters: later files use what earlier ones define.
-SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
+SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "spatial_hash.cl", "visibility.cl",
+           "photon_pass.cl", "photon_chains.cl")
 PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
-                "grid_scatter", "grid_sort", "gather_stochastic", "gather_exact")
+                "grid_scatter", "grid_sort", "gather_stochastic", "gather_exact", "photon_chains")
 # The programs an integrator names (Integrator.program): its sources and kernels. The
 # hybrid integrator (vertex connection and merging) builds on the photon-mapping sources
 # (materials, lights, spatial_hash.cl's grid build for its light vertices) with its own.
@@ -54,9 +55,11 @@ class Program:
         program = cl.Program(ctx, source).build(options=["-cl-mad-enable", *build_options(layout)])
         self.kernels = {name: getattr(program, name) for name in kernel_names}
 
-    def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object) -> cl.Event:
-        """Run kernel `name` over n work items (kernels bound-check their id)."""
-        return self.kernels[name](queue, (max(int(n), 1),), None, *args)
+    def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object, one_per_group: bool = False) -> cl.Event:
+        """Run kernel `name` over n work items (kernels bound-check their id); with
+        `one_per_group`, each its own work group (few long work items, e.g. Markov chains,
+        then spread over every core)."""
+        return self.kernels[name](queue, (max(int(n), 1),), (1,) if one_per_group else None, *args)
 
 
 _programs: dict[tuple[int, SumLayout, str], Program] = {}

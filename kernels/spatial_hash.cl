@@ -271,7 +271,7 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
             uint i = sorted[j];
             float4 pp = ph_pos[i];
             if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, ph_dirs[i]))
-                add_photon(&s, q.x, q.n, q.r, q.wgt, pp, ph_flux[i].xyz, 1.0f);
+                add_photon(&s, q.x, q.n, q.r, q.wgt, pp, ph_flux[i].xyz, pp.w);  // w: the photon's count
         }
     }
     accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);

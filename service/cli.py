@@ -18,7 +18,7 @@ from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_p
 from worker.settings import Settings
 
 # Render flags that are settings fields, by flag name (defaults and help from the model).
-RENDER_FIELDS = ("method", "gather", "direct", "alpha", "photons_per_pass", "initial_radius", "seed", "resolution")
+RENDER_FIELDS = ("method", "gather", "direct", "sampler", "target_acceptance", "alpha", "photons_per_pass", "initial_radius", "seed", "resolution")
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -63,7 +63,7 @@ def _add_setting(parser: argparse.ArgumentParser, name: str) -> None:
     elif choices and all(isinstance(c, str) for c in choices):
         kwargs["choices"] = choices
     else:
-        kwargs["type"] = {"alpha": float, "initial_radius": float}.get(name, int)
+        kwargs["type"] = {"alpha": float, "initial_radius": float, "target_acceptance": float}.get(name, int)
     default = f" (default: {info.default})" if info.default is not None else ""
     parser.add_argument(flag, help=f"{info.description}{default}", **kwargs)
 

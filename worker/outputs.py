@@ -3,6 +3,7 @@ the facts that made it (passes, photons, seed, method, settings, error) as metad
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,8 @@ def write_render(path: Path, integrator: Integrator, state: State, width: int, h
     settings = integrator.settings
     metadata: dict[str, object] = {"passes": state.passes, "photons": state.emitted, "seed": settings.seed,
                                    "method": settings.method, "settings": settings.model_dump_json()}
+    if state.counters:  # e.g. the adaptive sampler's uniform draws, visible draws, splats, mutations
+        metadata["counters"] = json.dumps(state.counters, sort_keys=True)
     estimate = integrator.estimate(state) if state.passes > 0 else None
     pixels, channels = rgb, ("R", "G", "B")
     if estimate is not None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
@@ -21,6 +21,7 @@ DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold 
 Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
 Gather = Literal["exact", "stochastic"]
 Direct = Literal["photons", "nee"]
+Sampler = Literal["uniform", "adaptive"]
 Priority = Literal["high", "normal", "low"]
 PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
 
@@ -38,6 +39,12 @@ class Settings(BaseModel):
     direct: Direct = Field("photons", description="direct light at the measurement points: photons (density "
                                                   "estimate), or nee (a light sample and a BSDF sample per pass, "
                                                   "MIS-weighted; photons then skip their first hit)")
+    sampler: Sampler = Field("uniform", description="photon paths: uniform, or adaptive (Markov chains over "
+                                                     "paths that reach a measurement point, replica exchange "
+                                                     "with uniform draws; Hachisuka & Jensen 2011)")
+    target_acceptance: float = Field(0.234, gt=0.0, lt=1.0,
+                                     description="adaptive sampler: the mutation acceptance its mutation size "
+                                                 "is adapted toward")
     alpha: float = Field(0.7, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius rule); "
                                                              "vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1)")
     photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass (light subpaths "
@@ -76,6 +83,13 @@ class Settings(BaseModel):
                 raise ValueError(f"each side must lie in 1..{MAX_RESOLUTION}")
             if w * h > MAX_PIXELS:
                 raise ValueError(f"at most {MAX_PIXELS} pixels")
+        return value
+
+    @field_validator("sampler")
+    @classmethod
+    def _sampler_needs_photons(cls, value: Sampler, info: ValidationInfo) -> Sampler:
+        if value == "adaptive" and info.data.get("method") not in ("sppm", "ppm"):
+            raise ValueError("the adaptive sampler traces photons: it applies to methods sppm and ppm")
         return value
 
     @model_validator(mode="before")

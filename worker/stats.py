@@ -10,6 +10,7 @@ section 11.2 (iii), which turns the dissertation's sequential update (eqs. 6.5-6
     N += alpha * pi * R^2 * dD         R = the radius at merge time
     R^2 = N / (pi D)  (R0^2 while D = 0)
     L = S / E + (directly seen emission) / passes
+    (adaptive photon tracing: S / E becomes V_c S / splats, from summed counters, worker/adaptive.py)
 
 S uses the smooth kernel K of eq. 6.34 (normalised by k1 r^2, so L estimates the same
 radiance as with PPM's disc); D stays count based (pi r^2), as the radius rule derives
@@ -30,12 +31,13 @@ correction makes. All of it is float64 on the host.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from kernels.contract import SumLayout
+from worker import adaptive
 
 if TYPE_CHECKING:
     from worker.integrators.base import Delta
@@ -69,15 +71,17 @@ class Accumulators:
     sums: dict[str, np.ndarray]  # every name of the integrator's SumLayout
     emitted: int = 0
     passes: int = 0
+    counters: dict[str, int] = field(default_factory=dict)  # summed scalars (Delta.counters)
+    adaptive: bool = False  # photons from the adaptive sampler's chains: the image scale is V_c / splats
 
     @classmethod
-    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout) -> "Accumulators":
+    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout, adaptive: bool = False) -> "Accumulators":
         """Empty state: no pass merged, every radius at its initial value."""
         if not 0.0 < alpha <= 1.0:
             raise ValueError("alpha must lie in (0, 1]")
         n = len(R0)
         return cls(alpha=alpha, R0=np.asarray(R0, np.float64), N=np.zeros(n),
-                   sums={name: layout.zeros(n, name) for name in layout.names})
+                   sums={name: layout.zeros(n, name) for name in layout.names}, adaptive=adaptive)
 
     def __getattr__(self, name: str) -> np.ndarray:
         sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
@@ -99,9 +103,22 @@ class Accumulators:
             self.sums[name] += delta.sums[name]
         self.emitted += delta.emitted
         self.passes += delta.n_passes
+        for name, value in delta.counters.items():
+            self.counters[name] = self.counters.get(name, 0) + value
+
+    @property
+    def effective_emitted(self) -> float:
+        """The photons a uniform sampler would have emitted for the same estimate (the E of
+        the error estimate's formulas): E, or splats / V_c; 0 before any photon counted."""
+        if not self.adaptive:
+            return self.emitted
+        scale = adaptive.photon_scale(self.counters)
+        return 1.0 / scale if scale > 0.0 else 0.0
 
     def photon_radiance(self) -> np.ndarray:
-        """The density estimate S/E alone, (pixels, 3)."""
+        """The density estimate S/E alone, (pixels, 3); adaptive photons: V_c S / splats."""
+        if self.adaptive:
+            return self.S * adaptive.photon_scale(self.counters)
         return self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
 
     def radiance(self) -> np.ndarray:

@@ -13,7 +13,7 @@ the named arrays the integrator declares.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Protocol
 
 import numpy as np
@@ -31,6 +31,9 @@ class Delta:
     n_passes: int
     emitted: int  # photon paths emitted over the batch
     sums: dict[str, np.ndarray]  # every name of the integrator's SumLayout
+    # Scalar integer counters the job state sums as it sums `emitted` (e.g. the adaptive
+    # sampler's uniform draws, worker/adaptive.py); a name missing counts as 0.
+    counters: dict[str, int] = field(default_factory=dict)
 
     def __getattr__(self, name: str) -> np.ndarray:
         sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
@@ -44,6 +47,7 @@ class State(Protocol):
 
     emitted: int
     passes: int
+    counters: dict[str, int]  # summed like `emitted` (Delta.counters)
 
     def arrays(self) -> dict[str, np.ndarray]: ...
 
@@ -77,7 +81,8 @@ class Integrator(ABC):
         """The empty state of a job whose setup arrays (`setup_arrays`) are fixed."""
 
     @abstractmethod
-    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int) -> State:
+    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
+                counters: dict[str, int] | None = None) -> State:
         """The job state from stored arrays (setup arrays present, missing sums zero) and counters."""
 
     @abstractmethod

@@ -21,7 +21,7 @@ radius r/2 to r and its square. The device half is worker/integrators/connect_me
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,6 +38,7 @@ class HybridState:
     sums: dict[str, np.ndarray]
     emitted: int = 0
     passes: int = 0
+    counters: dict[str, int] = field(default_factory=dict)  # none of its own; summed like `emitted`
 
     def __getattr__(self, name: str) -> np.ndarray:
         sums = self.__dict__.get("sums")
@@ -78,10 +79,12 @@ class ConnectMerge(Integrator):
         r0 = np.asarray(setup["R0"], np.float64)
         return HybridState(R0=r0, sums={name: self.sums.zeros(len(r0), name) for name in self.sums.names})
 
-    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int) -> HybridState:
+    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
+                counters: dict[str, int] | None = None) -> HybridState:
         n = len(arrays["R0"])
         sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name) for name in self.sums.names}
-        return HybridState(R0=arrays["R0"], sums=sums, emitted=emitted, passes=passes)
+        return HybridState(R0=arrays["R0"], sums=sums, emitted=emitted, passes=passes,
+                           counters=dict(counters or {}))
 
     def batch_inputs(self, state: HybridState) -> float:
         """R0 (one value for the image): the radius of every pass follows from it."""
@@ -92,6 +95,8 @@ class ConnectMerge(Integrator):
             state.sums[name] += delta.sums[name]
         state.emitted += delta.emitted
         state.passes += delta.n_passes
+        for name, value in delta.counters.items():
+            state.counters[name] = state.counters.get(name, 0) + value
 
     def image(self, state: HybridState) -> np.ndarray:
         return state.C / state.passes if state.passes else np.zeros_like(state.C)

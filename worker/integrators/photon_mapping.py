@@ -5,7 +5,8 @@ pass; PPM keeps pass 0's), photons are traced, and every point gathers the photo
 its radius. With `direct: nee` the eye pass also samples the lights at each point
 (kernels/lights.cl) and photons store nothing at their first hit. A batch returns the per-pixel sums below; the radius rule and the merge live in
 worker/stats.py, the error estimate in worker/error_estimate.py. The device half is
-worker/integrators/photon_mapping_passes.py.
+worker/integrators/photon_mapping_passes.py. With `sampler: adaptive` the photons come from
+Markov chains over photon paths (worker/adaptive.py, kernels/photon_chains.cl).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kernels.contract import SumLayout
+from worker import adaptive
 from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
 from worker.integrators.base import Delta, Integrator
 from worker.stats import Accumulators
@@ -37,12 +39,23 @@ def sum_layout(error_estimation: bool, direct: str = "photons") -> SumLayout:
 
 
 @dataclass(frozen=True)
+class ChainInputs:
+    """What a batch of the adaptive sampler reads from the merged counters: its frozen
+    mutation size and its number of chains (worker/adaptive.py)."""
+
+    theta: float
+    chains: int
+
+
+@dataclass(frozen=True)
 class GatherInputs:
-    """What a batch of photon-mapping passes reads: the radius per pixel, and the bias
-    estimate its per-pass variance samples subtract (eq. 6.22; zero if not given)."""
+    """What a batch of photon-mapping passes reads: the radius per pixel, the bias
+    estimate its per-pass variance samples subtract (eq. 6.22; zero if not given), and
+    with the adaptive sampler its chains' inputs."""
 
     radius: np.ndarray
     bias: np.ndarray | None = None
+    chains: ChainInputs | None = None
 
 
 class PhotonMapping(Integrator):
@@ -61,20 +74,28 @@ class PhotonMapping(Integrator):
     def state_widths(self) -> dict[str, int]:
         return {"R0": 1, "N": 1, **dict(self.sums.widths)}
 
-    def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
-        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums)
+    @property
+    def adaptive(self) -> bool:
+        return self.settings.sampler == "adaptive"
 
-    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int) -> Accumulators:
+    def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
+        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums, adaptive=self.adaptive)
+
+    def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
+                counters: dict[str, int] | None = None) -> Accumulators:
         n = len(arrays["R0"])
         sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name) for name in self.sums.names}
         return Accumulators(alpha=self.settings.alpha, R0=arrays["R0"], N=arrays.get("N", np.zeros(n)),
-                            sums=sums, emitted=emitted, passes=passes)
+                            sums=sums, emitted=emitted, passes=passes, counters=dict(counters or {}),
+                            adaptive=self.adaptive)
 
     def batch_inputs(self, state: Accumulators) -> GatherInputs:
         r = state.radius()
-        if not self.settings.error_estimation:
-            return GatherInputs(r)
-        return GatherInputs(r, bias_estimate(r, state.G, state.emitted, self.settings.bias_constant))
+        chains = ChainInputs(adaptive.theta(state.counters),
+                             adaptive.chains(state.counters, self.settings.photons_per_pass)) if self.adaptive else None
+        bias = bias_estimate(r, state.G, state.effective_emitted, self.settings.bias_constant) \
+            if self.settings.error_estimation else None
+        return GatherInputs(r, bias, chains)
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

@@ -3,6 +3,8 @@
 A pass is: eye pass (one measurement point per pixel), photon pass, lookup-structure
 build (exact grid or stochastic hash), gather. A batch runs several passes at the radii
 it was given and sums their contributions on the device (worker/engine.py, Device).
+With `sampler: adaptive` the photon pass is the chains' (kernels/photon_chains.cl), after
+a grid over the pass's measurement points that tells them which paths are visible.
 """
 
 from __future__ import annotations
@@ -14,8 +16,9 @@ import numpy as np
 import pyopencl as cl
 
 from kernels.program import f32, i32, u32, u64
+from worker import adaptive
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
-from worker.integrators.photon_mapping import GatherInputs, PhotonMapping
+from worker.integrators.photon_mapping import ChainInputs, GatherInputs, PhotonMapping
 
 if TYPE_CHECKING:
     from worker.engine import Device
@@ -45,10 +48,17 @@ class PhotonMappingPasses:
         self.radius = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
         self.ph_count = device.buffer(4)
+        self.counters = device.buffer(4 * len(adaptive.COUNTERS))  # the chains' per-pass counters
         self.capacity = 0
+        self.mp_entries = _next_pow2(n)  # the grid over measurement points (adaptive sampler)
+        self.mp_count = device.buffer(4 * self.mp_entries)
+        self.mp_start = device.buffer(4 * self.mp_entries)
+        self.mp_fill = device.buffer(4 * self.mp_entries)
+        self.mp_sorted = device.buffer(4 * n)
         self.entries = 0
         self._reserve_photons(3 * self.settings.photons_per_pass)
         self.photons_stored = 0  # of the last pass
+        self.replica_exchange = True  # False: the adaptive sampler's chains mutate only (an ablation, for tests)
 
     # ------------------------------------------------------------------ buffers
     def _reserve_photons(self, capacity: int) -> None:
@@ -99,9 +109,52 @@ class PhotonMappingPasses:
                 return int(stored[0])
             self._reserve_photons(int(stored[0] * 1.25))  # same seed: the re-run is identical
 
-    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
+    def _point_grid(self, inv_cell: np.float32) -> None:
+        """The grid over this pass's measurement points that V(u) queries (visibility.cl):
+        the photon grid's kernels, run over the points (no sort: V only asks whether any)."""
+        dev, p, n = self.dev, self.dev.program, self.dev.arrays.n_pixels
+        mask = u32(self.mp_entries - 1)
+        events = [dev.fill(self.mp_count, np.uint32(0), self.mp_entries),
+                  p.launch(dev.queue, "grid_count", n, u32(n), self.mp_pos, inv_cell, mask, self.mp_count),
+                  p.launch(dev.queue, "grid_scan", 1, u32(self.mp_entries), self.mp_count, self.mp_start,
+                           self.mp_fill),
+                  p.launch(dev.queue, "grid_scatter", n, u32(n), self.mp_pos, inv_cell, mask, self.mp_fill,
+                           self.mp_sorted)]
+        dev.times.add("build", events)
+
+    def _chain_pass(self, pass_index: int, chains: ChainInputs, max_radius: float) -> tuple[int, dict[str, int]]:
+        """The adaptive sampler's photons (kernels/photon_chains.cl); returns how many were
+        stored and the pass's counters."""
+        dev, settings = self.dev, self.settings
+        inv_cell = f32(1.0 / (2.0 * max_radius))
+        self._point_grid(inv_cell)
+        photons = settings.photons_per_pass
+        while True:
+            events = [dev.fill(self.ph_count, np.uint32(0), 1),
+                      dev.fill(self.counters, np.uint32(0), len(adaptive.COUNTERS))]
+            events.append(dev.program.launch(
+                dev.queue, "photon_chains", chains.chains, *dev.geometry, *dev.emitter_args,
+                u64(settings.seed), u32(pass_index), i32(settings.max_bounces), u32(self.capacity), i32(self.nee),
+                u32(chains.chains), u32(photons), f32(chains.theta), u32(adaptive.boot_draws(chains.chains, photons)),
+                i32(self.replica_exchange), i32(settings.gather == "exact"),
+                self.mp_pos, self.mp_nrm, self.radius, inv_cell, u32(self.mp_entries - 1), self.mp_start,
+                self.mp_count, self.mp_sorted, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count,
+                self.counters, one_per_group=True))
+            stored = np.zeros(1, np.uint32)
+            counts = np.zeros(len(adaptive.COUNTERS), np.uint32)
+            cl.enqueue_copy(dev.queue, stored, self.ph_count)
+            cl.enqueue_copy(dev.queue, counts, self.counters)
+            dev.times.add("trace", events)
+            if stored[0] <= self.capacity:
+                return int(stored[0]), dict(zip(adaptive.COUNTERS, (int(c) for c in counts)))
+            self._reserve_photons(int(stored[0] * 1.25))  # same seeds: the re-run is identical
+
+    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None,
+                          photons: float | None = None) -> None:
+        """Build the photon lookup and gather; `photons` is what a pass's own estimates
+        (the error estimator's per-pass samples) divide the flux by (default: photons per pass)."""
         dev, a, p = self.dev, self.dev.arrays, self.dev.program
-        photons = f32(self.settings.photons_per_pass)
+        photons = f32(self.settings.photons_per_pass if photons is None else photons)
         inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
         if (gather or self.settings.gather) == "stochastic":
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
@@ -198,15 +251,25 @@ class PhotonMappingPasses:
         cl.enqueue_copy(dev.queue, self.radius, r32)
         cl.enqueue_copy(dev.queue, self.bias, b32)
         dev.zero_sums()
+        totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
             self._eye_pass(k)
-            self.photons_stored = self._photon_pass(k)
-            self._build_and_gather(self.photons_stored, float(r32.max()))
+            if inputs.chains is None:
+                self.photons_stored = self._photon_pass(k)
+                self._build_and_gather(self.photons_stored, float(r32.max()))
+            else:
+                self.photons_stored, counts = self._chain_pass(k, inputs.chains, float(r32.max()))
+                self._build_and_gather(self.photons_stored, float(r32.max()), photons=_pass_photons(counts))
+                counts[adaptive.THETA_STEPS] = adaptive.theta_step(k, inputs.chains.theta, counts["mutations"],
+                                                                   counts["accepted"],
+                                                                   self.settings.target_acceptance)
+                for name, value in counts.items():
+                    totals[name] = totals.get(name, 0) + value
             if keep_going is not None and not keep_going(k):
                 dev.times.settle()
                 raise BatchAborted(f"stopped after pass {k}")
         return Delta(first_pass=first_pass, n_passes=n_passes,
-                     emitted=n_passes * self.settings.photons_per_pass, sums=dev.read_sums())
+                     emitted=n_passes * self.settings.photons_per_pass, sums=dev.read_sums(), counters=totals)
 
     # -------------------------------------------------------------------- probe
     def gather_photons(self, points: np.ndarray, normals: np.ndarray, radius: np.ndarray, photon_pos: np.ndarray,
@@ -235,7 +298,7 @@ class PhotonMappingPasses:
 
         dirs = np.stack([packed(photon_dir), packed(photon_dir if photon_normal is None else photon_normal)], axis=1)
         for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals, 1.0)),
-                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)), (self.ph_pos, f4(photon_pos)),
+                          (self.mp_wgt, f4(np.ones((n, 3)), 1.0)), (self.ph_pos, f4(photon_pos, 1.0)),
                           (self.ph_flux, f4(photon_flux)), (self.ph_dirs, np.ascontiguousarray(dirs)),
                           (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
             cl.enqueue_copy(dev.queue, buf, host)
@@ -243,6 +306,14 @@ class PhotonMappingPasses:
         dev.zero_sums()
         self._build_and_gather(m, float(np.max(radius)))
         return dev.read_sums()
+
+
+def _pass_photons(counts: dict[str, int]) -> float:
+    """The uniform photons equivalent to a chain pass's splats, splats / V_c with the pass's
+    own V_c: its per-pass estimates (the error estimator's samples) are then ratio estimates
+    whose spread includes the noise of V_c. With no visible uniform draw in the pass, V_c is
+    taken as 1 / draws."""
+    return max(counts["splats"], 1) * max(counts["draws"], 1) / max(counts["visible"], 1)
 
 
 def _pack_dir(d: np.ndarray) -> int:

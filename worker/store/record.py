@@ -31,6 +31,9 @@ from worker.store.leases import Batch, Leases
 from worker.store.policy import RETENTION_SECONDS, Status
 
 
+COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
+
+
 class JobLimitReached(Exception):
     """The service holds as many active jobs as it allows."""
 
@@ -56,6 +59,7 @@ class JobRecord:
     merges: int
     merge_seconds: float
     failure: str | None
+    counters: dict[str, int]  # the integrator's summed scalars (Delta.counters), hash fields "counter:NAME"
 
     @classmethod
     def parse(cls, job_id: str, h: dict[bytes, bytes]) -> "JobRecord":
@@ -70,7 +74,8 @@ class JobRecord:
                    passes=int(f["passes"]), emitted=int(f["emitted"]), next_pass=int(f["next_pass"]),
                    pass_seconds=float(f["pass_seconds"]), render_seconds=float(f.get("render_seconds", 0.0)),
                    merges=int(f.get("merges", 0)), merge_seconds=float(f.get("merge_seconds", 0.0)),
-                   failure=f.get("error") or None)
+                   failure=f.get("error") or None,
+                   counters={k[len(COUNTER):]: int(v) for k, v in f.items() if k.startswith(COUNTER)})
 
     @property
     def n_pixels(self) -> int:
@@ -217,12 +222,13 @@ class Jobs:
         if not self.has_setup(record):
             return None
         return record.integrator.restore(self._arrays(record, tuple(record.integrator.state_widths)),
-                                         record.emitted, record.passes)
+                                         record.emitted, record.passes, record.counters)
 
     def batch_inputs(self, record: JobRecord) -> Any:
         """What a batch starting now needs, reading only the integrator's input arrays."""
         integrator = record.integrator
-        state = integrator.restore(self._arrays(record, integrator.input_arrays), record.emitted, record.passes)
+        state = integrator.restore(self._arrays(record, integrator.input_arrays), record.emitted, record.passes,
+                                   record.counters)
         return integrator.batch_inputs(state)
 
     # ------------------------------------------------------------------ batches
@@ -382,7 +388,8 @@ class Jobs:
                             "passes": state.passes, "emitted": state.emitted, "status": status.value,
                             "pass_seconds": per_pass if record.pass_seconds == 0 else
                             0.7 * record.pass_seconds + 0.3 * per_pass,
-                            "render_seconds": record.render_seconds + seconds, "merges": record.merges + 1}
+                            "render_seconds": record.render_seconds + seconds, "merges": record.merges + 1,
+                            **{COUNTER + name: value for name, value in state.counters.items()}}
                         if status != record.status:
                             fields["finished"] = now
                         # Write.

@@ -1,0 +1,185 @@
+"""Adaptive photon tracing (`sampler: adaptive`) against uniform photon tracing, one run:
+
+1. the visible fraction V_c (and the visible-photon ratio 1 / V_c, the paper's Table 1
+   column), the final mutation size theta and the achieved acceptance, per bundled scene
+   and per zoom level of `directional-caustic` (the camera closing in on the caustic,
+   vertical field of view 40 (the scene's), 20, 10 and 5 degrees);
+2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
+   gather), with a chart per scene.
+
+    python -m bench.adaptive [--full] [--smoke] [--visibility-only] [--reference-seconds S] [--photons-per-pass P]
+
+Error: the relative RMS of bench/error_vs_time.py against its cached references
+(bench/reference/<scene>-<W>x<H>.exr); the zoom levels get their own references (two
+long uniform SPPM runs, as bench/make_reference.py makes them) on first use. `--smoke`
+runs everything tiny (a few seconds a scene) to check the script, its figures mean nothing.
+Writes bench/out/adaptive.json and bench/out/adaptive_<scene>.png (with --smoke,
+adaptive-smoke*). Timing figures need a quiet machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import BENCH_DIR, save_figure, write_json
+from bench.error_vs_time import REFERENCES, SCENES, reference_path, rel_rms, resolution
+from worker import adaptive
+from worker.engine import Engine
+from worker.image_io import read_image, write_image
+from worker.render_loop import render
+from worker.scene import Scene, bundled_scene_path, load_scene_file
+from worker.settings import Settings
+
+BUNDLED = ("cornell-box", "cornell-caustics", "directional-caustic", "furnace", "gap", "glossy", "point-plane",
+           "smallppm")
+ZOOM_SCENE = "directional-caustic"
+ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0)  # degrees; 40 is the scene's own view
+CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere's centre meets the ground
+# Photons per pass, both samplers. SPPM's radius falls by pass, not by photon, so on a
+# zoomed caustic the error at a given number of traced paths is mostly the radius's bias
+# unless passes are many: on the fov 5 view at 64 px, 2.1M uniform paths gave a relative
+# RMS error of 0.34 as 16 passes of 2^17 and 0.18 as 256 passes of 2^13 (the adaptive
+# sampler, 128 passes of 2^13 at about 2 traced paths a photon path: 0.12).
+PHOTONS = 1 << 13
+SEED = 7
+
+
+def zoomed(fov: float) -> Scene:
+    """`directional-caustic` with the camera turned to the caustic and its view narrowed to
+    `fov` degrees (the scene itself at its own 40)."""
+    parsed, _ = load_scene_file(bundled_scene_path(ZOOM_SCENE))
+    if fov == parsed.camera.fov:
+        return parsed
+    return parsed.model_copy(update={"camera": parsed.camera.model_copy(update={"fov": fov, "look_at": CAUSTIC})})
+
+
+def engine(scene: Scene, res: tuple[int, int], photons: int, **settings: object) -> Engine:
+    _, base = load_scene_file(bundled_scene_path(ZOOM_SCENE))  # bundled scenes share one folder
+    return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=SEED, **settings))
+
+
+def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict[str, float]:
+    """V_c, theta and the acceptance after `passes` adaptive passes (the last half's acceptance)."""
+    eng = engine(scene, res, photons, sampler="adaptive")
+    state = render(eng, passes=passes // 2)
+    half = dict(state.counters)
+    render(eng, passes=passes, state=state)
+    c = state.counters
+    mutations = c["mutations"] - half["mutations"]
+    v_c = adaptive.visible_fraction(c)
+    return {"visible_fraction": v_c, "visible_photon_ratio": 1.0 / v_c if v_c else None,
+            "traced_per_path": (c["draws"] + c["mutations"]) / c["draws"],
+            "theta": adaptive.theta(c), "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations
+            else None, "passes": passes}
+
+
+def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str) -> list:
+    """(seconds, relative RMS error) after every pass; the clock counts set-up and rendering."""
+    t0 = time.perf_counter()
+    eng = engine(scene, res, photons, sampler=sampler)
+    state = eng.start()
+    setup = time.perf_counter() - t0
+    points = []
+
+    def observe(st: object, seconds: float) -> None:
+        points.append((setup + seconds, rel_rms(eng.integrator.image(st).reshape(res[1], res[0], 3), ref)))
+
+    render(eng, seconds=max(budget - setup, 1e-3), progress=observe, state=state)
+    return points
+
+
+def zoom_reference(fov: float, res: tuple[int, int], photons: int, seconds: float, folder: Path) -> np.ndarray:
+    """Two uniform SPPM runs of `seconds`, averaged (cached in `folder`)."""
+    path = folder / f"{ZOOM_SCENE}-fov{fov:g}-{res[0]}x{res[1]}.exr"
+    if not path.exists():
+        runs = []
+        for seed in (101, 102):
+            eng = Engine(zoomed(fov), load_scene_file(bundled_scene_path(ZOOM_SCENE))[1],
+                         Settings(resolution=res, photons_per_pass=photons, seed=seed))
+            st = render(eng, seconds=seconds)
+            runs.append((st.radiance().reshape(res[1], res[0], 3), st.passes))
+        (a, pa), (b, pb) = runs
+        write_image(path, 0.5 * (a + b))
+        path.with_suffix(".json").write_text(json.dumps({
+            "scene": ZOOM_SCENE, "fov": fov, "look_at": CAUSTIC, "resolution": list(res),
+            "method": "sppm (photonfarm, exact gather, uniform photons)", "passes": [pa, pb], "seconds": seconds,
+            "own_relative_rms_error": rel_rms(a, b) / 2}, indent=1))
+    return read_image(path)[..., :3].astype(np.float64)
+
+
+def chart(name: str, curves: dict[str, list], v_c: float | None, prefix: str) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    for sampler, points in curves.items():
+        if points:
+            ax.loglog(*zip(*points), "-", ms=3, label=sampler)
+    ax.set_xlabel("wall time, s")
+    ax.set_ylabel("relative RMS error")
+    ax.set_title(f"{name}: adaptive vs uniform photons (V_c {v_c:.3g})" if v_c else name)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, f"{prefix}_{name}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--full", action="store_true", help="128-pixel images, 60 s per sampler and scene")
+    parser.add_argument("--smoke", action="store_true", help="tiny run: checks the script, measures nothing")
+    parser.add_argument("--reference-seconds", type=float, default=120.0, help="per run, for the zoom references")
+    parser.add_argument("--visibility-only", action="store_true", help="part 1 alone (no timing)")
+    parser.add_argument("--photons-per-pass", type=int, default=PHOTONS)
+    args = parser.parse_args()
+    side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
+    photons = args.photons_per_pass
+    ref_seconds, references, prefix = args.reference_seconds, REFERENCES, "adaptive"
+    if args.smoke:  # outputs apart from the real ones, references thrown away
+        side, budget, photons, passes, ref_seconds = 64, 1.0, 1 << 12, 4, 1.0
+        references, prefix = Path(tempfile.mkdtemp(prefix="adaptive-smoke-")), "adaptive-smoke"
+    report: dict = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget,
+                    "photons_per_pass": photons, "smoke": args.smoke, "visibility": {}, "equal_time": {}}
+    # 1. V_c per bundled scene and zoom level.
+    for name in BUNDLED:
+        parsed, _ = load_scene_file(bundled_scene_path(name))
+        report["visibility"][name] = visibility(parsed, resolution(name, side), photons, passes)
+        print(name, report["visibility"][name], flush=True)
+    for fov in ZOOM_FOVS[1:]:
+        key = f"{ZOOM_SCENE} fov {fov:g}"
+        report["visibility"][key] = visibility(zoomed(fov), resolution(ZOOM_SCENE, side), photons, passes)
+        print(key, report["visibility"][key], flush=True)
+    if args.visibility_only:
+        write_json(prefix + "-visibility", report)
+        return
+    # 2. Equal time, uniform and adaptive, where a reference exists (the zoom levels make theirs).
+    cases = {name: (load_scene_file(bundled_scene_path(name))[0], None) for name in SCENES}
+    cases.update({f"{ZOOM_SCENE} fov {fov:g}": (zoomed(fov), fov) for fov in ZOOM_FOVS[1:]})
+    for name, (scene, fov) in cases.items():
+        res = resolution(ZOOM_SCENE if fov else name, side)
+        if fov is None:
+            path = reference_path(name, res)
+            if not path.exists():
+                print(f"{name}: no reference {path.relative_to(BENCH_DIR)} (python -m bench.error_vs_time "
+                      "--make-references), skipped", flush=True)
+                continue
+            ref = read_image(path)[..., :3].astype(np.float64)
+        else:
+            ref = zoom_reference(fov, res, photons, ref_seconds, references)
+        curves = {sampler: curve(scene, res, ref, photons, budget, sampler) for sampler in ("uniform", "adaptive")}
+        final = {sampler: points[-1][1] for sampler, points in curves.items() if points}
+        v_c = report["visibility"].get(name, {}).get("visible_fraction")
+        report["equal_time"][name] = {"resolution": list(res), "final_error": final,
+                                      "uniform_over_adaptive": final["uniform"] / final["adaptive"]
+                                      if len(final) == 2 else None, "curves": curves}
+        chart(name.replace(" ", "-"), curves, v_c, prefix)
+        print(name, final, flush=True)
+    write_json(prefix, report)
+
+
+if __name__ == "__main__":
+    main()

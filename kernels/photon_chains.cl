@@ -1,0 +1,192 @@
+// Adaptive photon tracing with photon path visibility (Hachisuka & Jensen 2011; dissertation
+// ch. 8), as many parallel Markov chains, one per work item.
+//
+// A path is a point u of the primary sample space [0,1)^PSS_DIM: every random number of
+// the path, in the order trace_photon asks for them (the ones beyond PSS_DIM come from a
+// stream seeded by a hash of u, rng.cl). The target is F(u) = V(u) / V_c, V the path's
+// visibility (visibility.cl). Per iteration a chain draws a uniform u_I (replica exchange
+// with the uniform sampler, acceptance V(u_I), eq. 4): if visible it replaces the state;
+// otherwise the state is mutated, u + du per dimension with du = sign(2 xi0 - 1) xi1^(1/theta
+// + 1) wrapped into [0,1) (eq. 9), and the candidate is accepted iff visible (eq. 10). Then
+// the state is splatted: a new state's photons are stored with count 1, a state kept again
+// adds 1 to the counts of its stored photons instead of being traced again (with the
+// stochastic hash it stores them again from its cache; a state with more than
+// DEPOSIT_CACHE photons is traced and stored again).
+//
+// Each chain starts the pass from an exact sample of F: uniform draws until one is visible
+// (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their
+// number depends on what they found). A chain that finds none has no state: until one of
+// its main loop's uniform draws is visible it splats nothing (its draws still count toward
+// V_c), which keeps every splat an exact sample of F; with nothing visible at all the pass
+// is uniform tracing that found nothing. The image is V_c * (sum of splats) / (splats), with V_c = visible uniform
+// draws / uniform draws pooled over the job (worker/stats.py): the counters below.
+// theta is frozen for the pass (adapted between passes on the host, worker/adaptive.py).
+// Stored photons' keys are (record << 12) | bounce, record = chain * (iterations / chains
+// + 1) + the iteration that stored them: unique in the pass, so the exact gather's sort
+// by key makes the sums the same from run to run (salted for the stochastic hash,
+// photon_pass.cl).
+
+// Counters a pass adds (uint, one slot each; worker/adaptive.py names them).
+#define CTR_DRAWS 0      // uniform draws of the main loop (I)
+#define CTR_VISIBLE 1    // ... of which visible (U)
+#define CTR_SPLATS 2     // states splatted (samples of F)
+#define CTR_MUTATIONS 3
+#define CTR_ACCEPTED 4
+#define CTR_STARTED 5    // chains that found a visible start
+
+typedef struct {
+    float u[PSS_DIM];
+    PhotonSink sink;     // the probe of u: visibility, and its photons
+    uint first;          // first stored slot (when stored and cached)
+    int stored;
+} ChainState;
+
+inline void draw_uniform(Rng* rng, ChainState* s) {
+    for (int k = 0; k < PSS_DIM; ++k) s->u[k] = rng_float(rng);
+}
+
+// Eq. 9: du = sign(2 xi0 - 1) xi1^(1/theta + 1) on every dimension, wrapped into [0,1).
+inline void mutate(Rng* rng, const ChainState* from, ChainState* to, float theta) {
+    float power = 1.0f / theta + 1.0f;
+    for (int k = 0; k < PSS_DIM; ++k) {
+        float xi0 = rng_float(rng), xi1 = rng_float(rng);
+        float du = pow(xi1, power);
+        float t = from->u[k] + (2.0f * xi0 - 1.0f > 0.0f ? du : -du);
+        t -= floor(t);
+        to->u[k] = t < 1.0f ? t : 0.0f;  // t - floor(t) can round up to exactly 1
+    }
+}
+
+typedef struct {
+    const SceneGeom* g;
+    __global const float4* surf_a;
+    __global const float4* surf_b;
+    __global const float4* emitters;
+    __global const float* emitter_cdf;
+    int n_emitters, max_bounces, skip_first_hit;
+} Tracer;
+
+// Trace u into the state's probe sink: its visibility and (cached) photons.
+inline void probe(const Tracer* t, ChainState* s, ulong record) {
+    s->sink.visible = 0;
+    s->sink.n = 0;
+    s->sink.probe = 1;
+    s->stored = 0;
+    Rng rng = rng_from_sample(s->u, PSS_DIM);
+    trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
+                 t->skip_first_hit, record, 0, &s->sink);
+}
+
+// Store a cached state's photons (count 1) as record `record`.
+inline void store_cached(ChainState* s, ulong record) {
+    int n = s->sink.n;
+    s->first = reserve_photons(&s->sink.store, (uint)n);
+    for (int j = 0; j < n; ++j) {
+        ulong key = (record << 12) | (s->sink.c_key[j] & 0xFFFUL);
+        write_photon(&s->sink.store, s->first + j, s->sink.c_pos[j].xyz, 1.0f, s->sink.c_flux[j].xyz,
+                     s->sink.c_dirs[j], s->sink.salted ? salted_key(key) : key);
+    }
+    s->stored = 1;
+}
+
+// Count the state once more, as record `record`: with `in_place` (the exact gather, which
+// weights a photon by its count) add 1 to the counts of its stored photons; else (the
+// stochastic hash counts photons, not counts) store them again. A state with too many
+// photons to cache is traced again and stored.
+inline void splat(const Tracer* t, ChainState* s, ulong record, int in_place) {
+    if (s->sink.n <= DEPOSIT_CACHE) {
+        if (!s->stored || !in_place) {
+            store_cached(s, record);
+            return;
+        }
+        for (int j = 0; j < s->sink.n; ++j) {
+            uint slot = s->first + (uint)j;
+            if (slot < s->sink.store.capacity) s->sink.store.pos[slot].w += 1.0f;
+        }
+        return;
+    }
+    PhotonSink writer = s->sink;
+    writer.probe = 0;
+    Rng rng = rng_from_sample(s->u, PSS_DIM);
+    trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
+                 t->skip_first_hit, record, 0, &writer);
+}
+
+__kernel void photon_chains(
+    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
+    __global const float4* tri_nrm,
+    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
+    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
+    __global const float4* surf_a, __global const float4* surf_b,
+    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    ulong seed, uint pass, int max_bounces, uint capacity, int skip_first_hit,
+    uint n_chains, uint iterations,   // the pass's photon paths: `iterations` split over the chains
+    float theta, uint boot_cap,
+    int exchange,                     // 0: no replica exchange once a chain has a state (an ablation, for tests)
+    int in_place,                     // 1: re-count kept states in place (exact gather); 0: store them again
+    __global const float4* mp_pos, __global const float4* mp_nrm, __global const float* radius,
+    float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
+    __global const uint* sorted,
+    __global float4* ph_pos, __global float4* ph_flux, __global uint2* ph_dirs, __global ulong* ph_key,
+    __global volatile uint* ph_count,
+    __global volatile uint* counters)
+{
+    uint chain = (uint)get_global_id(0);
+    if (chain >= n_chains || n_emitters == 0) return;
+    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    Tracer tracer = {&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, max_bounces, skip_first_hit};
+    Rng rng = rng_make(seed, pass, chain, DOMAIN_CHAIN);
+    uint per = iterations / n_chains, iters = per + (chain < iterations % n_chains ? 1u : 0u);
+    ulong record0 = (ulong)chain * (ulong)(per + 1u);  // + the iteration: the photons' record
+
+    // Two states, the chain's and the proposal's, sharing the store and the point grid.
+    ChainState states[2];
+    for (int k = 0; k < 2; ++k) {
+        states[k].sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
+        states[k].sink.salted = !in_place;
+        states[k].sink.grid = (PointGrid){mp_pos, mp_nrm, radius, cell_start, cell_count, sorted, inv_cell, mask};
+    }
+    int cur = 0, has_state = 0;
+    uint draws = 0, visible = 0, splats = 0, mutations = 0, accepted = 0;
+
+    // Start: an exact sample of F by rejection (uniform draws until visible, capped).
+    for (uint b = 0; b < boot_cap && !has_state; ++b) {
+        draw_uniform(&rng, &states[cur]);
+        probe(&tracer, &states[cur], record0);
+        has_state = states[cur].sink.visible;
+    }
+    int started = has_state;
+
+    for (uint i = 0; i < iters; ++i) {
+        ulong record = record0 + i;
+        ChainState* next = &states[1 - cur];
+        // Replica exchange with the uniform sampler: a visible uniform path replaces the state.
+        draw_uniform(&rng, next);
+        probe(&tracer, next, record);
+        ++draws;
+        visible += next->sink.visible;
+        int moved = next->sink.visible && (exchange || !has_state);
+        if (!moved && has_state) {
+            // Otherwise mutate the state; the candidate is accepted iff visible.
+            mutate(&rng, &states[cur], next, theta);
+            probe(&tracer, next, record);
+            ++mutations;
+            moved = next->sink.visible;
+            accepted += moved;
+        }
+        if (moved) {
+            cur = 1 - cur;
+            has_state = 1;
+        }
+        if (has_state) {
+            splat(&tracer, &states[cur], record, in_place);
+            ++splats;
+        }
+    }
+    atomic_add(&counters[CTR_DRAWS], draws);
+    atomic_add(&counters[CTR_VISIBLE], visible);
+    atomic_add(&counters[CTR_SPLATS], splats);
+    atomic_add(&counters[CTR_MUTATIONS], mutations);
+    atomic_add(&counters[CTR_ACCEPTED], accepted);
+    atomic_add(&counters[CTR_STARTED], (uint)started);
+}

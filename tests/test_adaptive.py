@@ -1,0 +1,349 @@
+"""Adaptive photon tracing (`sampler: adaptive`, Hachisuka & Jensen 2011) with the real kernels:
+the uniform limit, the visible fraction against an independent count, the acceptance the
+mutation size is adapted to, replica exchange between two openings, merge order and batch
+splits, determinism."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+from scipy.spatial import cKDTree
+
+from kernels.contract import LUMINANCE
+from tests.analytic import (
+    FURNACE_L,
+    closed_sphere_scene,
+    furnace_radiance,
+    point_plane,
+    spot_plane_scene,
+)
+from tests.conftest import image, render
+from worker import adaptive
+from worker.error_estimate import estimate
+from worker.integrators.photon_mapping import ChainInputs, GatherInputs
+from worker.render_loop import render as render_passes
+
+
+def _scene_file(tmp_path: Path, scene: dict, name: str = "scene.json") -> Path:
+    path = tmp_path / name
+    path.write_text(json.dumps(scene))
+    return path
+
+
+def _patch_scene(fov: float) -> dict:
+    """A point light 1 above a large plane, seen from 3 above through `fov` degrees: only
+    paths leaving the light toward the seen patch are visible (V_c ~ its solid angle / 4 pi;
+    the plane's bounce escapes upward)."""
+    return {
+        "camera": {"position": [0, 3, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": fov, "resolution": [24, 24]},
+        "materials": {"plane": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+        "shapes": [{"type": "quad", "corner": [-50, 0, -50], "edge1": [0, 0, 100], "edge2": [100, 0, 0],
+                    "material": "plane"}],
+        "lights": [{"type": "point", "position": [0, 1, 0], "power": [10.0, 10.0, 10.0]}],
+    }
+
+
+def _two_openings_scene() -> dict:
+    """A spot light over a black screen with two square openings at x = -1 and x = +1; the
+    camera, under the screen, sees the floor where the light through either lands. The
+    scene is mirror-symmetric in x, so each opening carries half the visible paths."""
+    hole, x0, y = 0.2, 1.0, 1.0
+    a, b = x0 - hole / 2, x0 + hole / 2
+
+    def quad(x_lo: float, x_hi: float, z_lo: float, z_hi: float) -> dict:
+        return {"type": "quad", "corner": [x_lo, y, z_lo], "edge1": [0, 0, z_hi - z_lo], "edge2": [x_hi - x_lo, 0, 0],
+                "material": "black"}
+
+    screen = [quad(-5, -b, -5, 5), quad(-a, a, -5, 5), quad(b, 5, -5, 5)]
+    for lo, hi in ((-b, -a), (a, b)):
+        screen += [quad(lo, hi, -5, -hole / 2), quad(lo, hi, hole / 2, 5)]
+    return {
+        "camera": {"position": [0, 0.8, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": 120,
+                   "resolution": [32, 32]},
+        "materials": {"floor": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]},
+                      "black": {"type": "diffuse", "albedo": [0.0, 0.0, 0.0]}},
+        "shapes": [{"type": "quad", "corner": [-5, 0, -5], "edge1": [0, 0, 10], "edge2": [10, 0, 0],
+                    "material": "floor"}, *screen],
+        "lights": [{"type": "spot", "position": [0, 11, 0], "direction": [0, -1, 0], "cone_angle": 8.0,
+                    "power": [10.0, 10.0, 10.0]}],
+    }
+
+
+def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine, tmp_path) -> None:
+    """A spot light whose whole cone lands on the seen plane: every uniform draw is visible,
+    so every iteration is an exchange (the paper's uniform limit, dissertation 8.4.4). The radius,
+    kept (alpha 1) at almost 3 pixel footprints, leaves no gap between measurement points."""
+    path = _scene_file(tmp_path, spot_plane_scene((32, 32)))
+    common = {"resolution": (32, 32), "photons_per_pass": 1 << 13, "seed": 5, "initial_radius": 0.3, "alpha": 1.0}
+    ada = make_engine(path, sampler="adaptive", **common)
+    uni = make_engine(path, **common)
+    sa, su = render(ada, 24), render(uni, 24)
+    c = sa.counters
+    assert c["mutations"] == 0 and c["accepted"] == 0
+    assert c["visible"] == c["draws"] == c["splats"] == 24 * (1 << 13)
+    assert adaptive.theta(c) == 1.0  # nothing to adapt
+    # The same estimator with other photon random numbers: per pixel within the noise of
+    # both (the two share their measurement points, the same seed's eye passes, so the
+    # difference lacks the eye jitter's part of the per-pass noise: a spread below 1).
+    la, lu = (image(e, s) @ LUMINANCE for e, s in ((ada, sa), (uni, su)))
+    ea, eu = ada.integrator.estimate(sa), uni.integrator.estimate(su)
+    lit = (lu > 0.05 * lu.max()).ravel()
+    noise = np.hypot(ea.noise, eu.noise)[lit] / stats.t.ppf(0.95, 23)  # standard errors (90% bounds)
+    z = (la.ravel() - lu.ravel())[lit] / noise
+    assert abs(z.mean()) < 4.0 / math.sqrt(lit.sum()) + 0.05 and z.std() < 1.2
+    assert abs(la.mean() / lu.mean() - 1.0) < 0.02
+
+
+@pytest.mark.parametrize("method", ["sppm", "ppm"])
+def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None:
+    """The camera sees part of the furnace (V_c ~ 0.2): the chains' photons crowd into its
+    view, and V_c / splats scales them back to the analytic radiance."""
+    eng = make_engine("furnace", photons_per_pass=1 << 15, seed=3, sampler="adaptive", method=method)
+    state = render(eng, 24)
+    assert 0.05 < adaptive.visible_fraction(state.counters) < 0.5
+    mean = image(eng, state).mean()
+    assert abs(mean / FURNACE_L - 1.0) < 0.02, (mean, FURNACE_L)
+
+
+def test_long_paths_beyond_the_photon_cache(make_engine, tmp_path) -> None:
+    """Albedo 0.9: a path stores 10 photons on average and 18% store more than DEPOSIT_CACHE
+    (16), so their states are traced again at every splat instead of re-counted."""
+    path = _scene_file(tmp_path, closed_sphere_scene((0.9, 0.9, 0.9)))
+    eng = make_engine(path, photons_per_pass=1 << 13, seed=8, sampler="adaptive")
+    state = render(eng, 16)
+    mean = image(eng, state).mean()
+    truth = float(furnace_radiance(0.9))
+    assert abs(mean / truth - 1.0) < 0.02, (mean, truth, state.counters)
+    assert state.counters["mutations"] > 0.01 * state.counters["draws"], state.counters
+
+
+def test_stochastic_hash_with_chains_is_unbiased_on_average(make_engine) -> None:
+    """With the stochastic hash a kept chain state is stored again (the hash counts photons,
+    not counts), each copy with its own key: the mean stays the analytic one."""
+    eng = make_engine("point-plane", photons_per_pass=1 << 16, seed=6, sampler="adaptive", gather="stochastic")
+    state = render(eng, 32)
+    assert state.counters["mutations"] > 0
+    rel = image(eng, state)[..., 0] / point_plane(eng)[0].reshape(eng.arrays.height, eng.arrays.width) - 1.0
+    assert abs(rel.mean()) < 0.015, rel.mean()
+
+
+def test_point_plane_matches_analytic_radiance(make_engine) -> None:
+    """Per pixel against the closed form; every photon gathered (exact grid)."""
+    eng = make_engine("point-plane", photons_per_pass=1 << 17, seed=5, sampler="adaptive")
+    state = render(eng, 32)
+    rel = image(eng, state)[..., 0] / point_plane(eng)[0].reshape(eng.arrays.height, eng.arrays.width) - 1.0
+    assert abs(rel.mean()) < 0.015, rel.mean()
+    assert np.sqrt(np.mean(rel ** 2)) < 0.05, np.sqrt(np.mean(rel ** 2))
+
+
+@pytest.mark.parametrize("scene", ["furnace", "point-plane"])
+def test_error_bounds_cover_within_five_points_of_nominal(make_engine, scene: str) -> None:
+    """The error estimate with the adaptive sampler (per-pass samples scaled by the pass's
+    own V_c, E the uniform equivalent splats / V_c): the share of pixels whose bound holds
+    the actual error, at 50% and 90%, after 8, 24 and 64 passes (as tests/test_error_estimation.py)."""
+    eng = make_engine(scene, photons_per_pass=1 << 15, seed=31, sampler="adaptive")
+    truth = FURNACE_L if scene == "furnace" else point_plane(eng)[0]
+    state = eng.start()
+    for k in range(64):
+        state.merge(eng.render_batch(state, k, 1))
+        if k + 1 in (8, 24, 64):
+            for confidence in (0.5, 0.9):
+                est = estimate(state, confidence)
+                share = float(np.mean(est.bound[est.known] >= np.abs(est.luminance - truth)[est.known]))
+                assert abs(share - confidence) <= 0.05, (k + 1, confidence, share)
+    assert adaptive.visible_fraction(state.counters) < 0.5  # the chains did the work
+
+
+def _unpack_dirs(bits: np.ndarray) -> np.ndarray:
+    """kernels/materials.cl unpack_dir, vectorised."""
+    p = np.stack([(bits & 0xFFFF), (bits >> 16)], axis=-1).astype(np.float64) / 65535.0 * 2.0 - 1.0
+    v = np.concatenate([p, 1.0 - np.abs(p).sum(axis=-1, keepdims=True)], axis=-1)
+    low = v[:, 2] < 0.0
+    v[low, :2] = (1.0 - np.abs(p[low][:, ::-1])) * np.where(p[low] >= 0.0, 1.0, -1.0)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _visible_paths(eng) -> int:
+    """Independent count of the visible photon paths of the uniform pass just run: its stored
+    photons against its measurement points, by a k-d tree on the host (within the radius,
+    arrived on the eye's side, normals within 45 degrees), paths by their keys."""
+    import pyopencl as cl
+
+    ps, dev, n = eng.passes, eng.device, eng.arrays.n_pixels
+    m = ps.photons_stored
+
+    def read(buf, dtype, shape):
+        out = np.empty(shape, dtype)
+        cl.enqueue_copy(dev.queue, out, buf)
+        return out
+
+    mp_pos, mp_nrm = read(ps.mp_pos, np.float32, (n, 4)), read(ps.mp_nrm, np.float32, (n, 4))
+    radius = read(ps.radius, np.float32, n)
+    ph_pos = read(ps.ph_pos, np.float32, (ps.capacity, 4))[:m]
+    ph_dirs = read(ps.ph_dirs, np.uint32, (ps.capacity, 2))[:m]
+    ph_key = read(ps.ph_key, np.uint64, ps.capacity)[:m]
+    has = mp_pos[:, 3] > 0
+    pts, nrm, r = mp_pos[has, :3].astype(np.float64), mp_nrm[has, :3].astype(np.float64), float(radius.max())
+    assert np.all(radius == r)
+    incoming, normal = _unpack_dirs(ph_dirs[:, 0]), _unpack_dirs(ph_dirs[:, 1])
+    visible = np.zeros(m, bool)
+    for i, near in enumerate(cKDTree(pts).query_ball_point(ph_pos[:, :3].astype(np.float64), r)):
+        if near:
+            nn = nrm[near]
+            visible[i] = np.any((nn @ incoming[i] > 0.0) & (nn @ normal[i] > math.cos(math.pi / 4)))
+    return len(np.unique((ph_key[visible] >> np.uint64(12)) & np.uint64((1 << 24) - 1)))
+
+
+def test_visible_fraction_matches_an_independent_count(make_engine) -> None:
+    """The chains' V_c (their uniform draws) and a k-d tree count over a uniform pass's
+    photon paths, same measurement points and radius: two binomial samples of one V_c."""
+    common = {"resolution": (32, 32), "photons_per_pass": 1 << 14, "seed": 9, "initial_radius": 0.15}
+    ada, uni = make_engine("gap", sampler="adaptive", **common), make_engine("gap", **common)
+    r = np.full(ada.arrays.n_pixels, 0.15)
+    chains = ChainInputs(theta=0.3, chains=64)
+    draws = visible = independent = 0
+    for k in range(3):
+        c = ada.run_batch(GatherInputs(r, None, chains), k, 1).counters
+        draws, visible = draws + c["draws"], visible + c["visible"]
+        uni.run_batch(GatherInputs(r), k, 1)
+        independent += _visible_paths(uni)
+    n = 3 * (1 << 14)
+    assert draws == n
+    v1, v2 = visible / n, independent / n
+    assert 0.05 < v2 < 0.95  # a scene where visibility decides something
+    pooled = (visible + independent) / (2 * n)
+    z = (v1 - v2) / math.sqrt(pooled * (1 - pooled) * 2 / n)
+    assert abs(z) < 3.3, (v1, v2)  # 99.9% two-sided
+
+
+@pytest.mark.parametrize("target", [0.05, 0.234, 0.5])
+def test_acceptance_reaches_the_target(make_engine, tmp_path, target: float) -> None:
+    """A patch seen through a 6 degree view of a point-lit plane: V_c ~ 0.008, so the
+    acceptance runs from V_c (huge mutations) to 1 (tiny ones) and every target is reachable."""
+    eng = make_engine(_scene_file(tmp_path, _patch_scene(6.0)), photons_per_pass=1 << 13, seed=3,
+                      sampler="adaptive", target_acceptance=target)
+    state = render(eng, 40)
+    before = dict(state.counters)
+    render_passes(eng, passes=52, state=state)  # the last 12 passes measure the acceptance
+    mutations = state.counters["mutations"] - before["mutations"]
+    accepted = state.counters["accepted"] - before["accepted"]
+    assert mutations > 10_000
+    assert abs(accepted / mutations - target) < 0.02, (accepted / mutations, adaptive.theta(state.counters))
+    v_c = adaptive.visible_fraction(state.counters)
+    assert v_c < 0.02
+
+
+def test_replica_exchange_finds_both_openings_in_proportion(make_engine, tmp_path) -> None:
+    """One chain a pass, theta at its floor 0.001: the openings lie 0.5 apart in the emission
+    angle's dimension, so a mutation lands in the other opening about once a pass. With
+    replica exchange (~150 exchanges a pass at V_c ~ 1%) the light through the two splits
+    evenly, the scene being symmetric; by mutations alone a pass often stays in the opening
+    its chain started in."""
+    eng = make_engine(_scene_file(tmp_path, _two_openings_scene()), photons_per_pass=1 << 14, seed=21,
+                      sampler="adaptive", initial_radius=0.05)
+    n = eng.arrays.n_pixels
+    inputs = GatherInputs(np.full(n, 0.05), None, ChainInputs(theta=adaptive.THETA_MIN, chains=1))
+
+    def left_share(delta) -> float:
+        lum = (delta.S @ LUMINANCE).reshape(eng.arrays.height, eng.arrays.width)
+        return float(lum[:, :eng.arrays.width // 2].sum() / lum.sum())
+
+    shares = {}
+    for exchange in (True, False):
+        eng.passes.replica_exchange = exchange
+        deltas = [eng.run_batch(inputs, k, 1) for k in range(8)]
+        assert all(d.counters["started"] == 1 for d in deltas)
+        shares[exchange] = np.array([left_share(d) for d in deltas])
+    v_c = sum(d.counters["visible"] for d in deltas) / sum(d.counters["draws"] for d in deltas)
+    assert 0.002 < v_c < 0.05
+    both, alone = shares[True], shares[False]
+    assert abs(both.mean() - 0.5) < 0.06 and both.std() < 0.13, both
+    assert alone.std() > 0.25 and (np.minimum(alone, 1.0 - alone) < 0.05).sum() >= 2, alone
+
+
+def _adaptive_engine(make_engine, gather: str = "exact"):
+    return make_engine("gap", resolution=(24, 24), photons_per_pass=1 << 12, seed=4, sampler="adaptive", gather=gather)
+
+
+def test_batches_merge_in_any_order_and_any_split(make_engine) -> None:
+    """Passes 0..5 from one state: six one-pass batches, merged forwards and backwards, and
+    three two-pass batches give the same image, counters and next theta."""
+    eng = _adaptive_engine(make_engine)
+    start = eng.start()
+    inputs = eng.integrator.batch_inputs(start)
+    singles = [eng.run_batch(inputs, k, 1) for k in range(6)]
+    pairs = [eng.run_batch(inputs, k, 2) for k in range(0, 6, 2)]
+    results = []
+    for deltas in (singles, singles[::-1], pairs, pairs[::-1]):
+        state = eng.integrator.start({"R0": start.R0})
+        for d in deltas:
+            eng.integrator.merge(state, d)
+        results.append(state)
+    for state in results[1:]:
+        assert state.counters == results[0].counters
+        assert eng.integrator.batch_inputs(state).chains == eng.integrator.batch_inputs(results[0]).chains
+        np.testing.assert_allclose(eng.integrator.image(state), eng.integrator.image(results[0]), rtol=1e-12,
+                                   atol=1e-15)
+    assert results[0].counters["splats"] > 0 and results[0].counters["mutations"] > 0
+
+
+@pytest.mark.parametrize("gather", ["exact", "stochastic"])
+def test_same_seed_same_image(make_engine, gather: str) -> None:
+    """Two engines, same settings: the same passes bit for bit (sums and counters)."""
+    a, b = _adaptive_engine(make_engine, gather), _adaptive_engine(make_engine, gather)
+    sa, sb = render(a, 3), render(b, 3)
+    assert sa.counters == sb.counters
+    for name in sa.sums:
+        np.testing.assert_array_equal(sa.sums[name], sb.sums[name])
+
+
+def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> None:
+    from tests.test_cli import SMALL, run
+    from worker.image_io import read_metadata
+
+    out = tmp_path / "gap.exr"
+    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--target-acceptance", "0.3",
+               "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    meta = read_metadata(out)
+    counters = json.loads(meta["counters"])
+    assert counters["draws"] == 3 * 4096 and 0 < counters["visible"] < counters["draws"]
+    assert json.loads(meta["settings"])["sampler"] == "adaptive"
+    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "invalid choice: 'mcmc'" in proc.stderr.strip().splitlines()[-1], proc.stderr
+
+
+def test_settings_name_the_sampler_in_their_errors() -> None:
+    from pydantic import ValidationError
+
+    from service.models import JobRequest
+
+    for settings, loc, text in (({"sampler": "mcmc"}, ("settings", "sampler"), "'uniform' or 'adaptive'"),
+                                ({"target_acceptance": 1.0}, ("settings", "target_acceptance"), "less than 1"),
+                                ({"method": "vcm", "sampler": "adaptive"}, ("settings", "sampler"), "sppm and ppm")):
+        with pytest.raises(ValidationError) as info:
+            JobRequest.model_validate({"scene_name": "gap", "settings": settings})
+        error = info.value.errors()[0]
+        assert error["loc"] == loc and text in error["msg"], error
+
+
+def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) -> None:
+    """A point light under the seen plane: no path is ever visible. The chains find no start,
+    every pass is uniform tracing that found nothing: a black image, no NaN, no hang, and
+    the error estimate still answers."""
+    scene = _patch_scene(60.0)
+    scene["lights"][0]["position"] = [0, -1, 0]
+    eng = make_engine(_scene_file(tmp_path, scene), photons_per_pass=1 << 12, seed=2, sampler="adaptive")
+    state = render(eng, 3)
+    c = state.counters
+    assert c["draws"] == 3 * (1 << 12) and c["visible"] == c["splats"] == c["started"] == c["mutations"] == 0
+    img = image(eng, state)
+    assert np.all(img == 0.0)
+    est = eng.integrator.estimate(state)
+    assert np.all(np.isfinite(est.relative)) and est.average == 1.0

@@ -1,0 +1,82 @@
+"""Adaptive photon tracing (`sampler: adaptive`), the host half: the job's counters, the
+visible fraction V_c, the mutation size theta and the number of chains.
+
+The kernels (kernels/photon_chains.cl) return per pass a few integer counters. A batch
+adds them to its Delta and the store sums them into the job (worker/stats.py), like the
+photon count: additive, so batches of any worker merge in any order. From the pooled sums:
+
+    V_c   = visible uniform draws / uniform draws          (Hachisuka & Jensen 2011, eq. 5)
+    L     = V_c * S / splats                                the image's photon part
+
+(every splat is a sample of F = V / V_c, so S / splats estimates E_F[g] = I / V_c).
+
+theta is frozen within a pass and adapted between passes by the controlled-MCMC rule of
+eq. 11, theta += gamma_k (A_k - A*), taken on log theta (theta spans 1e-3..64; a step of a
+given size in log theta is the same relative change everywhere) and with gamma_k =
+THETA_GAIN / sqrt(k + 1) for pass index k (diminishing: the sum of gamma_k diverges, each
+step goes to 0). Each pass's step is a function of that pass alone (its index, the theta
+it used and its own acceptance A_k), rounded to an integer number of THETA_QUANTUM and
+summed like the other counters: log theta = (sum of steps) * THETA_QUANTUM, clamped to
+[THETA_MIN, THETA_MAX]. So theta is a function of the merged state, integer sums make it
+bit-exact whatever order batches merged in, and a re-issued batch given the same state
+replays its passes bit for bit. A step that would push theta further beyond a bound is 0
+(projection), so the sum cannot wind up there. Passes of one batch share the theta the
+batch started with (the paper adapts after every mutation; per pass, with thousands of
+mutations each, A_k is already a precise measurement).
+"""
+
+from __future__ import annotations
+
+import math
+
+# Counters a pass adds, in the kernel's order (kernels/photon_chains.cl, CTR_*).
+COUNTERS = ("draws", "visible", "splats", "mutations", "accepted", "started")
+THETA_STEPS = "theta_steps"  # the sum of the passes' log-theta steps, in THETA_QUANTUM
+THETA_QUANTUM = 2.0 ** -24
+THETA_MIN, THETA_MAX = 1e-3, 64.0  # "bounding theta to a large finite range" (dissertation 8.2)
+THETA_GAIN = 4.0  # gamma_k = THETA_GAIN / sqrt(k + 1), in log theta per unit of acceptance error
+CHAIN_SHARE = 0.05  # chains = this share of the visible paths a pass expects (a chain's start costs 1 / V_c draws)
+MIN_CHAINS, MAX_CHAINS = 16, 4096
+MIN_BOOT_DRAWS = 256  # a chain's start: at least this many uniform draws, else photons / chains
+
+
+def theta(counters: dict[str, int]) -> float:
+    """The mutation size for a batch starting from these merged counters."""
+    log_theta = counters.get(THETA_STEPS, 0) * THETA_QUANTUM
+    return min(max(math.exp(log_theta), THETA_MIN), THETA_MAX)
+
+
+def theta_step(pass_index: int, used: float, mutations: int, accepted: int, target: float) -> int:
+    """Pass `pass_index`'s step of log theta (in THETA_QUANTUM), from its own acceptance."""
+    if mutations == 0:
+        return 0  # every uniform draw was visible (or no chain had a state): nothing to adapt
+    error = accepted / mutations - target
+    if (used >= THETA_MAX and error > 0.0) or (used <= THETA_MIN and error < 0.0):
+        return 0
+    return round(THETA_GAIN / math.sqrt(pass_index + 1.0) * error / THETA_QUANTUM)
+
+
+def visible_fraction(counters: dict[str, int]) -> float | None:
+    """V_c from the pooled uniform draws; None before any."""
+    draws = counters.get("draws", 0)
+    return counters.get("visible", 0) / draws if draws > 0 else None
+
+
+def photon_scale(counters: dict[str, int]) -> float:
+    """What the summed flux S is multiplied by for the image: V_c / splats (0 before any)."""
+    v_c, splats = visible_fraction(counters), counters.get("splats", 0)
+    return v_c / splats if v_c is not None and splats > 0 else 0.0
+
+
+def chains(counters: dict[str, int], photons: int) -> int:
+    """Chains for a pass of `photons` paths: CHAIN_SHARE of the visible paths it expects
+    (digest: K <= 0.05 V_c photons keeps the starts' cost near 5%), within bounds."""
+    v_c = visible_fraction(counters)
+    k = MIN_CHAINS if v_c is None else round(CHAIN_SHARE * v_c * photons)
+    return max(1, min(photons, MAX_CHAINS, max(MIN_CHAINS, k)))
+
+
+def boot_draws(n_chains: int, photons: int) -> int:
+    """Cap on the uniform draws of a chain's start: with nothing visible, the starts cost
+    about one pass of photons (or MIN_BOOT_DRAWS a chain)."""
+    return max(MIN_BOOT_DRAWS, -(-photons // n_chains))
