@@ -93,7 +93,7 @@ inline void store_cached(ChainState* s, ulong record) {
 // weights a photon by its count) add 1 to the counts of its stored photons; else (the
 // stochastic hash counts photons, not counts) store them again. A state with too many
 // photons to cache is traced again and stored.
-inline void splat(const Tracer* t, ChainState* s, ulong record, int in_place) {
+inline void splat_state(const Tracer* t, ChainState* s, ulong record, int in_place) {
     if (s->sink.n <= DEPOSIT_CACHE) {
         if (!s->stored || !in_place) {
             store_cached(s, record);
@@ -179,7 +179,7 @@ __kernel void photon_chains(
             has_state = 1;
         }
         if (has_state) {
-            splat(&tracer, &states[cur], record, in_place);
+            splat_state(&tracer, &states[cur], record, in_place);
             ++splats;
         }
     }
