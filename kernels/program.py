@@ -22,7 +22,7 @@ KERNEL_DIR = Path(__file__).resolve().parent
 SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
 PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
-                "grid_scatter", "grid_sort", "gather_stochastic", "gather_exact")
+                "grid_scatter", "grid_sort", "grid_permute", "gather_stochastic", "gather_exact")
 
 
 def create_context() -> cl.Context:

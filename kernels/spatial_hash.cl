@@ -1,18 +1,18 @@
 // Photon lookup structures, rebuilt every pass, and the gather at measurement points.
 //
-// Both use a uniform grid of cell size 2 * (largest current radius), hashed into a table:
-// a query disc of radius r <= cell/2 then overlaps at most the 8 cells picked per axis by
-// which half of its cell the point lies in (dissertation 10.2.2). A photon counts for a
-// query cell only if it lies in that very cell, so two query cells that collide in the
-// table never count one photon twice.
+// Both use a uniform grid of cell size 2 * (largest current radius), hashed into a table
+// (dissertation 10.2.2). A query visits every cell that the bounding box of its ball
+// (radius r about the point) overlaps: at most 2 per axis, 8 in all, while r <= cell/2. A
+// photon counts for a query cell only if it lies in that very cell, so two query cells
+// that collide in the table never count one photon twice.
 //
 // Stochastic spatial hashing (dissertation ch. 10, digest 8): each table entry keeps ONE
 // of the n photons hashed to it, chosen uniformly at random by an atomic minimum over
 // random keys (not a racy last-writer-wins store), and that photon stands for all n: its
 // flux is multiplied by n and n is added to M. In expectation this is the full sum.
 //
-// Exact gathering (for comparison and tests) counting-sorts all photons by entry and
-// visits every photon of the 8 entries.
+// Exact gathering counting-sorts all photons by entry, copies them into that order, and
+// visits every photon of the query's entries.
 
 inline int3 cell_of(float3 p, float inv_cell) { return convert_int3_rtn(p * inv_cell); }
 
@@ -102,6 +102,23 @@ __kernel void grid_sort(uint entries, __global const uint* cell_start, __global 
     }
 }
 
+// The photons themselves in entry order, so that a gather reads each entry's photons from
+// consecutive memory rather than through an index into the trace's order, with their
+// packed directions unpacked once here rather than at every query that finds them.
+__kernel void grid_permute(uint n, __global const uint* sorted, __global const float4* ph_pos,
+                           __global const float4* ph_flux, __global const uint2* ph_dirs,
+                           __global float4* grid_pos, __global float4* grid_flux, __global float4* grid_in,
+                           __global float4* grid_nrm) {
+    uint j = get_global_id(0);
+    if (j >= n) return;
+    uint i = sorted[j];
+    grid_pos[j] = ph_pos[i];
+    grid_flux[j] = ph_flux[i];
+    uint2 dirs = ph_dirs[i];
+    grid_in[j] = (float4)(unpack_dir(dirs.x), 0.0f);
+    grid_nrm[j] = (float4)(unpack_dir(dirs.y), 0.0f);
+}
+
 // --- gather: per pixel, the photons within its radius of this pass's measurement point
 //
 // Density estimation with the smooth kernel of dissertation eq. 6.34,
@@ -133,18 +150,21 @@ typedef struct {
     float m;      // photons counted (raw)
 } PassSums;
 
-// Whether a photon found in `cell` counts for the query at x (normal n, radius^2 r2): it
-// must lie in the disc, have arrived on the side the eye sees, and lie on a surface that
-// matches the point's (NORMAL_MATCH_COS, eye_pass.cl). The last test keeps a concave
-// corner from gathering the photons of the perpendicular wall (10% too bright against
-// Mitsuba in the Cornell box's corners); the disc coverage measured in the eye pass then
-// renormalises the estimate for the part of the disc beyond that wall.
-inline bool photon_counts(float3 x, float3 n, float r2, int3 cell, float inv_cell, float4 pp, uint2 dirs) {
-    if (any(cell_of(pp.xyz, inv_cell) != cell)) return false;
-    float3 v = pp.xyz - x;
-    if (dot(v, v) >= r2) return false;
-    if (dot(unpack_dir(dirs.x), n) <= 0.0f) return false;  // arrived on the side the eye sees
-    return dot(unpack_dir(dirs.y), n) > NORMAL_MATCH_COS;
+// A photon at p found in `cell` counts for the query at x (normal n, radius^2 r2) if it
+// lies in the disc's ball and in that very cell (photon_near), has arrived on the side
+// the eye sees, and lies on a surface that matches the point's (photon_matches; its
+// incoming direction and surface normal, unit vectors; NORMAL_MATCH_COS, eye_pass.cl).
+// The last test keeps a concave corner from gathering the photons of the perpendicular
+// wall (10% too bright against Mitsuba in the Cornell box's corners); the disc coverage
+// measured in the eye pass then renormalises the estimate for the part of the disc
+// beyond that wall.
+inline bool photon_near(float3 x, float r2, int3 cell, float inv_cell, float3 p) {
+    float3 v = p - x;
+    return dot(v, v) < r2 && all(cell_of(p, inv_cell) == cell);
+}
+
+inline bool photon_matches(float3 n, float3 incoming, float3 normal) {
+    return dot(incoming, n) > 0.0f && dot(normal, n) > NORMAL_MATCH_COS;
 }
 
 inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, float4 pp, float3 flux, float count) {
@@ -189,28 +209,12 @@ inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt
 #endif
 }
 
-// The 8 cells a disc of radius <= cell/2 around x can touch: x's own cell and, per axis,
-// the neighbour on the side of the nearer cell face.
-typedef struct { int3 base; int3 step; } QueryCells;
-
-inline QueryCells query_cells(float3 x, float inv_cell) {
-    QueryCells q;
-    q.base = cell_of(x, inv_cell);
-    float3 f = x * inv_cell - convert_float3(q.base);
-    q.step = (int3)(f.x < 0.5f ? -1 : 1, f.y < 0.5f ? -1 : 1, f.z < 0.5f ? -1 : 1);
-    return q;
-}
-
-inline int3 query_cell(QueryCells q, int k) {
-    return q.base + (int3)((k & 1) ? q.step.x : 0, (k & 2) ? q.step.y : 0, (k & 4) ? q.step.z : 0);
-}
-
 // A pixel's query this pass; false if the pixel has no measurement point.
 typedef struct {
     float3 x, n, wgt;
     float2 coverage;  // share of the disc's kernel weight on the point's surface, at r and r/2
     float r, r2;
-    QueryCells cells;
+    int3 lo, hi;      // the cells its ball's bounding box overlaps, corner to corner
 } Query;
 
 inline bool start_query(int gid, __global const float4* mp_pos, __global const float4* mp_nrm,
@@ -224,7 +228,8 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
     q->coverage = fmax((float2)(w.w, mp_nrm[gid].w), MIN_COVERAGE);
     q->r = radius[gid];
     q->r2 = q->r * q->r;
-    q->cells = query_cells(q->x, inv_cell);
+    q->lo = cell_of(q->x - q->r, inv_cell);
+    q->hi = cell_of(q->x + q->r, inv_cell);
     return true;
 }
 
@@ -239,15 +244,19 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
     Query q;
     if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q.cells, k);
-        uint h = cell_hash(cell, mask);
-        uint count = tab_count[h];
-        if (count == 0) continue;
-        float4 pp = tab_pos[h];
-        if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, tab_dirs[h]))
-            add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
-    }
+    for (int cz = q.lo.z; cz <= q.hi.z; ++cz)
+        for (int cy = q.lo.y; cy <= q.hi.y; ++cy)
+            for (int cx = q.lo.x; cx <= q.hi.x; ++cx) {
+                int3 cell = (int3)(cx, cy, cz);
+                uint h = cell_hash(cell, mask);
+                uint count = tab_count[h];
+                if (count == 0) continue;
+                float4 pp = tab_pos[h];
+                uint2 dirs = tab_dirs[h];
+                if (photon_near(q.x, q.r2, cell, inv_cell, pp.xyz)
+                    && photon_matches(q.n, unpack_dir(dirs.x), unpack_dir(dirs.y)))
+                    add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
+            }
     accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
 
@@ -255,24 +264,25 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                            __global const float4* mp_wgt, __global const float* radius,
                            __global const float* bias, float photons,
                            float inv_cell, uint mask, __global const uint* cell_start,
-                           __global const uint* cell_count, __global const uint* sorted,
-                           __global const float4* ph_pos, __global const float4* ph_flux,
-                           __global const uint2* ph_dirs,
-                           __global double* batch_sums) {
+                           __global const uint* cell_count, __global const float4* grid_pos,
+                           __global const float4* grid_flux, __global const float4* grid_in,
+                           __global const float4* grid_nrm, __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
     if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q.cells, k);
-        uint h = cell_hash(cell, mask);
-        uint begin = cell_start[h], end = begin + cell_count[h];
-        for (uint j = begin; j < end; ++j) {
-            uint i = sorted[j];
-            float4 pp = ph_pos[i];
-            if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, ph_dirs[i]))
-                add_photon(&s, q.x, q.n, q.r, q.wgt, pp, ph_flux[i].xyz, 1.0f);
-        }
-    }
+    for (int cz = q.lo.z; cz <= q.hi.z; ++cz)
+        for (int cy = q.lo.y; cy <= q.hi.y; ++cy)
+            for (int cx = q.lo.x; cx <= q.hi.x; ++cx) {
+                int3 cell = (int3)(cx, cy, cz);
+                uint h = cell_hash(cell, mask);
+                uint begin = cell_start[h], end = begin + cell_count[h];
+                for (uint j = begin; j < end; ++j) {
+                    float4 pp = grid_pos[j];
+                    if (photon_near(q.x, q.r2, cell, inv_cell, pp.xyz)
+                        && photon_matches(q.n, grid_in[j].xyz, grid_nrm[j].xyz))
+                        add_photon(&s, q.x, q.n, q.r, q.wgt, pp, grid_flux[j].xyz, 1.0f);
+                }
+            }
     accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
