@@ -3,11 +3,13 @@ and handed to the OpenCL build as `-D` options (no `.cl` file repeats a value).
 
 Importable without OpenCL (the API process uses the constants and layouts too).
 
-Per-pixel sums. A batch's sums live on the device in one float64 buffer, one record of
-`stride` doubles per pixel (pixel-major: a gather writes one contiguous record). A
-`SumLayout` names each sum with its width (1 = scalar, 3 = rgb); the kernels address a sum
-as `sums[gid * SUM_STRIDE + SUM_<NAME>]` and test `#ifdef SUM_<NAME>` for optional ones, so
-adding a sum is one entry in a layout here plus the kernel code that writes it.
+Per-pixel sums. A batch's sums live on the device in one float64 buffer of `stride`
+doubles per pixel, one block per sum (name-major: the host reads every sum back as a
+contiguous array, with no copy to split them). A `SumLayout` names each sum with its width
+(1 = scalar, 3 = rgb); SUM_<NAME> is its offset in doubles per pixel, the kernels address
+it as `sum_at(sums, n_pixels, gid, SUM_<NAME>, width)` (kernels/sums.cl) and test
+`#ifdef SUM_<NAME>` for optional ones, so adding a sum is one entry in a layout here plus
+the kernel code that writes it.
 """
 
 from __future__ import annotations
@@ -73,16 +75,18 @@ class SumLayout:
         width = self.width(name)
         return np.zeros((n_pixels, width) if width > 1 else n_pixels)
 
-    def split(self, records: np.ndarray) -> dict[str, np.ndarray]:
-        """(pixels, stride) records -> one array per sum, (pixels,) or (pixels, 3)."""
+    def split(self, flat: np.ndarray, n_pixels: int) -> dict[str, np.ndarray]:
+        """The device buffer's (n_pixels * stride,) doubles -> one array per sum, (pixels,) or
+        (pixels, 3): contiguous views into `flat`, no copies."""
         out = {}
         for name, at in self.offsets.items():
             width = self.width(name)
-            out[name] = np.ascontiguousarray(records[:, at:at + width] if width > 1 else records[:, at])
+            block = flat[at * n_pixels:(at + width) * n_pixels]
+            out[name] = block.reshape(n_pixels, width) if width > 1 else block
         return out
 
     def defines(self) -> dict[str, int]:
-        return {"SUM_STRIDE": self.stride, **{f"SUM_{name.upper()}": at for name, at in self.offsets.items()}}
+        return {f"SUM_{name.upper()}": at for name, at in self.offsets.items()}
 
 
 def build_options(layout: SumLayout) -> list[str]:

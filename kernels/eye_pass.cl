@@ -128,7 +128,7 @@ __kernel void eye_pass(
     __global float4* mp_nrm,       // normal facing the eye path; w: disc coverage at r/2
     __global float4* mp_wgt,       // throughput * albedo / pi; w: disc coverage
     __global float* mp_dist,       // eye path length to the point (initial radius)
-    __global double* batch_sums)   // per-pixel records (kernels/contract.py); += directly seen emission
+    __global double* batch_sums)   // per-pixel sums (sums.cl); += directly seen emission
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
@@ -188,12 +188,12 @@ __kernel void eye_pass(
     mp_nrm[gid] = nrm;
     mp_wgt[gid] = wgt;
     mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
-    __global double* ld = batch_sums + (size_t)gid * SUM_STRIDE + SUM_LD;
+    __global double* ld = sum_at(batch_sums, width * height, gid, SUM_LD, 3);
     ld[0] += direct.x;
     ld[1] += direct.y;
     ld[2] += direct.z;
 #ifdef SUM_LD2
     double lum = LUM_R * (double)direct.x + LUM_G * (double)direct.y + LUM_B * (double)direct.z;
-    batch_sums[(size_t)gid * SUM_STRIDE + SUM_LD2] += lum * lum;
+    *sum_at(batch_sums, width * height, gid, SUM_LD2, 1) += lum * lum;
 #endif
 }

@@ -19,7 +19,7 @@ from kernels.contract import SumLayout, build_options  # noqa: E402
 
 KERNEL_DIR = Path(__file__).resolve().parent
 # Order matters: later files use what earlier ones define.
-SOURCES = ("rng.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
+SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "photon_pass.cl", "spatial_hash.cl")
 PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
                 "grid_scatter", "grid_sort", "grid_permute", "gather_stochastic", "gather_exact")

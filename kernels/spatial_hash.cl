@@ -182,30 +182,32 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
 #endif
 }
 
-// Add one pass's gather to pixel gid's record of the batch sums.
-inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, float2 coverage, PassSums s,
-                       float photons, float bias) {
-    __global double* rec = batch_sums + (size_t)gid * SUM_STRIDE;
+// Add one pass's gather to pixel gid's sums (sums.cl).
+#define ADD_SUM(name, value) (*sum_at(batch_sums, n_pixels, gid, name, 1) += (value))
+
+inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float3 wgt, float2 coverage,
+                       PassSums s, float photons, float bias) {
     double kr2 = K1 * (double)r * (double)r * (double)coverage.x;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
-    rec[SUM_S] += flux.x;
-    rec[SUM_S + 1] += flux.y;
-    rec[SUM_S + 2] += flux.z;
-    rec[SUM_D] += (double)s.m / (M_PI * (double)r * (double)r);
-    rec[SUM_H] += 1.0;
+    __global double* rgb = sum_at(batch_sums, n_pixels, gid, SUM_S, 3);
+    rgb[0] += flux.x;
+    rgb[1] += flux.y;
+    rgb[2] += flux.z;
+    ADD_SUM(SUM_D, (double)s.m / (M_PI * (double)r * (double)r));
+    ADD_SUM(SUM_H, 1.0);
 #ifdef SUM_G
     double lap = (double)s.lap / kr2;
-    rec[SUM_G] += lap;
-    rec[SUM_L2] += (lap / (double)photons) * (lap / (double)photons);  // the pass's own lap L, squared
+    ADD_SUM(SUM_G, lap);
+    ADD_SUM(SUM_L2, (lap / (double)photons) * (lap / (double)photons));  // the pass's own lap L, squared
     double x = dot(flux, (double3)(LUM_R, LUM_G, LUM_B)) / (double)photons - (double)bias;
-    rec[SUM_X1] += x;
-    rec[SUM_X2] += x * x;
+    ADD_SUM(SUM_X1, x);
+    ADD_SUM(SUM_X2, x * x);
     // The pass's luminance estimate at r less the one at r/2 (same photons): where the
     // density is smooth this is 3/4 of the bias at r; at an edge it shows the bias directly.
     double dh = x + (double)bias - (double)s.phi_half / (0.25 * K1 * (double)r * (double)r * (double)coverage.y)
                                    / (double)photons;
-    rec[SUM_DH] += dh;
-    rec[SUM_DH2] += dh * dh;
+    ADD_SUM(SUM_DH, dh);
+    ADD_SUM(SUM_DH2, dh * dh);
 #endif
 }
 
@@ -257,7 +259,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                     && photon_matches(q.n, unpack_dir(dirs.x), unpack_dir(dirs.y)))
                     add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
             }
-    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
@@ -284,5 +286,5 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                         add_photon(&s, q.x, q.n, q.r, q.wgt, pp, grid_flux[j].xyz, 1.0f);
                 }
             }
-    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
