@@ -30,7 +30,7 @@ correction makes. All of it is float64 on the host.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -69,6 +69,9 @@ class Accumulators:
     sums: dict[str, np.ndarray]  # every name of the integrator's SumLayout
     emitted: int = 0
     passes: int = 0
+    # radius() as of the last merge: a batch's inputs, its merge and the error estimate all
+    # ask for it, and at a megapixel each computation costs as much as the merge's sums.
+    _radius: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout) -> "Accumulators":
@@ -89,7 +92,11 @@ class Accumulators:
         return {"R0": self.R0, "N": self.N, **self.sums}
 
     def radius(self) -> np.ndarray:
-        return radius(self.R0, self.N, self.D)
+        """The current radius per pixel (read-only: computed once per merge)."""
+        if self._radius is None:
+            self._radius = radius(self.R0, self.N, self.D)
+            self._radius.flags.writeable = False
+        return self._radius
 
     def merge(self, delta: "Delta") -> None:
         """Add a batch. Commutative in every sum; N uses the radius at merge time."""
@@ -99,6 +106,7 @@ class Accumulators:
             self.sums[name] += delta.sums[name]
         self.emitted += delta.emitted
         self.passes += delta.n_passes
+        self._radius = None
 
     def photon_radiance(self) -> np.ndarray:
         """The density estimate S/E alone, (pixels, 3)."""
