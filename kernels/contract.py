@@ -45,6 +45,11 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights: what "error"
 # holds (kernels/photon_pass.cl).
 MAX_BOUNCES = 4096
 
+# The eye pass casts its disc-coverage rays only where a conservative test finds a shape
+# that could cut the disc (kernels/eye_pass.cl, disc_may_be_cut); 0 casts them at every
+# point, which must give the same coverage bit for bit (tests/test_disc_coverage.py).
+COVERAGE_PRETEST = 1
+
 
 @dataclass(frozen=True)
 class SumLayout:
@@ -96,6 +101,7 @@ def build_options(layout: SumLayout) -> list[str]:
         **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
         **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},
         "K1": repr(K1),
+        "COVERAGE_PRETEST": COVERAGE_PRETEST,
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
         **layout.defines(),
     }
