@@ -100,8 +100,10 @@ class Accumulators:
 
     def merge(self, delta: "Delta") -> None:
         """Add a batch. Commutative in every sum; N uses the radius at merge time."""
-        r2_now = self.radius() ** 2
-        self.N += self.alpha * math.pi * r2_now * delta.D
+        dN = np.square(self.radius())  # R^2 at merge time, then alpha pi R^2 dD, in place
+        dN *= self.alpha * math.pi
+        dN *= delta.D
+        self.N += dN
         for name in self.sums:
             self.sums[name] += delta.sums[name]
         self.emitted += delta.emitted
