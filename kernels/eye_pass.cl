@@ -85,7 +85,10 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
 }
 
 inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng* rng) {
-    if (r <= 0.0f || (COVERAGE_PRETEST && !disc_may_be_cut(g, x, n, r))) return (float2)(1.0f);
+    if (r <= 0.0f) return (float2)(1.0f);
+#if COVERAGE_PRETEST
+    if (!disc_may_be_cut(g, x, n, r)) return (float2)(1.0f);
+#endif
     float3 t, b;
     onb(n, &t, &b);
     float3 o = x + n * ray_eps(x);
