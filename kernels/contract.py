@@ -3,11 +3,13 @@ and handed to the OpenCL build as `-D` options (no `.cl` file repeats a value).
 
 Importable without OpenCL (the API process uses the constants and layouts too).
 
-Per-pixel sums. A batch's sums live on the device in one float64 buffer, one record of
-`stride` doubles per pixel (pixel-major: a gather writes one contiguous record). A
-`SumLayout` names each sum with its width (1 = scalar, 3 = rgb); the kernels address a sum
-as `sums[gid * SUM_STRIDE + SUM_<NAME>]` and test `#ifdef SUM_<NAME>` for optional ones, so
-adding a sum is one entry in a layout here plus the kernel code that writes it.
+Per-pixel sums. A batch's sums live on the device in one float64 buffer of `stride`
+doubles per pixel, one block per sum (name-major: the host reads every sum back as a
+contiguous array, with no copy to split them). A `SumLayout` names each sum with its width
+(1 = scalar, 3 = rgb); SUM_<NAME> is its offset in doubles per pixel, the kernels address
+it as `sum_at(sums, n_pixels, gid, SUM_<NAME>, width)` (kernels/sums.cl) and test
+`#ifdef SUM_<NAME>` for optional ones, so adding a sum is one entry in a layout here plus
+the kernel code that writes it.
 """
 
 from __future__ import annotations
@@ -60,13 +62,17 @@ MAX_BOUNCES = 4096
 SPLAT_FRACTION_BITS = 28
 # The hybrid program builds on the photon-mapping sources (for spatial_hash.cl's grid build),
 # whose eye-pass and gather kernels address these sums unconditionally; a layout without
-# them gets them defined as record offset 0 so the source compiles (those kernels never run).
+# them gets them defined as offset 0 so the source compiles (those kernels never run).
 PHOTON_RECORD_NAMES = ("S", "D", "H", "LD")
+# The eye pass casts its disc-coverage rays only where a conservative test finds a shape
+# that could cut the disc (kernels/eye_pass.cl, disc_may_be_cut); 0 casts them at every
+# point, which must give the same coverage bit for bit (tests/test_disc_coverage.py).
+COVERAGE_PRETEST = 1
 
 
 @dataclass(frozen=True)
 class SumLayout:
-    """Named per-pixel float64 sums packed in one record of `stride` doubles."""
+    """Named per-pixel float64 sums, `stride` doubles a pixel, one block per sum (sums.cl)."""
 
     widths: tuple[tuple[str, int], ...]
 
@@ -93,16 +99,18 @@ class SumLayout:
         width = self.width(name)
         return np.zeros((n_pixels, width) if width > 1 else n_pixels)
 
-    def split(self, records: np.ndarray) -> dict[str, np.ndarray]:
-        """(pixels, stride) records -> one array per sum, (pixels,) or (pixels, 3)."""
+    def split(self, flat: np.ndarray, n_pixels: int) -> dict[str, np.ndarray]:
+        """The device buffer's (n_pixels * stride,) doubles -> one array per sum, (pixels,) or
+        (pixels, 3): contiguous views into `flat`, no copies."""
         out = {}
         for name, at in self.offsets.items():
             width = self.width(name)
-            out[name] = np.ascontiguousarray(records[:, at:at + width] if width > 1 else records[:, at])
+            block = flat[at * n_pixels:(at + width) * n_pixels]
+            out[name] = block.reshape(n_pixels, width) if width > 1 else block
         return out
 
     def defines(self) -> dict[str, int]:
-        return {"SUM_STRIDE": self.stride, **{f"SUM_{name.upper()}": at for name, at in self.offsets.items()}}
+        return {f"SUM_{name.upper()}": at for name, at in self.offsets.items()}
 
 
 def build_options(layout: SumLayout) -> list[str]:
@@ -115,6 +123,7 @@ def build_options(layout: SumLayout) -> list[str]:
         "K1": repr(K1),
         "PSS_DIM": PSS_DIM,
         "DEPOSIT_CACHE": DEPOSIT_CACHE,
+        "COVERAGE_PRETEST": COVERAGE_PRETEST,
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
         "SPLAT_SCALE": repr(float(2 ** SPLAT_FRACTION_BITS)),
         **borrowed,

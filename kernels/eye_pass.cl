@@ -17,6 +17,7 @@
 // r / rho across a disc of radius r, so it keeps every photon while r < 0.78 rho.
 #define NORMAL_MATCH_COS 0.7071f
 #define COVERAGE_RAYS 8
+#define OWN_SURFACE_COS 0.9999  /* the point's normal is the sphere's (inward) normal */
 
 // Share of the kernel weight of the tangent disc (radius r about x, normal n) that lies on
 // the point's own surface: where a concave corner's wall cuts the disc, no photon of this
@@ -34,8 +35,60 @@ inline float cover_share(float s) {
     return s2 * (3.5f + s2 * s * (-14.0f + s * (17.5f - 6.0f * s)));
 }
 
+// Whether the coverage rays could meet anything that cuts the disc: a cheap conservative
+// test, so that the rays are cast only near walls (most points find coverage 1). The rays
+// run in the plane at height e = ray_eps(x) above the point, and reach at most r. A shape
+// cannot stop one if it lies farther than r from their origin, or wholly on one side of
+// that plane (the point's own wall when it is convex or flat, every triangle of a flat
+// floor), or if it is the concave sphere the point lies on (normal along its radius) with
+// a radius of at least 2r: a chord shorter than r turns its normal by under 30 degrees, so
+// any hit matches. When this says no, every ray would give s = 1 and the coverage is
+// exactly (1, 1), so the image is the same bit for bit as with every disc traced.
+inline bool plane_splits(float lowest, float highest, float e) { return lowest < 2.0f * e && highest > 0.5f * e; }
+
+inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
+    float e = ray_eps(x);
+    float reach = r + e;
+    for (int i = 0; i < g->n_spheres; ++i) {
+        float4 s = g->spheres[i];
+        double3 f = convert_double3(x) - (double3)(s.x, s.y, s.z);
+        double gap = sqrt(dot(f, f)) - (double)s.w;  // signed distance of x from the sphere's surface
+        if (fabs(gap) > (double)reach) continue;
+        double centre = -dot(f, convert_double3(n));  // height of the centre above the point's plane
+        if (!plane_splits((float)(centre - (double)s.w), (float)(centre + (double)s.w), e)) continue;
+        bool own_concave = fabs(gap) <= (double)e && centre >= OWN_SURFACE_COS * (gap + (double)s.w);
+        if (own_concave && s.w >= 2.0f * r) continue;
+        return true;
+    }
+    if (g->n_nodes == 0) return false;
+    int stack[64];
+    int sp = 0, node = 0;
+    while (true) {
+        float4 lo = g->node_lo[node], hi = g->node_hi[node];
+        float3 nearest = clamp(x, lo.xyz, hi.xyz);
+        if (dot(nearest - x, nearest - x) <= reach * reach) {
+            int a = as_int(lo.w), count = as_int(hi.w);
+            if (count == 0) {
+                stack[sp++] = a;  // right child later
+                node = node + 1;  // left child is next in pre-order
+                continue;
+            }
+            for (int k = a; k < a + count; ++k) {
+                float3 v0 = g->tri_v0[k].xyz, e1 = g->tri_e1[k].xyz, e2 = g->tri_e2[k].xyz;
+                float h0 = dot(v0 - x, n), h1 = h0 + dot(e1, n), h2 = h0 + dot(e2, n);
+                if (plane_splits(fmin(h0, fmin(h1, h2)), fmax(h0, fmax(h1, h2)), e)) return true;
+            }
+        }
+        if (sp == 0) return false;
+        node = stack[--sp];
+    }
+}
+
 inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng* rng) {
     if (r <= 0.0f) return (float2)(1.0f);
+#if COVERAGE_PRETEST
+    if (!disc_may_be_cut(g, x, n, r)) return (float2)(1.0f);
+#endif
     float3 t, b;
     onb(n, &t, &b);
     float3 o = x + n * ray_eps(x);
@@ -78,7 +131,7 @@ __kernel void eye_pass(
     __global float4* mp_nrm,       // normal facing the eye path; w: disc coverage at r/2
     __global float4* mp_wgt,       // throughput * albedo / pi; w: disc coverage
     __global float* mp_dist,       // eye path length to the point (initial radius)
-    __global double* batch_sums)   // per-pixel records (kernels/contract.py); += directly seen emission
+    __global double* batch_sums)   // per-pixel sums (sums.cl); += directly seen emission
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
@@ -138,12 +191,12 @@ __kernel void eye_pass(
     mp_nrm[gid] = nrm;
     mp_wgt[gid] = wgt;
     mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
-    __global double* ld = batch_sums + (size_t)gid * SUM_STRIDE + SUM_LD;
+    __global double* ld = sum_at(batch_sums, width * height, gid, SUM_LD, 3);
     ld[0] += direct.x;
     ld[1] += direct.y;
     ld[2] += direct.z;
 #ifdef SUM_LD2
     double lum = LUM_R * (double)direct.x + LUM_G * (double)direct.y + LUM_B * (double)direct.z;
-    batch_sums[(size_t)gid * SUM_STRIDE + SUM_LD2] += lum * lum;
+    *sum_at(batch_sums, width * height, gid, SUM_LD2, 1) += lum * lum;
 #endif
 }

@@ -1,18 +1,19 @@
 // Photon lookup structures, rebuilt every pass, and the gather at measurement points.
 //
-// Both use a uniform grid of cell size 2 * (largest current radius), hashed into a table:
-// a query disc of radius r <= cell/2 then overlaps at most the 8 cells picked per axis by
-// which half of its cell the point lies in (dissertation 10.2.2). A photon counts for a
-// query cell only if it lies in that very cell, so two query cells that collide in the
-// table never count one photon twice.
+// Both use a uniform grid of cell size 2 * (largest current radius), hashed into a table
+// (dissertation 10.2.2). A query visits the table entries of the cells that the bounding
+// box of its ball (radius r about the point) overlaps: at most 2 cells per axis, 8 in all,
+// as r <= cell/2. Each distinct entry is visited once, so two query cells that collide in
+// the table never count a photon twice; a photon of some other cell that shares an entry
+// lies outside the box, farther than r, so the distance test alone decides.
 //
 // Stochastic spatial hashing (dissertation ch. 10, digest 8): each table entry keeps ONE
 // of the n photons hashed to it, chosen uniformly at random by an atomic minimum over
 // random keys (not a racy last-writer-wins store), and that photon stands for all n: its
 // flux is multiplied by n and n is added to M. In expectation this is the full sum.
 //
-// Exact gathering (for comparison and tests) counting-sorts all photons by entry and
-// visits every photon of the 8 entries.
+// Exact gathering counting-sorts all photons by entry, copies them into that order, and
+// visits every photon of the query's entries.
 
 inline int3 cell_of(float3 p, float inv_cell) { return convert_int3_rtn(p * inv_cell); }
 
@@ -102,6 +103,23 @@ __kernel void grid_sort(uint entries, __global const uint* cell_start, __global 
     }
 }
 
+// The photons themselves in entry order, so that a gather reads each entry's photons from
+// consecutive memory rather than through an index into the trace's order, with their
+// packed directions unpacked once here rather than at every query that finds them.
+__kernel void grid_permute(uint n, __global const uint* sorted, __global const float4* ph_pos,
+                           __global const float4* ph_flux, __global const uint2* ph_dirs,
+                           __global float4* grid_pos, __global float4* grid_flux, __global float4* grid_in,
+                           __global float4* grid_nrm) {
+    uint j = get_global_id(0);
+    if (j >= n) return;
+    uint i = sorted[j];
+    grid_pos[j] = ph_pos[i];
+    grid_flux[j] = ph_flux[i];
+    uint2 dirs = ph_dirs[i];
+    grid_in[j] = (float4)(unpack_dir(dirs.x), 0.0f);
+    grid_nrm[j] = (float4)(unpack_dir(dirs.y), 0.0f);
+}
+
 // --- gather: per pixel, the photons within its radius of this pass's measurement point
 //
 // Density estimation with the smooth kernel of dissertation eq. 6.34,
@@ -125,6 +143,7 @@ __kernel void grid_sort(uint entries, __global const uint* cell_start, __global 
 inline float luminance(float3 c) { return dot(c, (float3)(LUM_R, LUM_G, LUM_B)); }
 
 #define MIN_COVERAGE 0.05f  /* a disc almost all beyond walls: do not divide by ~0 */
+#define NEAR_BATCH 16       /* photons within the radius tested and added at a time (gather_exact) */
 
 typedef struct {
     float3 phi;   // sum of K(t) * flux (rgb)
@@ -133,18 +152,20 @@ typedef struct {
     float m;      // photons counted (raw)
 } PassSums;
 
-// Whether a photon found in `cell` counts for the query at x (normal n, radius^2 r2): it
-// must lie in the disc, have arrived on the side the eye sees, and lie on a surface that
-// matches the point's (NORMAL_MATCH_COS, eye_pass.cl). The last test keeps a concave
-// corner from gathering the photons of the perpendicular wall (10% too bright against
-// Mitsuba in the Cornell box's corners); the disc coverage measured in the eye pass then
+// A photon at p counts for the query at x (normal n, radius^2 r2) if it lies in the
+// disc's ball (photon_near), has arrived on the side the eye sees, and lies on a surface
+// that matches the point's (photon_matches; its incoming direction and surface normal,
+// unit vectors; NORMAL_MATCH_COS, eye_pass.cl). The last test keeps a concave corner
+// from gathering the photons of the perpendicular wall (10% too bright against Mitsuba in
+// the Cornell box's corners); the disc coverage measured in the eye pass then
 // renormalises the estimate for the part of the disc beyond that wall.
-inline bool photon_counts(float3 x, float3 n, float r2, int3 cell, float inv_cell, float4 pp, uint2 dirs) {
-    if (any(cell_of(pp.xyz, inv_cell) != cell)) return false;
-    float3 v = pp.xyz - x;
-    if (dot(v, v) >= r2) return false;
-    if (dot(unpack_dir(dirs.x), n) <= 0.0f) return false;  // arrived on the side the eye sees
-    return dot(unpack_dir(dirs.y), n) > NORMAL_MATCH_COS;
+inline bool photon_near(float3 x, float r2, float3 p) {
+    float3 v = p - x;
+    return dot(v, v) < r2;
+}
+
+inline bool photon_matches(float3 n, float3 incoming, float3 normal) {
+    return dot(incoming, n) > 0.0f && dot(normal, n) > NORMAL_MATCH_COS;
 }
 
 inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, float4 pp, float3 flux, float count) {
@@ -162,47 +183,33 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
 #endif
 }
 
-// Add one pass's gather to pixel gid's record of the batch sums.
-inline void accumulate(__global double* batch_sums, int gid, float r, float3 wgt, float2 coverage, PassSums s,
-                       float photons, float bias) {
-    __global double* rec = batch_sums + (size_t)gid * SUM_STRIDE;
+// Add one pass's gather to pixel gid's sums (sums.cl).
+#define ADD_SUM(name, value) (*sum_at(batch_sums, n_pixels, gid, name, 1) += (value))
+
+inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float3 wgt, float2 coverage,
+                       PassSums s, float photons, float bias) {
     double kr2 = K1 * (double)r * (double)r * (double)coverage.x;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
-    rec[SUM_S] += flux.x;
-    rec[SUM_S + 1] += flux.y;
-    rec[SUM_S + 2] += flux.z;
-    rec[SUM_D] += (double)s.m / (M_PI * (double)r * (double)r);
-    rec[SUM_H] += 1.0;
+    __global double* rgb = sum_at(batch_sums, n_pixels, gid, SUM_S, 3);
+    rgb[0] += flux.x;
+    rgb[1] += flux.y;
+    rgb[2] += flux.z;
+    ADD_SUM(SUM_D, (double)s.m / (M_PI * (double)r * (double)r));
+    ADD_SUM(SUM_H, 1.0);
 #ifdef SUM_G
     double lap = (double)s.lap / kr2;
-    rec[SUM_G] += lap;
-    rec[SUM_L2] += (lap / (double)photons) * (lap / (double)photons);  // the pass's own lap L, squared
+    ADD_SUM(SUM_G, lap);
+    ADD_SUM(SUM_L2, (lap / (double)photons) * (lap / (double)photons));  // the pass's own lap L, squared
     double x = dot(flux, (double3)(LUM_R, LUM_G, LUM_B)) / (double)photons - (double)bias;
-    rec[SUM_X1] += x;
-    rec[SUM_X2] += x * x;
+    ADD_SUM(SUM_X1, x);
+    ADD_SUM(SUM_X2, x * x);
     // The pass's luminance estimate at r less the one at r/2 (same photons): where the
     // density is smooth this is 3/4 of the bias at r; at an edge it shows the bias directly.
     double dh = x + (double)bias - (double)s.phi_half / (0.25 * K1 * (double)r * (double)r * (double)coverage.y)
                                    / (double)photons;
-    rec[SUM_DH] += dh;
-    rec[SUM_DH2] += dh * dh;
+    ADD_SUM(SUM_DH, dh);
+    ADD_SUM(SUM_DH2, dh * dh);
 #endif
-}
-
-// The 8 cells a disc of radius <= cell/2 around x can touch: x's own cell and, per axis,
-// the neighbour on the side of the nearer cell face.
-typedef struct { int3 base; int3 step; } QueryCells;
-
-inline QueryCells query_cells(float3 x, float inv_cell) {
-    QueryCells q;
-    q.base = cell_of(x, inv_cell);
-    float3 f = x * inv_cell - convert_float3(q.base);
-    q.step = (int3)(f.x < 0.5f ? -1 : 1, f.y < 0.5f ? -1 : 1, f.z < 0.5f ? -1 : 1);
-    return q;
-}
-
-inline int3 query_cell(QueryCells q, int k) {
-    return q.base + (int3)((k & 1) ? q.step.x : 0, (k & 2) ? q.step.y : 0, (k & 4) ? q.step.z : 0);
 }
 
 // A pixel's query this pass; false if the pixel has no measurement point.
@@ -210,11 +217,35 @@ typedef struct {
     float3 x, n, wgt;
     float2 coverage;  // share of the disc's kernel weight on the point's surface, at r and r/2
     float r, r2;
-    QueryCells cells;
+    uint entries[8];  // the distinct table entries of the cells its ball's bounding box overlaps
+    int n_entries;
 } Query;
 
+// The distinct table entries of the cells that the box of the ball (x, r) overlaps, r at
+// most half a cell (the grids' rule), so at most 2 cells per axis (hi is clamped to lo + 1
+// against rounding at exactly r = cell/2). Each entry once: where two of the cells collide
+// in the table, its items are visited once and every item within r counts once, with no
+// test of which cell it lies in (one in a colliding far cell fails the distance test).
+// Used by the gathers, the adaptive sampler's point grid (visibility.cl) and the hybrid
+// integrator's merging (vcm_camera_pass.cl). Returns how many entries were written.
+inline int ball_entries(float3 x, float r, float inv_cell, uint mask, uint entries[8]) {
+    int3 lo = cell_of(x - r, inv_cell);
+    int3 hi = min(cell_of(x + r, inv_cell), lo + 1);
+    int n = 0;
+    for (int cz = lo.z; cz <= hi.z; ++cz)
+        for (int cy = lo.y; cy <= hi.y; ++cy)
+            for (int cx = lo.x; cx <= hi.x; ++cx) {
+                uint h = cell_hash((int3)(cx, cy, cz), mask);
+                bool seen = false;
+                for (int k = 0; k < n; ++k) seen |= entries[k] == h;
+                if (!seen) entries[n++] = h;
+            }
+    return n;
+}
+
 inline bool start_query(int gid, __global const float4* mp_pos, __global const float4* mp_nrm,
-                        __global const float4* mp_wgt, __global const float* radius, float inv_cell, Query* q) {
+                        __global const float4* mp_wgt, __global const float* radius, float inv_cell, uint mask,
+                        Query* q) {
     float4 mp = mp_pos[gid];
     if (mp.w == 0.0f) return false;
     q->x = mp.xyz;
@@ -224,7 +255,7 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
     q->coverage = fmax((float2)(w.w, mp_nrm[gid].w), MIN_COVERAGE);
     q->r = radius[gid];
     q->r2 = q->r * q->r;
-    q->cells = query_cells(q->x, inv_cell);
+    q->n_entries = ball_entries(q->x, q->r, inv_cell, mask, q->entries);
     return true;
 }
 
@@ -237,42 +268,59 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                                 __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
-    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, mask, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q.cells, k);
-        uint h = cell_hash(cell, mask);
+    for (int k = 0; k < q.n_entries; ++k) {
+        uint h = q.entries[k];
         uint count = tab_count[h];
         if (count == 0) continue;
         float4 pp = tab_pos[h];
-        if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, tab_dirs[h]))
+        uint2 dirs = tab_dirs[h];
+        if (photon_near(q.x, q.r2, pp.xyz) && photon_matches(q.n, unpack_dir(dirs.x), unpack_dir(dirs.y)))
             add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
     }
-    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+}
+
+// Add the photons near[0 .. n) of the exact grid that match the query's surface.
+inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __global const float4* grid_pos,
+                     __global const float4* grid_flux, __global const float4* grid_in,
+                     __global const float4* grid_nrm) {
+    for (int m = 0; m < n; ++m) {
+        uint j = near[m];
+        if (photon_matches(q->n, grid_in[j].xyz, grid_nrm[j].xyz))
+            add_photon(s, q->x, q->n, q->r, q->wgt, grid_pos[j], grid_flux[j].xyz, grid_pos[j].w);  // w: the photon's count
+    }
 }
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                            __global const float4* mp_wgt, __global const float* radius,
                            __global const float* bias, float photons,
                            float inv_cell, uint mask, __global const uint* cell_start,
-                           __global const uint* cell_count, __global const uint* sorted,
-                           __global const float4* ph_pos, __global const float4* ph_flux,
-                           __global const uint2* ph_dirs,
-                           __global double* batch_sums) {
+                           __global const uint* cell_count, __global const float4* grid_pos,
+                           __global const float4* grid_flux, __global const float4* grid_in,
+                           __global const float4* grid_nrm, __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
-    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, &q)) return;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, mask, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q.cells, k);
-        uint h = cell_hash(cell, mask);
+    // The distance test runs without a branch, collecting the photons it keeps (about one in
+    // five visited) to be tested and added a batch at a time: a branch per visited photon
+    // mispredicts often, and that cost a fifth of the gather.
+    uint near[NEAR_BATCH];
+    int n_near = 0;
+    for (int k = 0; k < q.n_entries; ++k) {
+        uint h = q.entries[k];
         uint begin = cell_start[h], end = begin + cell_count[h];
         for (uint j = begin; j < end; ++j) {
-            uint i = sorted[j];
-            float4 pp = ph_pos[i];
-            if (photon_counts(q.x, q.n, q.r2, cell, inv_cell, pp, ph_dirs[i]))
-                add_photon(&s, q.x, q.n, q.r, q.wgt, pp, ph_flux[i].xyz, pp.w);  // w: the photon's count
+            near[n_near] = j;
+            n_near += photon_near(q.x, q.r2, grid_pos[j].xyz) ? 1 : 0;
+            if (n_near == NEAR_BATCH) {
+                add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
+                n_near = 0;
+            }
         }
     }
-    accumulate(batch_sums, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }

@@ -73,7 +73,7 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
 }
 
 // Merging: the light vertices within r of x on a matching surface (normals within 45
-// degrees, as SPPM's gather), found in the 8 grid cells of spatial_hash.cl, each weighted
+// degrees, as SPPM's gather), found in the grid cells of spatial_hash.cl (ball_entries), each weighted
 // 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc + dVM_y p_fwd, w_cam = dVCM eta_vc +
 // dVM p_rev. Returns the unnormalised sum f Phi within r, and within r/2 in `half_sum`, for
 // the density estimate sum / (pi r^2 N_L).
@@ -84,15 +84,15 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
                                    __global const float4* lv_ng, __global const float4* lv_ns, float3* half_sum) {
     float3 within = (float3)(0.0f);
     *half_sum = (float3)(0.0f);
-    QueryCells q = query_cells(x->p, inv_cell);
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q, k);
-        uint c = cell_hash(cell, mask), begin = cell_start[c], end = begin + cell_count[c];
+    uint entries[8];
+    int n_entries = ball_entries(x->p, sqrt(r2), inv_cell, mask, entries);
+    for (int k = 0; k < n_entries; ++k) {
+        uint begin = cell_start[entries[k]], end = begin + cell_count[entries[k]];
         for (uint j = begin; j < end; ++j) {
             uint i = sorted[j];
             float3 v = lv_pos[i].xyz - x->p;
             float dd = dot(v, v);
-            if (any(cell_of(lv_pos[i].xyz, inv_cell) != cell) || dd >= r2) continue;
+            if (dd >= r2) continue;
             LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, i);
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
             if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)

@@ -3,9 +3,9 @@
 // pass would gather it. The photon grid of spatial_hash.cl indexes photons; this is the
 // reverse lookup, a grid over the pass's measurement points (built with the same
 // grid_count / grid_scan / grid_scatter kernels, cell = 2 * largest radius), queried at a
-// photon's position over the 8 cells a disc of radius <= cell/2 can reach.
+// photon's position over the cells a disc of radius <= cell/2 can reach (ball_entries).
 //
-// The tests are the gather's (photon_counts): inside the point's disc, arrived on the side
+// The tests are the gather's (photon_near, photon_matches): inside the point's disc, arrived on the side
 // the eye sees, on a surface matching the point's. Each is taken with a hair of slack
 // (VIS_SLACK) so that V is a superset of what the gather counts: a path V calls invisible
 // must never deposit into a point, or the chains (which only ever keep visible paths)
@@ -28,15 +28,14 @@ typedef struct {
 // gather disc of some measurement point.
 inline bool photon_visible(const PointGrid* grid, float3 pp, uint2 dirs) {
     float3 in_dir = unpack_dir(dirs.x), nrm = unpack_dir(dirs.y);
-    QueryCells q = query_cells(pp, grid->inv_cell);
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q, k);
-        uint h = cell_hash(cell, grid->mask);
-        uint begin = grid->cell_start[h], end = begin + grid->cell_count[h];
+    uint entries[8];
+    int n_entries = ball_entries(pp, 0.5f / grid->inv_cell, grid->inv_cell, grid->mask, entries);
+    for (int k = 0; k < n_entries; ++k) {
+        uint begin = grid->cell_start[entries[k]], end = begin + grid->cell_count[entries[k]];
         for (uint j = begin; j < end; ++j) {
             uint i = grid->sorted[j];
             float4 mp = grid->mp_pos[i];
-            if (mp.w == 0.0f || any(cell_of(mp.xyz, grid->inv_cell) != cell)) continue;
+            if (mp.w == 0.0f) continue;
             float r = grid->radius[i];
             float3 v = pp - mp.xyz, n = grid->mp_nrm[i].xyz;
             if (dot(v, v) >= r * r * (1.0f + VIS_SLACK)) continue;

@@ -3,8 +3,7 @@ one integrator (worker/integrators/).
 
 The device state (context, compiled program, scene buffers) lives as long as the Engine,
 so consecutive batches pay no set-up. A batch sums its passes on the device in float64,
-one record per pixel in the integrator's SumLayout (kernels/contract.py), and reads the
-records back once.
+in the integrator's SumLayout (kernels/contract.py), and reads them back once.
 """
 
 from __future__ import annotations
@@ -85,11 +84,11 @@ class Device:
     def read_sums(self) -> dict[str, np.ndarray]:
         """The batch's per-pixel sums, read back in one copy and split by name."""
         t0 = time.perf_counter()
-        records = np.empty((self.arrays.n_pixels, self.layout.stride), np.float64)
-        cl.enqueue_copy(self.queue, records, self.batch_sums)
+        flat = np.empty(self.arrays.n_pixels * self.layout.stride, np.float64)
+        cl.enqueue_copy(self.queue, flat, self.batch_sums)
         self.times.add_seconds("readback", time.perf_counter() - t0)
         self.times.settle()
-        return self.layout.split(records)
+        return self.layout.split(flat, self.arrays.n_pixels)
 
 
 class Engine:

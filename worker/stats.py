@@ -73,6 +73,9 @@ class Accumulators:
     passes: int = 0
     counters: dict[str, int] = field(default_factory=dict)  # summed scalars (Delta.counters)
     adaptive: bool = False  # photons from the adaptive sampler's chains: the image scale is V_c / splats
+    # radius() as of the last merge: a batch's inputs, its merge and the error estimate all
+    # ask for it, and at a megapixel each computation costs as much as the merge's sums.
+    _radius: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout, adaptive: bool = False) -> "Accumulators":
@@ -93,18 +96,25 @@ class Accumulators:
         return {"R0": self.R0, "N": self.N, **self.sums}
 
     def radius(self) -> np.ndarray:
-        return radius(self.R0, self.N, self.D)
+        """The current radius per pixel (read-only: computed once per merge)."""
+        if self._radius is None:
+            self._radius = radius(self.R0, self.N, self.D)
+            self._radius.flags.writeable = False
+        return self._radius
 
     def merge(self, delta: "Delta") -> None:
         """Add a batch. Commutative in every sum; N uses the radius at merge time."""
-        r2_now = self.radius() ** 2
-        self.N += self.alpha * math.pi * r2_now * delta.D
+        dN = np.square(self.radius())  # R^2 at merge time, then alpha pi R^2 dD, in place
+        dN *= self.alpha * math.pi
+        dN *= delta.D
+        self.N += dN
         for name in self.sums:
             self.sums[name] += delta.sums[name]
         self.emitted += delta.emitted
         self.passes += delta.n_passes
         for name, value in delta.counters.items():
             self.counters[name] = self.counters.get(name, 0) + value
+        self._radius = None
 
     @property
     def effective_emitted(self) -> float:

@@ -68,6 +68,11 @@ class PhotonMappingPasses:
         self.ph_dirs = self.dev.buffer(8 * capacity)  # packed incoming direction and surface normal
         self.ph_key = self.dev.buffer(8 * capacity)
         self.sorted = self.dev.buffer(4 * capacity)
+        # The photons again in the exact grid's entry order, directions unpacked to unit vectors.
+        self.grid_pos = self.dev.buffer(16 * capacity)
+        self.grid_flux = self.dev.buffer(16 * capacity)
+        self.grid_in = self.dev.buffer(16 * capacity)  # incoming direction
+        self.grid_nrm = self.dev.buffer(16 * capacity)  # surface normal facing the photon
 
     def _reserve_table(self, entries: int) -> None:
         if entries <= self.entries:
@@ -182,10 +187,13 @@ class PhotonMappingPasses:
                      p.launch(dev.queue, "grid_scatter", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
                               self.cell_fill, self.sorted),
                      p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.tab_count,
-                              self.sorted, self.ph_key)]
+                              self.sorted, self.ph_key),
+                     p.launch(dev.queue, "grid_permute", n_stored, u32(n_stored), self.sorted, self.ph_pos,
+                              self.ph_flux, self.ph_dirs, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm)]
             gather_ev = p.launch(dev.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
                                  self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
-                                 self.tab_count, self.sorted, self.ph_pos, self.ph_flux, self.ph_dirs, dev.batch_sums)
+                                 self.tab_count, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm,
+                                 dev.batch_sums)
         gather_ev.wait()
         dev.times.add("build", build)
         dev.times.add("gather", [gather_ev])
