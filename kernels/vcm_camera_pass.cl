@@ -118,6 +118,7 @@ __kernel void vcm_camera_pass(
     __global const float4* camera, int width, int height,
     ulong seed, uint pass, int max_bounces, uint n_light_paths,
     int connect, int merge, float eta_vcm, float radius,
+    uint skip,  // stage timing only (contract.py HYBRID_SKIP): SKIP_NEE, SKIP_CONNECT, SKIP_MERGE
     __global const float4* lv_pos, __global const float4* lv_thr, __global const float4* lv_wo,
     __global const float4* lv_ng, __global const float4* lv_ns, __global const int* lv_prev,
     __global const int* path_last,
@@ -165,15 +166,15 @@ __kernel void vcm_camera_pass(
         if (!is_delta(x.type)) {
             if (!connect && !merge) break;
             // 2. Next-event estimation.
-            if (connect && n_emitters > 0)
+            if (connect && n_emitters > 0 && !(skip & SKIP_NEE))
                 radiance += s.thr * next_event(&g, emitters, emitter_cdf, n_emitters, &x, &s, eta, &rng);
             // 3. Connections to the vertices of one light path.
-            if (connect && n_light_paths > 0)
+            if (connect && n_light_paths > 0 && !(skip & SKIP_CONNECT))
                 radiance += s.thr * connect_light_path(&g, surf_a, surf_b, &x, &s, eta,
                                                        path_last[(uint)gid % n_light_paths], lv_pos, lv_thr,
                                                        lv_wo, lv_ng, lv_ns, lv_prev);
             // 4. Merging with the light vertices within r.
-            if (merge) {
+            if (merge && !(skip & SKIP_MERGE)) {
                 float3 half_sum;
                 float3 m = merge_light_vertices(&x, &s, eta, r2, inv_cell, mask, cell_start, cell_count, sorted,
                                                 lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);

@@ -50,6 +50,7 @@ class ConnectMergePasses:
         self._reserve_vertices(VERTICES_PER_PATH * self.n_light if self.stores else 1)
         self._reserve_grid(1)
         self.vertices_stored = 0  # of the last pass
+        self.skip = 0  # stage timing only (kernels/contract.py HYBRID_SKIP); 0 renders
 
     @property
     def stores(self) -> bool:
@@ -80,7 +81,7 @@ class ConnectMergePasses:
                 dev.queue, "vcm_light_pass", self.n_light, *dev.geometry, *dev.emitter_args, dev.camera,
                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces),
                 u32(self.n_light), u32(self.capacity), i32(it.connects), i32(it.merges), f32(eta_vcm),
-                i32(self.stores), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_key,
+                i32(self.stores), u32(self.skip), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_key,
                 self.lv_prev, self.path_last, self.lv_count, self.splats))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.lv_count)
@@ -117,7 +118,7 @@ class ConnectMergePasses:
         cam = dev.program.launch(
             dev.queue, "vcm_camera_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
             i32(a.width), i32(a.height), u64(self.settings.seed), u32(k), i32(self.settings.max_bounces),
-            u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius),
+            u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius), u32(self.skip),
             self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_prev, self.path_last,
             f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.sorted, self.cam_out,
             self.cam_hit)
