@@ -81,8 +81,8 @@ class ConnectMergePasses:
                 dev.queue, "vcm_light_pass", self.n_light, *dev.geometry, *dev.emitter_args, dev.camera,
                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces),
                 u32(self.n_light), u32(self.capacity), i32(it.connects), i32(it.merges), f32(eta_vcm),
-                i32(self.stores), u32(self.skip), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_key,
-                self.lv_prev, self.path_last, self.lv_count, self.splats))
+                i32(self.stores), u32(self.skip), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns,
+                self.lv_key, self.lv_prev, self.path_last, self.lv_count, self.splats))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.lv_count)
             dev.times.add("light", events)
@@ -98,11 +98,15 @@ class ConnectMergePasses:
         entries = _next_pow2(n_stored)
         self._reserve_grid(entries)
         inv_cell, mask = f32(1.0 / (2.0 * radius)), u32(entries - 1)
+        # Launched over `entries` work items (the kernels bound-check n_stored), not n_stored:
+        # PoCL builds a kernel anew for every work-group size it picks, and it picks one that
+        # divides the launch size, so a launch size that changed every pass cost a kernel
+        # build (or a cache load) every pass.
         events = [dev.fill(self.cell_count, np.uint32(0), entries),
-                  p.launch(dev.queue, "grid_count", n_stored, u32(n_stored), self.lv_pos, inv_cell, mask,
+                  p.launch(dev.queue, "grid_count", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
                            self.cell_count),
                   p.launch(dev.queue, "grid_scan", 1, u32(entries), self.cell_count, self.cell_start, self.cell_fill),
-                  p.launch(dev.queue, "grid_scatter", n_stored, u32(n_stored), self.lv_pos, inv_cell, mask,
+                  p.launch(dev.queue, "grid_scatter", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
                            self.cell_fill, self.sorted),
                   p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.cell_count,
                            self.sorted, self.lv_key)]
