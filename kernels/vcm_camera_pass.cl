@@ -73,27 +73,27 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
 }
 
 // Merging: the light vertices within r of x on a matching surface (normals within 45
-// degrees, as SPPM's gather), found in the 8 grid cells of spatial_hash.cl, each weighted
-// 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc + dVM_y p_fwd, w_cam = dVCM eta_vc +
-// dVM p_rev. Returns the unnormalised sum f Phi within r, and within r/2 in `half_sum`, for
-// the density estimate sum / (pi r^2 N_L).
+// degrees, as SPPM's gather), found in the table entries of the query's 8 grid cells
+// (vcm_grid.cl), each weighted 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc + dVM_y
+// p_fwd, w_cam = dVCM eta_vc + dVM p_rev. Returns the unnormalised sum f Phi within r, and
+// within r/2 in `half_sum`, for the density estimate sum / (pi r^2 N_L).
 inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisEtas eta, float r2, float inv_cell,
                                    uint mask, __global const uint* cell_start, __global const uint* cell_count,
-                                   __global const uint* sorted, __global const float4* lv_pos,
+                                   __global const float4* grid_pos, __global const float4* lv_pos,
                                    __global const float4* lv_thr, __global const float4* lv_wo,
                                    __global const float4* lv_ng, __global const float4* lv_ns, float3* half_sum) {
     float3 within = (float3)(0.0f);
     *half_sum = (float3)(0.0f);
-    QueryCells q = query_cells(x->p, inv_cell);
-    for (int k = 0; k < 8; ++k) {
-        int3 cell = query_cell(q, k);
-        uint c = cell_hash(cell, mask), begin = cell_start[c], end = begin + cell_count[c];
+    uint entries[8];
+    int n_entries = query_entries(x->p, inv_cell, mask, entries);
+    for (int k = 0; k < n_entries; ++k) {
+        uint begin = cell_start[entries[k]], end = begin + cell_count[entries[k]];
         for (uint j = begin; j < end; ++j) {
-            uint i = sorted[j];
-            float3 v = lv_pos[i].xyz - x->p;
+            float4 gp = grid_pos[j];
+            float3 v = gp.xyz - x->p;
             float dd = dot(v, v);
-            if (any(cell_of(lv_pos[i].xyz, inv_cell) != cell) || dd >= r2) continue;
-            LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, i);
+            if (dd >= r2) continue;
+            LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, as_uint(gp.w));
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
             if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)
             BsdfEval e = camera_bsdf(x, y.wo);
@@ -123,7 +123,7 @@ __kernel void vcm_camera_pass(
     __global const float4* lv_ng, __global const float4* lv_ns, __global const int* lv_prev,
     __global const int* path_last,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
-    __global const uint* sorted,
+    __global const float4* grid_pos,
     __global float4* cam_out, __global int* cam_hit)
 {
     int gid = get_global_id(0);
@@ -176,7 +176,7 @@ __kernel void vcm_camera_pass(
             // 4. Merging with the light vertices within r.
             if (merge && !(skip & SKIP_MERGE)) {
                 float3 half_sum;
-                float3 m = merge_light_vertices(&x, &s, eta, r2, inv_cell, mask, cell_start, cell_count, sorted,
+                float3 m = merge_light_vertices(&x, &s, eta, r2, inv_cell, mask, cell_start, cell_count, grid_pos,
                                                 lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);
                 radiance += s.thr * m * merge_norm;
                 merged_change += luminance(s.thr * (m - 4.0f * half_sum)) * merge_norm;

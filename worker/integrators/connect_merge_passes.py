@@ -64,6 +64,7 @@ class ConnectMergePasses:
         self.lv_key = b(8 * capacity)
         self.lv_prev = b(4 * capacity)
         self.sorted = b(4 * capacity)
+        self.grid_pos = b(16 * capacity)
 
     def _reserve_grid(self, entries: int) -> None:
         if entries <= self.entries:
@@ -109,7 +110,9 @@ class ConnectMergePasses:
                   p.launch(dev.queue, "grid_scatter", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
                            self.cell_fill, self.sorted),
                   p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.cell_count,
-                           self.sorted, self.lv_key)]
+                           self.sorted, self.lv_key),
+                  p.launch(dev.queue, "vcm_grid_positions", entries, u32(n_stored), self.sorted, self.lv_pos,
+                           self.grid_pos)]
         dev.times.add("build", events)
         return float(inv_cell), int(mask)
 
@@ -124,7 +127,7 @@ class ConnectMergePasses:
             i32(a.width), i32(a.height), u64(self.settings.seed), u32(k), i32(self.settings.max_bounces),
             u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius), u32(self.skip),
             self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_prev, self.path_last,
-            f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.sorted, self.cam_out,
+            f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.grid_pos, self.cam_out,
             self.cam_hit)
         finish = dev.program.launch(dev.queue, "vcm_finish", a.n_pixels, i32(a.n_pixels), self.cam_out,
                                     self.cam_hit, self.splats, dev.batch_sums)
