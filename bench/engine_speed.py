@@ -14,9 +14,23 @@ then the merge). Measured over that loop:
   computation, buffer fills, queue synchronisation, Python);
 - wall_ms_per_pass.
 
-Results go to bench/out/engine_speed.json and a stacked-bar chart engine_speed.png.
+The hybrid methods (vcm, bpt) on cornell-box, gap and cornell-caustics at the size of
+bench/error_vs_time.py (64 px, or 128 with --full; one light subpath per pixel per pass),
+split by stage, ms per pass:
 
-    python -m bench.engine_speed [--full] [--passes N]
+- light trace, splats (the light vertices' connections to the camera), camera trace, NEE,
+  connections (to the light subpath's vertices), grid build and merge gather, finish: device
+  time. The light and camera kernels do several techniques in one launch, so each pass is
+  rendered again with techniques left out (the kernels' `skip` bits, kernels/contract.py
+  HYBRID_SKIP: the MIS weights stay the method's) and a technique's time is the difference
+  it makes; the variants of a pass run back to back, so load drifts cancel;
+- host: the wall time of the progressive loop less its device time (the launches, the
+  light-vertex count read back each pass, the batch read back and merged, Python).
+
+Results go to bench/out/engine_speed.json and stacked-bar charts engine_speed.png and
+engine_speed_hybrid.png.
+
+    python -m bench.engine_speed [--full] [--passes N] [--only photon|hybrid]
 """
 
 from __future__ import annotations
@@ -28,6 +42,8 @@ import time
 from dataclasses import asdict, dataclass
 
 from bench.common import bench_engine, save_figure, write_json
+from bench.error_vs_time import resolution as bench_resolution
+from kernels.contract import HYBRID_SKIP
 from worker.render_loop import render
 from worker.settings import DEFAULTS
 
@@ -35,6 +51,17 @@ GATHERS = ("stochastic", "exact")
 TIMED_STAGES = ("eye", "trace", "build", "gather", "readback", "merge")
 CHART_STAGES = TIMED_STAGES + ("other",)
 PHOTONS_PER_PASS = DEFAULTS.photons_per_pass  # the engine default, 2^18
+HYBRID_METHODS = ("vcm", "bpt")
+HYBRID_SCENES = ("cornell-box", "gap", "cornell-caustics")
+HYBRID_STAGES = ("light trace", "splats", "camera trace", "nee", "connections", "build", "merge gather", "finish",
+                 "host")
+# skip masks -> the kernel a variant is timed for: every variant's light and camera time
+SKIP_VARIANTS = {
+    "none": 0,
+    "merge": HYBRID_SKIP["merge"],
+    "connect+merge": HYBRID_SKIP["connect"] | HYBRID_SKIP["merge"],
+    "all": HYBRID_SKIP["nee"] | HYBRID_SKIP["connect"] | HYBRID_SKIP["merge"] | HYBRID_SKIP["splat"],
+}
 
 
 @dataclass
@@ -68,6 +95,73 @@ def measure(scene_name: str, resolution: tuple[int, int] | None, gather: str, pa
                   ms_per_pass=ms, photons_stored_per_pass=eng.passes.photons_stored)
 
 
+@dataclass
+class HybridResult:
+    scene: str
+    resolution: tuple[int, int]
+    method: str
+    light_paths_per_pass: int
+    passes: int
+    wall_ms_per_pass: float
+    ms_per_pass: dict[str, float]  # HYBRID_STAGES
+    light_vertices_per_pass: int  # stored in the last pass
+
+
+def measure_hybrid(scene_name: str, res: tuple[int, int], method: str, passes: int) -> HybridResult:
+    """Time `passes` passes of the progressive loop (after one warm-up pass), then split the
+    device time by technique from the same passes rendered with techniques skipped."""
+    n_light = res[0] * res[1]
+    eng = bench_engine(scene_name, res, method=method, photons_per_pass=n_light)
+    times, cmp = eng.times.seconds, eng.passes
+    state = render(eng, passes=1)
+    device = ("light", "build", "camera", "finish")
+    before = {s: times.get(s, 0.0) for s in device}
+    start = time.perf_counter()
+    render(eng, passes=passes + 1, state=state)
+    wall = time.perf_counter() - start
+    device_ms = sum(1e3 * (times.get(s, 0.0) - before[s]) for s in device) / passes
+    # The split: each pass once per skip variant, back to back.
+    r0 = eng.integrator.batch_inputs(state)
+    split = {name: {"light": 0.0, "camera": 0.0, "build": 0.0, "finish": 0.0} for name in SKIP_VARIANTS}
+    for k in range(1, passes + 1):
+        for name, mask in SKIP_VARIANTS.items():
+            cmp.skip = mask
+            t0 = {s: times.get(s, 0.0) for s in split[name]}
+            eng.run_batch(r0, k, 1)
+            for s in split[name]:
+                split[name][s] += 1e3 * (times.get(s, 0.0) - t0[s]) / passes
+    cmp.skip = 0
+    full, no_merge, no_connect, bare = (split[v] for v in SKIP_VARIANTS)
+    ms = {"light trace": bare["light"], "splats": full["light"] - bare["light"],
+          "camera trace": bare["camera"], "nee": no_connect["camera"] - bare["camera"],
+          "connections": no_merge["camera"] - no_connect["camera"], "build": full["build"],
+          "merge gather": full["camera"] - no_merge["camera"], "finish": full["finish"],
+          "host": 1e3 * wall / passes - device_ms}
+    return HybridResult(scene=scene_name, resolution=res, method=method, light_paths_per_pass=n_light, passes=passes,
+                        wall_ms_per_pass=1e3 * wall / passes, ms_per_pass=ms,
+                        light_vertices_per_pass=cmp.vertices_stored)
+
+
+def chart_hybrid(results: list[HybridResult]) -> None:
+    """Stacked bars of ms per pass by stage, one bar per scene x method (negative
+    differences, noise, drawn as zero)."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 5))
+    labels = [f"{r.scene}\n{r.resolution[0]}x{r.resolution[1]}\n{r.method}" for r in results]
+    bottoms = [0.0] * len(results)
+    for stage in HYBRID_STAGES:
+        heights = [max(0.0, r.ms_per_pass[stage]) for r in results]
+        ax.bar(labels, heights, bottom=bottoms, label=stage)
+        bottoms = [b + h for b, h in zip(bottoms, heights)]
+    ax.set_ylabel("ms per pass (one light subpath per pixel)")
+    ax.set_title("photonfarm hybrid methods: time per pass by stage")
+    ax.set_ylim(0, 1.15 * max(bottoms))
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    fig.tight_layout()
+    save_figure(fig, "engine_speed_hybrid")
+
+
 def chart(results: list[Result]) -> None:
     """Stacked bars of ms per pass by stage, one bar per scene x gather, paths/s on top."""
     import matplotlib.pyplot as plt
@@ -94,6 +188,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description="Engine speed: paths/s and per-stage time per pass.")
     parser.add_argument("--full", action="store_true", help="more passes, cornell-caustics at 512x512")
     parser.add_argument("--passes", type=int, help="measured passes per configuration (default 20, --full 100)")
+    parser.add_argument("--only", choices=("photon", "hybrid"), help="only the photon-mapping or the hybrid runs")
     args = parser.parse_args()
     passes = args.passes or (100 if args.full else 20)
     scenes: dict[str, tuple[int, int] | None] = {
@@ -101,23 +196,35 @@ def main() -> None:
         "cornell-caustics": (512, 512) if args.full else (256, 256),
     }
     results = []
-    for name, resolution in scenes.items():
+    for name, resolution in scenes.items() if args.only != "hybrid" else ():
         for gather in GATHERS:
             r = measure(name, resolution, gather, passes)
             print(f"{name:17s} {gather:10s} {r.paths_per_second / 1e3:7.0f}k paths/s  {r.wall_ms_per_pass:6.0f} ms/pass  "
                   + " ".join(f"{s} {v:.0f}" for s, v in r.ms_per_pass.items()), flush=True)
             results.append(r)
+    hybrid = []
+    for name in HYBRID_SCENES if args.only != "photon" else ():
+        for method in HYBRID_METHODS:
+            h = measure_hybrid(name, bench_resolution(name, 128 if args.full else 64), method, passes)
+            print(f"{name:17s} {method:4s} {h.wall_ms_per_pass:6.1f} ms/pass  "
+                  + " ".join(f"{s} {v:.1f}" for s, v in h.ms_per_pass.items()), flush=True)
+            hybrid.append(h)
     report = {
         "measured": time.strftime("%Y-%m-%d %H:%M:%S"),
         "machine": {"cpus": os.cpu_count(), "processor": platform.processor() or platform.machine()},
         "full": args.full,
         "alpha": DEFAULTS.alpha,
         "notes": "eye/trace/build/gather: OpenCL device time; readback, merge, other: host time; "
-                 "one warm-up pass excluded",
+                 "one warm-up pass excluded; hybrid: device time by technique from passes re-rendered with "
+                 "techniques skipped, host = wall less device time",
         "results": [asdict(r) for r in results],
+        "hybrid": [asdict(h) for h in hybrid],
     }
     path = write_json("engine_speed", report)
-    chart(results)
+    if results:
+        chart(results)
+    if hybrid:
+        chart_hybrid(hybrid)
     print(f"wrote {path} and engine_speed.png")
 
 

@@ -60,6 +60,11 @@ MAX_BOUNCES = 4096
 # One unit is 2^-SPLAT_FRACTION_BITS of radiance: 3.7e-9 per splat, far below any noise,
 # and a pixel holds up to 2^(63 - SPLAT_FRACTION_BITS) = 3.4e10 per pass (more saturates).
 SPLAT_FRACTION_BITS = 28
+# Stage timing of the hybrid passes (bench/engine_speed.py): bits of the kernels' `skip`
+# argument that leave a technique's evaluation out while every MIS weight stays the
+# method's, so the device time of a pass with and without it is that technique's cost.
+# Rendering passes 0; an image rendered with any bit set is wrong by design.
+HYBRID_SKIP = {"nee": 1, "connect": 2, "merge": 4, "splat": 8}
 # The hybrid program builds on the photon-mapping sources (for spatial_hash.cl's grid build),
 # whose eye-pass and gather kernels address these sums unconditionally; a layout without
 # them gets them defined as offset 0 so the source compiles (those kernels never run).
@@ -126,6 +131,7 @@ def build_options(layout: SumLayout) -> list[str]:
         "COVERAGE_PRETEST": COVERAGE_PRETEST,
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
         "SPLAT_SCALE": repr(float(2 ** SPLAT_FRACTION_BITS)),
+        **{f"SKIP_{name.upper()}": bit for name, bit in HYBRID_SKIP.items()},
         **borrowed,
         **layout.defines(),
     }

@@ -29,7 +29,8 @@
 //                        = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7.
 // A surface that ends in empty space (a convex edge) is not detected. Returns the coverage
 // of the disc of radius r and (same rays) of radius r/2, for the error estimate's second
-// gather radius (spatial_hash.cl).
+// gather radius (spatial_hash.cl). `smooth` false: the share of the disc's area instead,
+// G(s) = s^2, for a uniform kernel (vcm's merging, vcm_camera_pass.cl).
 inline float cover_share(float s) {
     float s2 = s * s;
     return s2 * (3.5f + s2 * s * (-14.0f + s * (17.5f - 6.0f * s)));
@@ -84,7 +85,7 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
     }
 }
 
-inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng* rng) {
+inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, bool smooth, Rng* rng) {
     if (r <= 0.0f) return (float2)(1.0f);
 #if COVERAGE_PRETEST
     if (!disc_may_be_cut(g, x, n, r)) return (float2)(1.0f);
@@ -103,7 +104,8 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, Rng
             float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
             if (dot(nh, n) <= NORMAL_MATCH_COS) s = h.t / r;
         }
-        covered += (float2)(cover_share(s), cover_share(fmin(2.0f * s, 1.0f)));
+        float s_half = fmin(2.0f * s, 1.0f);
+        covered += smooth ? (float2)(cover_share(s), cover_share(s_half)) : (float2)(s * s, s_half * s_half);
     }
     return covered / COVERAGE_RAYS;
 }
@@ -169,7 +171,7 @@ __kernel void eye_pass(
         if (type == MAT_DIFFUSE) {
             float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
             pos = (float4)(p, 1.0f);
-            float2 cover = disc_coverage(&g, p, n, radius[gid], &rng);
+            float2 cover = disc_coverage(&g, p, n, radius[gid], true, &rng);
             nrm = (float4)(n, cover.y);
             wgt = (float4)(thr * sa.xyz / PI_F, cover.x);
             if (nee) {

@@ -31,9 +31,9 @@ KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_co
 PROGRAMS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "photon_mapping": (SOURCES, KERNEL_NAMES),
     "hybrid": (SOURCES + ("vcm_bsdf.cl", "vcm_lights.cl", "vcm_camera.cl", "vcm_subpath.cl", "vcm_light_pass.cl",
-                          "vcm_camera_pass.cl", "vcm_finish.cl"),
+                          "vcm_grid.cl", "vcm_camera_pass.cl", "vcm_finish.cl"),
                ("vcm_light_pass", "vcm_camera_pass", "vcm_finish", "grid_count", "grid_scan", "grid_scatter",
-                "grid_sort")),
+                "grid_sort", "vcm_grid_positions")),
 }
 
 

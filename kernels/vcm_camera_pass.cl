@@ -8,7 +8,11 @@
 // only collects emission seen directly or through specular surfaces):
 //   2. next-event estimation (next_event);
 //   3. connection to every stored vertex of light path gid mod N_L (connect_light_path);
-//   4. merging (vcm) with the stored light vertices within r (merge_light_vertices);
+//   4. merging (vcm) with the stored light vertices within r (merge_light_vertices), over
+//      the share of the disc on x's own surface (eye_pass.cl, disc_coverage, for a uniform
+//      kernel): where a concave corner's wall cuts the disc, no vertex of this surface lies
+//      beyond it (without it, Cornell-box pixels within 10 of 555 of a corner came out 7.5%
+//      dark, bpt there within 1%);
 //   5. the bounce, Russian roulette, and the update of the quantities.
 // Writes the pixel's camera-side radiance for the pass (w: the change of the merged part
 // from radius r/2 to r, for the error estimate), and whether its ray hit anything.
@@ -73,13 +77,13 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
 }
 
 // Merging: the light vertices within r of x on a matching surface (normals within 45
-// degrees, as SPPM's gather), found in the grid cells of spatial_hash.cl (ball_entries), each weighted
-// 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc + dVM_y p_fwd, w_cam = dVCM eta_vc +
-// dVM p_rev. Returns the unnormalised sum f Phi within r, and within r/2 in `half_sum`, for
-// the density estimate sum / (pi r^2 N_L).
+// degrees, as SPPM's gather), found in the table entries of the cells its ball overlaps
+// (ball_entries, spatial_hash.cl; positions in grid order, vcm_grid.cl), each weighted 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc + dVM_y
+// p_fwd, w_cam = dVCM eta_vc + dVM p_rev. Returns the unnormalised sum f Phi within r, and
+// within r/2 in `half_sum`, for the density estimate sum / (pi r^2 N_L).
 inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisEtas eta, float r2, float inv_cell,
                                    uint mask, __global const uint* cell_start, __global const uint* cell_count,
-                                   __global const uint* sorted, __global const float4* lv_pos,
+                                   __global const float4* grid_pos, __global const float4* lv_pos,
                                    __global const float4* lv_thr, __global const float4* lv_wo,
                                    __global const float4* lv_ng, __global const float4* lv_ns, float3* half_sum) {
     float3 within = (float3)(0.0f);
@@ -89,11 +93,11 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
     for (int k = 0; k < n_entries; ++k) {
         uint begin = cell_start[entries[k]], end = begin + cell_count[entries[k]];
         for (uint j = begin; j < end; ++j) {
-            uint i = sorted[j];
-            float3 v = lv_pos[i].xyz - x->p;
+            float4 gp = grid_pos[j];
+            float3 v = gp.xyz - x->p;
             float dd = dot(v, v);
             if (dd >= r2) continue;
-            LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, i);
+            LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, as_uint(gp.w));
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
             if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)
             BsdfEval e = camera_bsdf(x, y.wo);
@@ -118,11 +122,12 @@ __kernel void vcm_camera_pass(
     __global const float4* camera, int width, int height,
     ulong seed, uint pass, int max_bounces, uint n_light_paths,
     int connect, int merge, float eta_vcm, float radius,
+    uint skip,  // stage timing only (contract.py HYBRID_SKIP): SKIP_NEE, SKIP_CONNECT, SKIP_MERGE
     __global const float4* lv_pos, __global const float4* lv_thr, __global const float4* lv_wo,
     __global const float4* lv_ng, __global const float4* lv_ns, __global const int* lv_prev,
     __global const int* path_last,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
-    __global const uint* sorted,
+    __global const float4* grid_pos,
     __global float4* cam_out, __global int* cam_hit)
 {
     int gid = get_global_id(0);
@@ -165,18 +170,23 @@ __kernel void vcm_camera_pass(
         if (!is_delta(x.type)) {
             if (!connect && !merge) break;
             // 2. Next-event estimation.
-            if (connect && n_emitters > 0)
+            if (connect && n_emitters > 0 && !(skip & SKIP_NEE))
                 radiance += s.thr * next_event(&g, emitters, emitter_cdf, n_emitters, &x, &s, eta, &rng);
             // 3. Connections to the vertices of one light path.
-            if (connect && n_light_paths > 0)
+            if (connect && n_light_paths > 0 && !(skip & SKIP_CONNECT))
                 radiance += s.thr * connect_light_path(&g, surf_a, surf_b, &x, &s, eta,
                                                        path_last[(uint)gid % n_light_paths], lv_pos, lv_thr,
                                                        lv_wo, lv_ng, lv_ns, lv_prev);
             // 4. Merging with the light vertices within r.
-            if (merge) {
+            if (merge && !(skip & SKIP_MERGE)) {
                 float3 half_sum;
-                float3 m = merge_light_vertices(&x, &s, eta, r2, inv_cell, mask, cell_start, cell_count, sorted,
+                float3 m = merge_light_vertices(&x, &s, eta, r2, inv_cell, mask, cell_start, cell_count, grid_pos,
                                                 lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);
+                if (any(m != 0.0f)) {  // the share of the discs on x's own surface (eye_pass.cl)
+                    float2 cover = fmax(disc_coverage(&g, x.p, x.side, radius, false, &rng), MIN_COVERAGE);
+                    m /= cover.x;
+                    half_sum /= cover.y;
+                }
                 radiance += s.thr * m * merge_norm;
                 merged_change += luminance(s.thr * (m - 4.0f * half_sum)) * merge_norm;
             }

@@ -50,6 +50,7 @@ __kernel void vcm_light_pass(
     int connect, int merge,        // the techniques on (bpt: connect; vcm: both; lt: neither)
     float eta_vcm,                 // pi r^2 N_L of this pass
     int store,                     // 1: keep the vertices (bpt, vcm)
+    uint skip,                     // stage timing only (contract.py HYBRID_SKIP): SKIP_SPLAT
     __global float4* lv_pos, __global float4* lv_thr, __global float4* lv_wo, __global float4* lv_ng,
     __global float4* lv_ns, __global ulong* lv_key, __global int* lv_prev, __global int* path_last,
     __global volatile uint* lv_count,
@@ -95,7 +96,7 @@ __kernel void vcm_light_pass(
             }
             // 4. Light tracing: connect to the camera.
             Projection pr;
-            if (project(&cam, p, &pr)) {
+            if (!(skip & SKIP_SPLAT) && project(&cam, p, &pr)) {
                 BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -s.d, pr.to_camera);
                 float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
                 if (e.pdf_fwd > 0.0f

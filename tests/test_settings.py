@@ -8,7 +8,7 @@ import sys
 
 from service.cli import RENDER_FIELDS, build_parser
 from service.models import JobRequest, JobSettings
-from worker.settings import DEFAULTS, Settings
+from worker.settings import DEFAULT_ALPHA, DEFAULTS, Settings
 
 
 def test_cli_and_api_defaults_are_the_models_own() -> None:
@@ -49,3 +49,19 @@ def test_a_threshold_needs_the_error_estimate() -> None:
         assert "error_estimation" in str(exc)
     else:
         raise AssertionError("a threshold without an error estimate can never be reached")
+
+
+def test_alpha_defaults_by_method() -> None:
+    """No alpha given: the method's (DEFAULT_ALPHA, one place); a given alpha wins; the
+    settings a job stores hold the alpha it renders with, so a stored job keeps it."""
+    assert set(DEFAULT_ALPHA) == set(Settings.model_fields["method"].annotation.__args__)
+    for method, alpha in DEFAULT_ALPHA.items():
+        settings = Settings(method=method)
+        assert settings.alpha == alpha
+        assert Settings.model_validate(settings.model_dump()).alpha == alpha
+        assert JobRequest(scene_name="furnace", settings={"method": method}).settings.alpha == alpha
+        assert Settings(method=method, alpha=0.55).alpha == 0.55
+    assert DEFAULT_ALPHA["vcm"] < 2.0 / 3.0  # chapter 9: the merging radius's bias leaves the MIS weights
+    render = build_parser()._subparsers._group_actions[0].choices["render"]  # noqa: SLF001
+    alpha_help = next(a.help for a in render._actions if a.dest == "alpha")  # noqa: SLF001
+    assert all(f"{method} {alpha:g}" in alpha_help for method, alpha in DEFAULT_ALPHA.items())

@@ -76,6 +76,18 @@ async function loadSettingsForm() {
   state.settingFields = Object.entries(schema.properties)
     .map(([name, prop]) => settingField(name, prop, (schema.required || []).includes(name)));
   $("settings").innerHTML = state.settingFields.map((f) => f.html).join("");
+  for (const [name, prop] of Object.entries(schema.properties)) showDefaultBy(name, prop["x-default-by"]);
+}
+
+// A field whose default depends on another (alpha on the method, worker/settings.py): its
+// placeholder shows the default the chosen value of the other field gives.
+function showDefaultBy(name, by) {
+  if (!by) return;
+  for (const [other, defaults] of Object.entries(by)) {
+    const show = () => { $(`set-${name}`).placeholder = `${defaults[$(`set-${other}`).value] ?? "none"} (${other} default)`; };
+    $(`set-${other}`).addEventListener("change", show);
+    show();
+  }
 }
 
 function readSettings() {

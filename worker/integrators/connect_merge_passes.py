@@ -50,6 +50,7 @@ class ConnectMergePasses:
         self._reserve_vertices(VERTICES_PER_PATH * self.n_light if self.stores else 1)
         self._reserve_grid(1)
         self.vertices_stored = 0  # of the last pass
+        self.skip = 0  # stage timing only (kernels/contract.py HYBRID_SKIP); 0 renders
 
     @property
     def stores(self) -> bool:
@@ -63,6 +64,7 @@ class ConnectMergePasses:
         self.lv_key = b(8 * capacity)
         self.lv_prev = b(4 * capacity)
         self.sorted = b(4 * capacity)
+        self.grid_pos = b(16 * capacity)
 
     def _reserve_grid(self, entries: int) -> None:
         if entries <= self.entries:
@@ -80,8 +82,8 @@ class ConnectMergePasses:
                 dev.queue, "vcm_light_pass", self.n_light, *dev.geometry, *dev.emitter_args, dev.camera,
                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces),
                 u32(self.n_light), u32(self.capacity), i32(it.connects), i32(it.merges), f32(eta_vcm),
-                i32(self.stores), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_key,
-                self.lv_prev, self.path_last, self.lv_count, self.splats))
+                i32(self.stores), u32(self.skip), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns,
+                self.lv_key, self.lv_prev, self.path_last, self.lv_count, self.splats))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.lv_count)
             dev.times.add("light", events)
@@ -97,14 +99,20 @@ class ConnectMergePasses:
         entries = _next_pow2(n_stored)
         self._reserve_grid(entries)
         inv_cell, mask = f32(1.0 / (2.0 * radius)), u32(entries - 1)
+        # Launched over `entries` work items (the kernels bound-check n_stored), not n_stored:
+        # PoCL builds a kernel anew for every work-group size it picks, and it picks one that
+        # divides the launch size, so a launch size that changed every pass cost a kernel
+        # build (or a cache load) every pass.
         events = [dev.fill(self.cell_count, np.uint32(0), entries),
-                  p.launch(dev.queue, "grid_count", n_stored, u32(n_stored), self.lv_pos, inv_cell, mask,
+                  p.launch(dev.queue, "grid_count", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
                            self.cell_count),
                   p.launch(dev.queue, "grid_scan", 1, u32(entries), self.cell_count, self.cell_start, self.cell_fill),
-                  p.launch(dev.queue, "grid_scatter", n_stored, u32(n_stored), self.lv_pos, inv_cell, mask,
+                  p.launch(dev.queue, "grid_scatter", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
                            self.cell_fill, self.sorted),
                   p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.cell_count,
-                           self.sorted, self.lv_key)]
+                           self.sorted, self.lv_key),
+                  p.launch(dev.queue, "vcm_grid_positions", entries, u32(n_stored), self.sorted, self.lv_pos,
+                           self.grid_pos)]
         dev.times.add("build", events)
         return float(inv_cell), int(mask)
 
@@ -117,9 +125,9 @@ class ConnectMergePasses:
         cam = dev.program.launch(
             dev.queue, "vcm_camera_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
             i32(a.width), i32(a.height), u64(self.settings.seed), u32(k), i32(self.settings.max_bounces),
-            u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius),
+            u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius), u32(self.skip),
             self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_prev, self.path_last,
-            f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.sorted, self.cam_out,
+            f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.grid_pos, self.cam_out,
             self.cam_hit)
         finish = dev.program.launch(dev.queue, "vcm_finish", a.n_pixels, i32(a.n_pixels), self.cam_out,
                                     self.cam_hit, self.splats, dev.batch_sums)
