@@ -74,7 +74,7 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
     mutations = c["mutations"] - half["mutations"]
     v_c = adaptive.visible_fraction(c)
     return {"visible_fraction": v_c, "visible_photon_ratio": 1.0 / v_c if v_c else None,
-            "traced_per_path": (c["draws"] + c["mutations"]) / c["draws"],
+            "traced_per_splat": (c["draws"] + c["mutations"] + c.get("boot", 0)) / c["splats"] if c["splats"] else None,
             "theta": adaptive.theta(c), "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations
             else None, "passes": passes}
 

@@ -16,7 +16,8 @@
 // as large as that surface. A smooth surface of curvature radius rho turns its normal by
 // r / rho across a disc of radius r, so it keeps every photon while r < 0.78 rho.
 #define NORMAL_MATCH_COS 0.7071f
-#define COVERAGE_RAYS 8
+#define COVERAGE_RAYS 8  // 8: two words of 8-bit cuts (inside_cut)
+#define CUT_NONE 0xFFFFFFFFu  // every ray's cut at 255: the whole disc
 #define OWN_SURFACE_COS 0.9999  /* the point's normal is the sphere's (inward) normal */
 
 // Share of the kernel weight of the tangent disc (radius r about x, normal n) that lies on
@@ -27,7 +28,8 @@
 // equally spaced directions turned by a random angle (an unbiased quadrature of the
 // covered weight):  G(s) = int_0^s K(t) t dt / int_0^1 K(t) t dt
 //                        = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7.
-// A surface that ends in empty space (a convex edge) is not detected. Returns the coverage
+// A surface that ends in empty space (a convex edge) is not detected. The cuts (8 bits a
+// ray) and the rays' turn go to `cut`, for the gather (inside_cut). Returns the coverage
 // of the disc of radius r and (same rays) of radius r/2, for the error estimate's second
 // gather radius (spatial_hash.cl). `smooth` false: the share of the disc's area instead,
 // G(s) = s^2, for a uniform kernel (vcm's merging, vcm_camera_pass.cl).
@@ -85,7 +87,8 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
     }
 }
 
-inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, bool smooth, Rng* rng) {
+inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, bool smooth, Rng* rng, uint4* cut) {
+    *cut = (uint4)(CUT_NONE, CUT_NONE, 0u, 0u);
     if (r <= 0.0f) return (float2)(1.0f);
 #if COVERAGE_PRETEST
     if (!disc_may_be_cut(g, x, n, r)) return (float2)(1.0f);
@@ -95,19 +98,50 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
     float3 o = x + n * ray_eps(x);
     float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS);
     float2 covered = (float2)(0.0f);
+    uint words[2] = {0u, 0u};
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
         Hit h = intersect_within(g, o, u, r);  // only what cuts the disc matters: the BVH prunes the rest
-        float s = 1.0f;
+        uint q = 255u;
         if (h.surf != SURF_NONE && h.t < r) {
             float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
-            if (dot(nh, n) <= NORMAL_MATCH_COS) s = h.t / r;
+            if (dot(nh, n) <= NORMAL_MATCH_COS) q = (uint)(h.t / r * 255.0f);
         }
+        float s = (float)q / 255.0f;  // the gather counts photons up to this cut (inside_cut)
+        words[k >> 2] |= q << (8 * (k & 3));
         float s_half = fmin(2.0f * s, 1.0f);
         covered += smooth ? (float2)(cover_share(s), cover_share(s_half)) : (float2)(s * s, s_half * s_half);
     }
+    *cut = (uint4)(words[0], words[1], as_uint(phi0), 0u);
     return covered / COVERAGE_RAYS;
+}
+
+// Whether a photon at offset v from the point lies in the covered part of its disc. The
+// coverage rays' cut points, joined between neighbouring rays, bound that part (exact for
+// a straight wall through the disc; between two uncut rays, the disc's rim). The coverage
+// divides by the kernel weight of that part, so a photon beyond it (e.g. on the same plane
+// behind a wall through the disc: a floor running under a partition into a lit room) must
+// not count: it would be light leaking through the wall, amplified by the smaller coverage.
+inline float cut_at(uint4 cut, int k) {
+    uint word = (k & 4) ? cut.y : cut.x;
+    return (float)((word >> (8 * (k & 3))) & 0xFFu) / 255.0f;
+}
+
+inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
+    if ((cut.x & cut.y) == CUT_NONE) return true;
+    float3 t, b;
+    onb(n, &t, &b);
+    float2 p = (float2)(dot(v, t), dot(v, b));
+    float step = 2.0f * PI_F / COVERAGE_RAYS, phi0 = as_float(cut.z);
+    int k = (int)floor((atan2(p.y, p.x) - phi0) / step) & (COVERAGE_RAYS - 1);  // between rays k and k + 1
+    int k1 = (k + 1) & (COVERAGE_RAYS - 1);
+    float s0 = cut_at(cut, k), s1 = cut_at(cut, k1);
+    if (s0 == 1.0f && s1 == 1.0f) return true;  // the rim (the disc test is the caller's)
+    float a0 = phi0 + k * step, a1 = a0 + step;
+    float2 p0 = s0 * r * (float2)(cos(a0), sin(a0)), p1 = s1 * r * (float2)(cos(a1), sin(a1));
+    float2 e = p1 - p0, w = p - p0;
+    return e.x * w.y - e.y * w.x >= 0.0f;  // on the centre's side (left of p0 -> p1, counterclockwise)
 }
 
 typedef struct {
@@ -133,6 +167,7 @@ __kernel void eye_pass(
     __global float4* mp_nrm,       // normal facing the eye path; w: disc coverage at r/2
     __global float4* mp_wgt,       // throughput * albedo / pi; w: disc coverage
     __global float* mp_dist,       // eye path length to the point (initial radius)
+    __global uint4* mp_cut,        // the coverage rays' cuts (disc_coverage, inside_cut)
     __global double* batch_sums)   // per-pixel sums (sums.cl); += directly seen emission
 {
     int gid = get_global_id(0);
@@ -160,6 +195,7 @@ __kernel void eye_pass(
     float3 thr = (float3)(1.0f);
     float3 direct = (float3)(0.0f);
     float4 pos = (float4)(0.0f), nrm = (float4)(0.0f), wgt = (float4)(0.0f);
+    uint4 cut = (uint4)(CUT_NONE, CUT_NONE, 0u, 0u);
     for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (kernels/contract.py)
         Hit h = intersect(&g, origin, d);
         if (h.surf == SURF_NONE) break;
@@ -171,7 +207,7 @@ __kernel void eye_pass(
         if (type == MAT_DIFFUSE) {
             float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
             pos = (float4)(p, 1.0f);
-            float2 cover = disc_coverage(&g, p, n, radius[gid], true, &rng);
+            float2 cover = disc_coverage(&g, p, n, radius[gid], true, &rng, &cut);
             nrm = (float4)(n, cover.y);
             wgt = (float4)(thr * sa.xyz / PI_F, cover.x);
             if (nee) {
@@ -193,6 +229,7 @@ __kernel void eye_pass(
     mp_nrm[gid] = nrm;
     mp_wgt[gid] = wgt;
     mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
+    mp_cut[gid] = cut;
     __global double* ld = sum_at(batch_sums, width * height, gid, SUM_LD, 3);
     ld[0] += direct.x;
     ld[1] += direct.y;

@@ -33,6 +33,7 @@
 #define CTR_MUTATIONS 3
 #define CTR_ACCEPTED 4
 #define CTR_STARTED 5    // chains that found a visible start
+#define CTR_BOOT 6       // uniform draws of the starts (traced, not counted toward V_c)
 
 typedef struct {
     float u[PSS_DIM];
@@ -123,8 +124,10 @@ __kernel void photon_chains(
     uint n_chains, uint iterations,   // the pass's photon paths: `iterations` split over the chains
     float theta, uint boot_cap,
     int exchange,                     // 0: no replica exchange once a chain has a state (an ablation, for tests)
+    int mutating,                     // 0: no chain, uniform draws splatted iff visible (worker/adaptive.py mutates)
     int in_place,                     // 1: re-count kept states in place (exact gather); 0: store them again
-    __global const float4* mp_pos, __global const float4* mp_nrm, __global const float* radius,
+    __global const float4* mp_pos, __global const float4* mp_nrm, __global const uint4* mp_cut,
+    __global const float* radius,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
     __global const uint* sorted,
     __global float4* ph_pos, __global float4* ph_flux, __global uint2* ph_dirs, __global ulong* ph_key,
@@ -144,16 +147,18 @@ __kernel void photon_chains(
     for (int k = 0; k < 2; ++k) {
         states[k].sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
         states[k].sink.salted = !in_place;
-        states[k].sink.grid = (PointGrid){mp_pos, mp_nrm, radius, cell_start, cell_count, sorted, inv_cell, mask};
+        states[k].sink.grid = (PointGrid){mp_pos, mp_nrm, mp_cut, radius, cell_start, cell_count, sorted, inv_cell, mask};
     }
     int cur = 0, has_state = 0;
     uint draws = 0, visible = 0, splats = 0, mutations = 0, accepted = 0;
 
     // Start: an exact sample of F by rejection (uniform draws until visible, capped).
-    for (uint b = 0; b < boot_cap && !has_state; ++b) {
+    uint boot = 0;
+    while (mutating && boot < boot_cap && !has_state) {
         draw_uniform(&rng, &states[cur]);
         probe(&tracer, &states[cur], record0);
         has_state = states[cur].sink.visible;
+        ++boot;
     }
     int started = has_state;
 
@@ -166,7 +171,7 @@ __kernel void photon_chains(
         ++draws;
         visible += next->sink.visible;
         int moved = next->sink.visible && (exchange || !has_state);
-        if (!moved && has_state) {
+        if (!moved && has_state && mutating) {
             // Otherwise mutate the state; the candidate is accepted iff visible.
             mutate(&rng, &states[cur], next, theta);
             probe(&tracer, next, record);
@@ -178,7 +183,7 @@ __kernel void photon_chains(
             cur = 1 - cur;
             has_state = 1;
         }
-        if (has_state) {
+        if (has_state && (moved || mutating)) {  // without mutations a state is splatted once
             splat_state(&tracer, &states[cur], record, in_place);
             ++splats;
         }
@@ -189,4 +194,5 @@ __kernel void photon_chains(
     atomic_add(&counters[CTR_MUTATIONS], mutations);
     atomic_add(&counters[CTR_ACCEPTED], accepted);
     atomic_add(&counters[CTR_STARTED], (uint)started);
+    atomic_add(&counters[CTR_BOOT], boot);
 }

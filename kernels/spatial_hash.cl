@@ -158,7 +158,9 @@ typedef struct {
 // unit vectors; NORMAL_MATCH_COS, eye_pass.cl). The last test keeps a concave corner
 // from gathering the photons of the perpendicular wall (10% too bright against Mitsuba in
 // the Cornell box's corners); the disc coverage measured in the eye pass then
-// renormalises the estimate for the part of the disc beyond that wall.
+// renormalises the estimate for the part of the disc beyond that wall, and only photons
+// in that covered part count (inside_cut, eye_pass.cl: no light through a wall from the
+// same plane beyond it).
 inline bool photon_near(float3 x, float r2, float3 p) {
     float3 v = p - x;
     return dot(v, v) < r2;
@@ -216,6 +218,7 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
 typedef struct {
     float3 x, n, wgt;
     float2 coverage;  // share of the disc's kernel weight on the point's surface, at r and r/2
+    uint4 cut;        // where the coverage rays found the disc cut (inside_cut)
     float r, r2;
     uint entries[8];  // the distinct table entries of the cells its ball's bounding box overlaps
     int n_entries;
@@ -244,8 +247,8 @@ inline int ball_entries(float3 x, float r, float inv_cell, uint mask, uint entri
 }
 
 inline bool start_query(int gid, __global const float4* mp_pos, __global const float4* mp_nrm,
-                        __global const float4* mp_wgt, __global const float* radius, float inv_cell, uint mask,
-                        Query* q) {
+                        __global const float4* mp_wgt, __global const uint4* mp_cut, __global const float* radius,
+                        float inv_cell, uint mask, Query* q) {
     float4 mp = mp_pos[gid];
     if (mp.w == 0.0f) return false;
     q->x = mp.xyz;
@@ -253,6 +256,7 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
     float4 w = mp_wgt[gid];
     q->wgt = w.xyz;
     q->coverage = fmax((float2)(w.w, mp_nrm[gid].w), MIN_COVERAGE);
+    q->cut = mp_cut[gid];
     q->r = radius[gid];
     q->r2 = q->r * q->r;
     q->n_entries = ball_entries(q->x, q->r, inv_cell, mask, q->entries);
@@ -260,15 +264,15 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
 }
 
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
-                                __global const float4* mp_wgt, __global const float* radius,
-                                __global const float* bias, float photons,
+                                __global const float4* mp_wgt, __global const uint4* mp_cut,
+                                __global const float* radius, __global const float* bias, float photons,
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
                                 __global const uint2* tab_dirs,
                                 __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
-    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, mask, &q)) return;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     for (int k = 0; k < q.n_entries; ++k) {
         uint h = q.entries[k];
@@ -276,33 +280,35 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
         if (count == 0) continue;
         float4 pp = tab_pos[h];
         uint2 dirs = tab_dirs[h];
-        if (photon_near(q.x, q.r2, pp.xyz) && photon_matches(q.n, unpack_dir(dirs.x), unpack_dir(dirs.y)))
+        if (photon_near(q.x, q.r2, pp.xyz) && photon_matches(q.n, unpack_dir(dirs.x), unpack_dir(dirs.y))
+            && inside_cut(q.cut, q.n, pp.xyz - q.x, q.r))
             add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
     }
     accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
 
-// Add the photons near[0 .. n) of the exact grid that match the query's surface.
+// Add the photons near[0 .. n) of the exact grid that match the query's surface and lie in
+// its disc's covered part.
 inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __global const float4* grid_pos,
                      __global const float4* grid_flux, __global const float4* grid_in,
                      __global const float4* grid_nrm) {
     for (int m = 0; m < n; ++m) {
         uint j = near[m];
-        if (photon_matches(q->n, grid_in[j].xyz, grid_nrm[j].xyz))
+        if (photon_matches(q->n, grid_in[j].xyz, grid_nrm[j].xyz) && inside_cut(q->cut, q->n, grid_pos[j].xyz - q->x, q->r))
             add_photon(s, q->x, q->n, q->r, q->wgt, grid_pos[j], grid_flux[j].xyz, grid_pos[j].w);  // w: the photon's count
     }
 }
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
-                           __global const float4* mp_wgt, __global const float* radius,
-                           __global const float* bias, float photons,
+                           __global const float4* mp_wgt, __global const uint4* mp_cut,
+                           __global const float* radius, __global const float* bias, float photons,
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const float4* grid_pos,
                            __global const float4* grid_flux, __global const float4* grid_in,
                            __global const float4* grid_nrm, __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
-    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, radius, inv_cell, mask, &q)) return;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     // The distance test runs without a branch, collecting the photons it keeps (about one in
     // five visited) to be tested and added a batch at a time: a branch per visited photon

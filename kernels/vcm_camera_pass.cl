@@ -12,7 +12,8 @@
 //      the share of the disc on x's own surface (eye_pass.cl, disc_coverage, for a uniform
 //      kernel): where a concave corner's wall cuts the disc, no vertex of this surface lies
 //      beyond it (without it, Cornell-box pixels within 10 of 555 of a corner came out 7.5%
-//      dark, bpt there within 1%);
+//      dark, bpt there within 1%); only the vertices in the disc's covered part count
+//      (inside_cut: no light through a wall from the same plane beyond it);
 //   5. the bounce, Russian roulette, and the update of the quantities.
 // Writes the pixel's camera-side radiance for the pass (w: the change of the merged part
 // from radius r/2 to r, for the error estimate), and whether its ray hit anything.
@@ -81,7 +82,8 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
 // (ball_entries, spatial_hash.cl; positions in grid order, vcm_grid.cl), each weighted 1 / (w_light + 1 + w_cam), w_light = dVCM_y eta_vc + dVM_y
 // p_fwd, w_cam = dVCM eta_vc + dVM p_rev. Returns the unnormalised sum f Phi within r, and
 // within r/2 in `half_sum`, for the density estimate sum / (pi r^2 N_L).
-inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisEtas eta, float r2, float inv_cell,
+inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisEtas eta, float r2, uint4 cut,
+                                   float inv_cell,
                                    uint mask, __global const uint* cell_start, __global const uint* cell_count,
                                    __global const float4* grid_pos, __global const float4* lv_pos,
                                    __global const float4* lv_thr, __global const float4* lv_wo,
@@ -96,7 +98,7 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
             float4 gp = grid_pos[j];
             float3 v = gp.xyz - x->p;
             float dd = dot(v, v);
-            if (dd >= r2) continue;
+            if (dd >= r2 || !inside_cut(cut, x->side, v, sqrt(r2))) continue;
             LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, as_uint(gp.w));
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
             if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)
@@ -180,10 +182,14 @@ __kernel void vcm_camera_pass(
             // 4. Merging with the light vertices within r.
             if (merge && !(skip & SKIP_MERGE)) {
                 float3 half_sum;
-                float3 m = merge_light_vertices(&x, &s, eta, r2, inv_cell, mask, cell_start, cell_count, grid_pos,
+                uint4 cut = (uint4)(CUT_NONE, CUT_NONE, 0u, 0u);  // the whole disc
+                float3 m = merge_light_vertices(&x, &s, eta, r2, cut, inv_cell, mask, cell_start, cell_count, grid_pos,
                                                 lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);
                 if (any(m != 0.0f)) {  // the share of the discs on x's own surface (eye_pass.cl)
-                    float2 cover = fmax(disc_coverage(&g, x.p, x.side, radius, false, &rng), MIN_COVERAGE);
+                    float2 cover = fmax(disc_coverage(&g, x.p, x.side, radius, false, &rng, &cut), MIN_COVERAGE);
+                    if ((cut.x & cut.y) != CUT_NONE)  // a wall cuts the disc: only its covered part counts
+                        m = merge_light_vertices(&x, &s, eta, r2, cut, inv_cell, mask, cell_start, cell_count,
+                                                 grid_pos, lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);
                     m /= cover.x;
                     half_sum /= cover.y;
                 }

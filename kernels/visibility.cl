@@ -5,8 +5,9 @@
 // grid_count / grid_scan / grid_scatter kernels, cell = 2 * largest radius), queried at a
 // photon's position over the cells a disc of radius <= cell/2 can reach (ball_entries).
 //
-// The tests are the gather's (photon_near, photon_matches): inside the point's disc, arrived on the side
-// the eye sees, on a surface matching the point's. Each is taken with a hair of slack
+// The tests are the gather's (photon_near, photon_matches, inside_cut): inside the point's disc
+// and its covered part, arrived on the side the eye sees, on a surface matching the point's.
+// Each is taken with a hair of slack
 // (VIS_SLACK) so that V is a superset of what the gather counts: a path V calls invisible
 // must never deposit into a point, or the chains (which only ever keep visible paths)
 // would miss its light; the reverse only costs a little efficiency.
@@ -16,6 +17,7 @@
 typedef struct {
     __global const float4* mp_pos;   // w: 1 if the pixel has a point this pass
     __global const float4* mp_nrm;
+    __global const uint4* mp_cut;    // the disc's covered part (inside_cut, eye_pass.cl)
     __global const float* radius;
     __global const uint* cell_start;
     __global const uint* cell_count;
@@ -40,7 +42,8 @@ inline bool photon_visible(const PointGrid* grid, float3 pp, uint2 dirs) {
             float3 v = pp - mp.xyz, n = grid->mp_nrm[i].xyz;
             if (dot(v, v) >= r * r * (1.0f + VIS_SLACK)) continue;
             if (dot(in_dir, n) <= -VIS_SLACK) continue;
-            if (dot(nrm, n) > NORMAL_MATCH_COS - VIS_SLACK) return true;
+            if (dot(nrm, n) > NORMAL_MATCH_COS - VIS_SLACK &&
+                inside_cut(grid->mp_cut[i], n, v, r * (1.0f + VIS_SLACK))) return true;
         }
     }
     return false;

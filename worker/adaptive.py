@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 
 # Counters a pass adds, in the kernel's order (kernels/photon_chains.cl, CTR_*).
-COUNTERS = ("draws", "visible", "splats", "mutations", "accepted", "started")
+COUNTERS = ("draws", "visible", "splats", "mutations", "accepted", "started", "boot")  # boot: the starts' draws
 THETA_STEPS = "theta_steps"  # the sum of the passes' log-theta steps, in THETA_QUANTUM
 THETA_QUANTUM = 2.0 ** -24
 THETA_MIN, THETA_MAX = 1e-3, 64.0  # "bounding theta to a large finite range" (dissertation 8.2)
@@ -56,6 +56,20 @@ def theta_step(pass_index: int, used: float, mutations: int, accepted: int, targ
     return round(THETA_GAIN / math.sqrt(pass_index + 1.0) * error / THETA_QUANTUM)
 
 
+def mutates(counters: dict[str, int], target: float) -> bool:
+    """Whether a batch's chains mutate. Not when theta is at its upper bound and uniform
+    draws are visible more often than the target acceptance: there a mutation is an
+    independent uniform draw in all but name (E|du| = 0.496 at theta 64) and the chain
+    cannot reach the target, so a rejected one only splats the state again, which adds
+    correlation and no information (gap: 45% of the splats were repeats at V_c 0.33). The
+    pass is then uniform tracing with the same counters: every draw splatted iff visible,
+    so V_c S / splats = S / draws, the uniform estimate (the paper's "automatically uses
+    uniform random sampling", made exact). Mutations resume if the pooled V_c falls
+    below the target."""
+    v_c = visible_fraction(counters)
+    return not (theta(counters) >= THETA_MAX and v_c is not None and v_c >= target)
+
+
 def visible_fraction(counters: dict[str, int]) -> float | None:
     """V_c from the pooled uniform draws; None before any."""
     draws = counters.get("draws", 0)
@@ -68,12 +82,30 @@ def photon_scale(counters: dict[str, int]) -> float:
     return v_c / splats if v_c is not None and splats > 0 else 0.0
 
 
-def chains(counters: dict[str, int], photons: int) -> int:
-    """Chains for a pass of `photons` paths: CHAIN_SHARE of the visible paths it expects
-    (digest: K <= 0.05 V_c photons keeps the starts' cost near 5%), within bounds."""
+def iterations(counters: dict[str, int], photons: int) -> int:
+    """Chain iterations for a pass that traces about `photons` paths, as a uniform pass does.
+
+    An iteration traces its uniform draw, and a mutation when the draw is invisible (a
+    share 1 - V_c); the chains' starts (about CHAIN_SHARE of a pass) are left out, so
+    that with everything visible this is exactly the uniform pass. SPPM's radius falls by pass, not by
+    photon, so a chain pass of `photons` iterations (up to twice a uniform pass's cost)
+    buys its photons with passes: at equal time fewer passes and a larger radius, i.e.
+    more bias. At equal cost per pass both samplers get the same radius schedule and the
+    chains' extra visible photons only lower the noise. Traced paths per iteration come
+    from the pooled counters (a function of the merged state, like theta)."""
+    draws = counters.get("draws", 0)
+    if draws == 0:
+        return photons
+    traced = draws + counters.get("mutations", 0)
+    return max(1, min(photons, round(photons * draws / traced)))
+
+
+def chains(counters: dict[str, int], iterations: int) -> int:
+    """Chains for a pass of `iterations` chain iterations: CHAIN_SHARE of the visible paths
+    it expects (digest: K <= 0.05 V_c photons keeps the starts' cost near 5%), within bounds."""
     v_c = visible_fraction(counters)
-    k = MIN_CHAINS if v_c is None else round(CHAIN_SHARE * v_c * photons)
-    return max(1, min(photons, MAX_CHAINS, max(MIN_CHAINS, k)))
+    k = MIN_CHAINS if v_c is None else round(CHAIN_SHARE * v_c * iterations)
+    return max(1, min(iterations, MAX_CHAINS, max(MIN_CHAINS, k)))
 
 
 def boot_draws(n_chains: int, photons: int) -> int:

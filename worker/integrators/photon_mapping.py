@@ -41,10 +41,13 @@ def sum_layout(error_estimation: bool, direct: str = "photons") -> SumLayout:
 @dataclass(frozen=True)
 class ChainInputs:
     """What a batch of the adaptive sampler reads from the merged counters: its frozen
-    mutation size and its number of chains (worker/adaptive.py)."""
+    mutation size, its number of chains, the iterations a pass splits over them (None:
+    photons per pass) and whether they mutate (worker/adaptive.py)."""
 
     theta: float
     chains: int
+    iterations: int | None = None
+    mutate: bool = True
 
 
 @dataclass(frozen=True)
@@ -91,8 +94,13 @@ class PhotonMapping(Integrator):
 
     def batch_inputs(self, state: Accumulators) -> GatherInputs:
         r = state.radius()
-        chains = ChainInputs(adaptive.theta(state.counters),
-                             adaptive.chains(state.counters, self.settings.photons_per_pass)) if self.adaptive else None
+        chains = None
+        if self.adaptive:
+            photons, mutate = self.settings.photons_per_pass, adaptive.mutates(state.counters,
+                                                                               self.settings.target_acceptance)
+            iterations = adaptive.iterations(state.counters, photons) if mutate else photons  # one trace each
+            chains = ChainInputs(adaptive.theta(state.counters), adaptive.chains(state.counters, iterations),
+                                 iterations, mutate)
         bias = bias_estimate(r, state.G, state.effective_emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains)

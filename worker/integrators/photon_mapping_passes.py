@@ -45,6 +45,7 @@ class PhotonMappingPasses:
         self.mp_nrm = device.buffer(16 * n)  # normal facing the eye path
         self.mp_wgt = device.buffer(16 * n)  # path throughput * albedo / pi (w: disc coverage)
         self.mp_dist = device.buffer(4 * n)  # eye path length to the point
+        self.mp_cut = device.buffer(16 * n)  # where the coverage rays cut the gather disc
         self.radius = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
         self.ph_count = device.buffer(4)
@@ -93,7 +94,8 @@ class PhotonMappingPasses:
         ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
                                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
                                 i32(self.settings.max_bounces), i32(self.nee), u32(pass_index), self.radius,
-                                self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, dev.batch_sums)
+                                self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.mp_cut,
+                                dev.batch_sums)
         dev.times.add("eye", [ev])
 
     def _photon_pass(self, pass_index: int, first_hits: bool = False) -> int:
@@ -134,15 +136,16 @@ class PhotonMappingPasses:
         inv_cell = f32(1.0 / (2.0 * max_radius))
         self._point_grid(inv_cell)
         photons = settings.photons_per_pass
+        iterations = photons if chains.iterations is None else chains.iterations
         while True:
             events = [dev.fill(self.ph_count, np.uint32(0), 1),
                       dev.fill(self.counters, np.uint32(0), len(adaptive.COUNTERS))]
             events.append(dev.program.launch(
                 dev.queue, "photon_chains", chains.chains, *dev.geometry, *dev.emitter_args,
                 u64(settings.seed), u32(pass_index), i32(settings.max_bounces), u32(self.capacity), i32(self.nee),
-                u32(chains.chains), u32(photons), f32(chains.theta), u32(adaptive.boot_draws(chains.chains, photons)),
-                i32(self.replica_exchange), i32(settings.gather == "exact"),
-                self.mp_pos, self.mp_nrm, self.radius, inv_cell, u32(self.mp_entries - 1), self.mp_start,
+                u32(chains.chains), u32(iterations), f32(chains.theta), u32(adaptive.boot_draws(chains.chains, photons)),
+                i32(self.replica_exchange), i32(chains.mutate), i32(settings.gather == "exact"),
+                self.mp_pos, self.mp_nrm, self.mp_cut, self.radius, inv_cell, u32(self.mp_entries - 1), self.mp_start,
                 self.mp_count, self.mp_sorted, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count,
                 self.counters, one_per_group=True))
             stored = np.zeros(1, np.uint32)
@@ -173,7 +176,7 @@ class PhotonMappingPasses:
                               self.ph_dirs, self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux,
                               self.tab_dirs)]
             gather_ev = p.launch(dev.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
-                                 self.mp_nrm, self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask,
+                                 self.mp_nrm, self.mp_wgt, self.mp_cut, self.radius, self.bias, photons, inv_cell, mask,
                                  self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums)
         else:
             entries = _next_pow2(n_stored)
@@ -191,7 +194,7 @@ class PhotonMappingPasses:
                      p.launch(dev.queue, "grid_permute", n_stored, u32(n_stored), self.sorted, self.ph_pos,
                               self.ph_flux, self.ph_dirs, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm)]
             gather_ev = p.launch(dev.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
-                                 self.mp_wgt, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
+                                 self.mp_wgt, self.mp_cut, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
                                  self.tab_count, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm,
                                  dev.batch_sums)
         gather_ev.wait()
@@ -308,7 +311,8 @@ class PhotonMappingPasses:
         for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals, 1.0)),
                           (self.mp_wgt, f4(np.ones((n, 3)), 1.0)), (self.ph_pos, f4(photon_pos, 1.0)),
                           (self.ph_flux, f4(photon_flux)), (self.ph_dirs, np.ascontiguousarray(dirs)),
-                          (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32))):
+                          (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32)),
+                          (self.mp_cut, np.tile(np.array([0xFFFFFFFF, 0xFFFFFFFF, 0, 0], np.uint32), (n, 1)))):
             cl.enqueue_copy(dev.queue, buf, host)
         cl.enqueue_copy(dev.queue, self.ph_key, np.arange(m, dtype=np.uint64))
         dev.zero_sums()
