@@ -186,9 +186,9 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     def image_body(record: JobRecord, fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
         w, h = record.width, record.height
         state = jobs.state(record)
-        headers = {"X-Passes": str(record.passes), "X-Photons": str(record.emitted)}
         if state is None:
-            return encode_image(np.zeros((h, w, 3)), fmt), headers
+            return encode_image(np.zeros((h, w, 3)), fmt), {"X-Passes": "0", "X-Photons": "0"}
+        headers = {"X-Passes": str(state.passes), "X-Photons": str(state.emitted)}  # as folded
         # EXR: with the render's metadata (passes, photons, seed, settings, error estimate)
         return encode_with(fmt, lambda path: write_render(path, record.integrator, state, w, h, error_layers=False)), \
             headers
@@ -207,7 +207,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         else:
             channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
-        return body, {"X-Passes": str(record.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
+        return body, {"X-Passes": str(state.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
 
     @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.passes),
                        condition=threading.Condition())

@@ -1,0 +1,259 @@
+"""The job state on its nodes: batches push their deltas per tile, a folder adds them in.
+
+A worker never reads or writes the folded state. It pushes its batch's delta, cut into
+tiles, into each tile's pending hash (HSET by batch id: a re-pushed batch overwrites its
+own entry, never adds a second one), and the job record then accepts the batch
+(worker/store/record.py). The folder, whoever holds the job's fold lease (the API's
+reaper thread, a reader, or a worker when the last fold is stale), folds every accepted
+batch not yet folded: it reads the state (from its cache when the tile's version is
+unchanged), adds the round's deltas with the integrator's own merge (one merge per round:
+a big pass, digest 11.2 (i)), and writes each tile in one transaction that WATCHes the
+tile's version: new state, new batch inputs, the batches added to the tile's folded set,
+their pending entries removed. So a tile takes a batch exactly once, whichever folder
+gets there, and a folder killed mid-round leaves each tile either folded or not; the next
+round folds the rest (tiles that have the batch skip it).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import redis
+
+from worker.integrators import Integrator
+from worker.integrators.base import Delta, State
+from worker.store import keys
+from worker.store.tiles import (CACHE, Tiling, decode_delta, decode_inputs, decode_state, encode_delta,
+                                encode_inputs, encode_state, state_nodes)
+
+# Applies a folded round to the job record once per batch, however many folders try.
+ACCOUNT = """
+local passes, emitted = 0, 0
+for i = 1, #ARGV do
+  local h = redis.call('HGET', KEYS[1], ARGV[i])
+  if h then
+    local t = cjson.decode(h)
+    redis.call('HDEL', KEYS[1], ARGV[i])
+    redis.call('HINCRBY', KEYS[2], 'folded_passes', t.n)
+    redis.call('HINCRBY', KEYS[2], 'folded_emitted', t.e)
+    for name, value in pairs(t.c) do
+      redis.call('HINCRBYFLOAT', KEYS[2], 'counter:' .. name, value)
+    end
+  end
+end
+return 1
+"""
+# Drops a tile's pending entry of a batch the tile has already folded (a late duplicate).
+DISCARD_FOLDED = """
+if redis.call('SISMEMBER', KEYS[1], ARGV[1]) == 1 then redis.call('HDEL', KEYS[2], ARGV[1]) end
+return 1
+"""
+
+
+class FoldContended(Exception):
+    """Another folder changed a tile during this round: it has the lease now."""
+
+
+@dataclass(frozen=True)
+class Folded:
+    """What a fold round made of the job: its state, and the image's error after it."""
+
+    state: State
+    error: float | None
+
+
+class TiledState:
+    """One process's access to the job states on the state nodes."""
+
+    def __init__(self, main: redis.Redis, nodes: list[redis.Redis] | None = None) -> None:
+        self.main = main
+        self.nodes = nodes if nodes is not None else state_nodes(main)
+        self._account = main.register_script(ACCOUNT)
+        self._discard = [node.register_script(DISCARD_FOLDED) for node in self.nodes]
+
+    def tiling(self, n_pixels: int, shards: int, tile_pixels: int) -> Tiling:
+        if shards != len(self.nodes):
+            raise RuntimeError(f"the job's state lies on {shards} Redis nodes, this process names "
+                               f"{len(self.nodes)} (PHOTONFARM_STATE_URLS)")
+        return Tiling(n_pixels, shards, tile_pixels)
+
+    def _each_node(self, tiling: Tiling, queue: Any, transaction: bool = False) -> dict[int, list[Any]]:
+        """Run `queue(pipe, k)` for every tile, one pipeline per node; results by tile."""
+        out: dict[int, list[Any]] = {}
+        for node, ks in tiling.by_node().items():
+            pipe = self.nodes[node].pipeline(transaction=transaction)
+            counts = []
+            for k in ks:
+                before = len(pipe)
+                queue(pipe, k)
+                counts.append(len(pipe) - before)
+            results = pipe.execute()
+            at = 0
+            for k, count in zip(ks, counts):
+                out[k] = results[at:at + count]
+                at += count
+        return out
+
+    # ------------------------------------------------------------------ setup
+    def init(self, job_id: str, tiling: Tiling, integrator: Integrator, setup: dict[str, np.ndarray]) -> None:
+        """Write the empty state and the first inputs of every tile (the first writer wins)."""
+        state = integrator.start(setup)
+        arrays, inputs, widths = state.arrays(), integrator.batch_inputs(state), integrator.state_widths
+        self._each_node(tiling, lambda pipe, k: (
+            pipe.set(keys.tile(job_id, k, "state"), encode_state(arrays, widths, tiling.span(k)), nx=True),
+            pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)), nx=True)))
+
+    def inputs(self, job_id: str, tiling: Tiling, integrator: Integrator) -> Any:
+        """What a batch starting now reads: the inputs the last fold wrote."""
+        blobs = self._each_node(tiling, lambda pipe, k: pipe.get(keys.tile(job_id, k, "inputs")))
+        return decode_inputs([blobs[k][0] for k in range(tiling.count)], [tiling.span(k) for k in range(tiling.count)],
+                             tiling.n_pixels, integrator.inputs_type)
+
+    # ------------------------------------------------------------------- push
+    def push(self, job_id: str, tiling: Tiling, batch_id: str, delta: Delta) -> None:
+        self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k)))
+
+    def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str, payload: Callable[[int], bytes]) -> None:
+        """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash."""
+        self._each_node(tiling, lambda pipe, k: pipe.hset(keys.tile(job_id, k, "pending"), batch_id, payload(k)))
+
+    def discard(self, job_id: str, tiling: Tiling, batch_id: str, folded_only: bool) -> None:
+        """Remove a batch's pending entries: all of them (it was not accepted), or only
+        where the tile already folded it (a duplicate of an accepted batch)."""
+        for node, ks in tiling.by_node().items():
+            pipe = self.nodes[node].pipeline(transaction=False)
+            for k in ks:
+                pending = keys.tile(job_id, k, "pending")
+                if folded_only:
+                    self._discard[node](keys=[keys.tile(job_id, k, "folded"), pending], args=[batch_id], client=pipe)
+                else:
+                    pipe.hdel(pending, batch_id)
+            pipe.execute()
+
+    # ------------------------------------------------------------------- read
+    def _versions(self, job_id: str, tiling: Tiling) -> dict[int, int]:
+        got = self._each_node(tiling, lambda pipe, k: pipe.hget(keys.tile(job_id, k, "meta"), "version"))
+        return {k: int(v[0] or 0) for k, v in got.items()}
+
+    def _blobs(self, job_id: str, tiling: Tiling, versions: dict[int, int]) -> dict[int, bytes]:
+        """Each tile's state at the version given: from the cache, else read (and checked)."""
+        out = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
+        missing = [k for k, blob in out.items() if blob is None]
+        if missing:
+            want = set(missing)
+            read = self._each_node(tiling, lambda pipe, k: (
+                pipe.hget(keys.tile(job_id, k, "meta"), "version"), pipe.get(keys.tile(job_id, k, "state")))
+                if k in want else None)
+            for k in missing:
+                version, blob = read[k]
+                if int(version or 0) != versions[k]:
+                    raise FoldContended(f"tile {k} changed while read")
+                CACHE.put(job_id, k, versions[k], blob)
+                out[k] = blob
+        return out
+
+    def _arrays(self, tiling: Tiling, widths: dict[str, int], blobs: dict[int, bytes]) -> dict[str, np.ndarray]:
+        n = tiling.n_pixels
+        arrays = {name: np.empty((n, w) if w > 1 else n) for name, w in widths.items()}
+        for k, blob in blobs.items():
+            span = tiling.span(k)
+            for name, part in decode_state(blob, widths, span.stop - span.start).items():
+                arrays[name][span] = part
+        return arrays
+
+    def read(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int) -> State:
+        """The folded state (a tile a folder writes meanwhile is read again)."""
+        while True:
+            try:
+                blobs = self._blobs(job_id, tiling, self._versions(job_id, tiling))
+                break
+            except FoldContended:
+                continue
+        return integrator.restore(self._arrays(tiling, integrator.state_widths, blobs), emitted, passes)
+
+    # ------------------------------------------------------------------- fold
+    def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
+                   accepted: dict[str, dict[str, Any]], keep_lease: Any) -> Folded:
+        """Fold the accepted batches (id -> {n, e, c}; at least one) into every tile that lacks them;
+        `emitted` and `passes` are the record's folded counters. Raises FoldContended if
+        another folder got to a tile first (this round's other tiles stay valid)."""
+        batch_ids = sorted(accepted)
+        widths = integrator.state_widths
+        # Read: versions, which tiles already hold which batch, the pending deltas, the state.
+        got = self._each_node(tiling, lambda pipe, k: (
+            pipe.hget(keys.tile(job_id, k, "meta"), "version"),
+            pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids),
+            pipe.hmget(keys.tile(job_id, k, "pending"), batch_ids)))
+        versions = {k: int(g[0] or 0) for k, g in got.items()}
+        state = integrator.restore(self._arrays(tiling, widths, self._blobs(job_id, tiling, versions)),
+                                   emitted, passes)
+        # The round's delta: each tile's batches it has not folded yet.
+        sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
+        todo: dict[int, list[str]] = {}
+        for k, (_, folded, payloads) in got.items():
+            span = tiling.span(k)
+            for batch_id, done, payload in zip(batch_ids, folded, payloads):
+                if done:
+                    continue
+                if payload is None:
+                    raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
+                todo.setdefault(k, []).append(batch_id)
+                for name, part in decode_delta(payload, widths, span.stop - span.start).items():
+                    sums[name][span] += part
+        counters: dict[str, float] = {}
+        for header in accepted.values():
+            for name, value in header["c"].items():
+                counters[name] = counters.get(name, 0.0) + value
+        extra = {"counters": counters} if counters else {}
+        delta = Delta(first_pass=-1, n_passes=sum(h["n"] for h in accepted.values()),
+                      emitted=sum(h["e"] for h in accepted.values()), sums=sums, **extra)
+        # Merge, then what the next batches read and the error.
+        integrator.merge(state, delta)
+        inputs = integrator.batch_inputs(state)
+        estimate = integrator.estimate(state)
+        arrays = state.arrays()
+        # Write each tile in a transaction on its version.
+        for k in range(tiling.count):
+            span, node = tiling.span(k), self.nodes[tiling.node(k)]
+            meta = keys.tile(job_id, k, "meta")
+            blob = encode_state(arrays, widths, span) if k in todo else None
+            with node.pipeline() as pipe:
+                try:
+                    pipe.watch(meta)
+                    if int(pipe.hget(meta, "version") or 0) != versions[k]:
+                        raise FoldContended(f"tile {k} was folded by another folder")
+                    pipe.multi()
+                    if blob is not None:
+                        pipe.set(keys.tile(job_id, k, "state"), blob)
+                        pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
+                        pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
+                        pipe.hincrby(meta, "version", 1)
+                        pipe.hincrby(meta, "passes", sum(accepted[b]["n"] for b in todo[k]))
+                    pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, span))
+                    pipe.execute()
+                except redis.WatchError as exc:
+                    raise FoldContended(f"tile {k} was folded by another folder") from exc
+            if blob is not None:
+                CACHE.put(job_id, k, versions[k] + 1, blob)
+            keep_lease()
+        return Folded(state, estimate.average if estimate is not None else None)
+
+    def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any] | None) -> None:
+        """Count folded batches in the record (once each) and log the error after the round."""
+        pipe = self.main.pipeline()
+        self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
+        if history is not None:
+            pipe.hset(keys.job(job_id), "folded_at", time.time())
+            pipe.rpush(keys.history(job_id), json.dumps(history))
+        pipe.execute()
+
+    # --------------------------------------------------------------- lifetime
+    def expire(self, job_id: str, tiling: Tiling, seconds: int) -> None:
+        self._each_node(tiling, lambda pipe, k: [pipe.expire(key, seconds) for key in keys.tile_keys(job_id, k)])
+
+    def delete(self, job_id: str, tiling: Tiling) -> None:
+        self._each_node(tiling, lambda pipe, k: pipe.delete(*keys.tile_keys(job_id, k)))
