@@ -80,6 +80,7 @@ def _merge_and_fold(urls: list[str], job_id: str, deltas_file: str, order_seed: 
 
 
 def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
+    store.fold(job_id, wait=True)
     record = store.get(job_id)
     state = store.state(record)
     record = store.get(job_id)

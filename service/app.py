@@ -44,6 +44,7 @@ from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, Scene,
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
+from worker.store.connection import connect
 from worker.store.policy import FINAL
 from worker.store.record import JobLimitReached
 
@@ -104,7 +105,7 @@ MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 
 
 def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
-    conn = redis.Redis.from_url(redis_url, health_check_interval=10)
+    conn = connect(redis_url)
     jobs = Jobs(conn)
 
     @asynccontextmanager
@@ -148,7 +149,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             request._body = body  # noqa: SLF001 - the stream is consumed; hand the body on
         try:
             return await call_next(request)
-        except redis.ConnectionError:
+        except (redis.ConnectionError, redis.TimeoutError):
             return JSONResponse({"detail": "job store unavailable, retry shortly"}, 503)
         except redis.exceptions.OutOfMemoryError:  # the memory cap (maxmemory, no eviction)
             return JSONResponse({"detail": "job store full: delete finished jobs or raise its memory cap"}, 507)

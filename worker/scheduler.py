@@ -125,9 +125,9 @@ def reap(jobs: Jobs) -> int:
 
 
 def fold_active(jobs: Jobs) -> int:
-    """The reducer: a fold round for every active job with accepted batches waiting (a job
-    another process is folding is skipped). Returns how many jobs were folded."""
-    return sum(jobs.fold(job_id) is not None for job_id in jobs.active_ids())
+    """The reducer: a fold round for every active job with accepted batches waiting whose
+    round is due (a job another process is folding is skipped). Returns how many were folded."""
+    return sum(jobs.fold_if_due(job_id) is not None for job_id in jobs.active_ids())
 
 
 class Reaper:

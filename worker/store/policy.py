@@ -35,10 +35,13 @@ MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
 MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
 MAX_INFLIGHT_PER_JOB = 8
-# The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile;
-# the API's reaper folds every REAP_SECONDS, a worker after its merge when the last fold
-# is older than FOLD_STALE_SECONDS, so the image refreshes within 10 s without the API too.
+# The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
+# The API's folder thread folds a job FOLD_SECONDS after its last round, or later for a
+# large state (`fold_interval`); a worker folds after its merge when the API has not for
+# FOLD_STALE_SECONDS more (the API is down or behind).
 FOLD_LEASE_SECONDS = LEASE_SECONDS
+FOLD_SECONDS = 2.0
+REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 FOLD_STALE_SECONDS = 5.0
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
 # not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
@@ -68,6 +71,14 @@ def out_of_time(settings: Settings, elapsed: float) -> bool:
 def passes_left(settings: Settings, passes: int) -> int | None:
     """Passes the budget still allows after `passes` (None: no pass budget)."""
     return None if settings.max_passes is None else max(0, settings.max_passes - passes)
+
+
+def fold_interval(fold_seconds: float) -> float:
+    """Seconds from one fold round's end to the next one's start, given how long the last
+    round took: FOLD_SECONDS for a small state; for a large one twice a round (a state node
+    writes the state at most a third of the time), but short enough that a round starts
+    and ends within REFRESH_SECONDS of the last one's end."""
+    return max(FOLD_SECONDS, min(2.0 * fold_seconds, REFRESH_SECONDS - fold_seconds))
 
 
 def seconds_left(settings: Settings, elapsed: float) -> float | None:

@@ -60,6 +60,7 @@ class JobRecord:
     folded_passes: int  # in the folded state (the image)
     folded_emitted: int
     folded_at: float
+    fold_seconds: float  # the last fold round's
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
     stopping: bool  # a move to a final status is under way: no new batches
     shards: int  # state nodes the tiles are spread over
@@ -83,7 +84,8 @@ class JobRecord:
                    created=float(f["created"]), started=when("started"), finished=when("finished"),
                    passes=int(f["passes"]), emitted=int(f["emitted"]),
                    folded_passes=int(f.get("folded_passes", 0)), folded_emitted=int(f.get("folded_emitted", 0)),
-                   folded_at=float(f.get("folded_at", 0.0)), setup=f.get("setup") == "1",
+                   folded_at=float(f.get("folded_at", 0.0)),
+                   fold_seconds=float(f.get("fold_seconds", 0.0)), setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1",
                    shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
                    next_pass=int(f["next_pass"]),
@@ -232,9 +234,9 @@ class Jobs:
         self.r.hset(keys.job(record.id), "setup", "1")
 
     def state(self, record: JobRecord) -> State | None:
-        """The job state with every accepted batch folded in if the fold lease is free
-        (else as last folded), or None before its first batch fixed the setup arrays."""
-        self.fold(record.id)
+        """The job state as folded (a fold round first if one is due and the lease is
+        free), or None before its first batch fixed the setup arrays."""
+        self.fold_if_due(record.id)
         record = self.get(record.id) or record
         if not record.setup:
             return None
@@ -474,12 +476,14 @@ class Jobs:
             accepted = {b.decode(): json.loads(v) for b, v in self.r.hgetall(keys.tofold(job_id)).items()}
             if record is None or not record.setup or not accepted:
                 return None
+            fold_start = time.perf_counter()
             folded = self.tiles.fold_round(
                 job_id, self.tiling(record), record.integrator, record.folded_emitted, record.folded_passes,
                 accepted, keep_lease=lambda: lock.extend(FOLD_LEASE_SECONDS, replace_ttl=True))
             self.tiles.account(job_id, list(accepted), {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
-                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error})
+                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
+                time.perf_counter() - fold_start)
         except (FoldContended, LockError):
             return None  # another folder holds the tiles now; its round counts
         finally:
@@ -494,10 +498,22 @@ class Jobs:
             self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
         return folded
 
-    def fold_if_stale(self, job_id: str) -> Folded | None:
-        """A worker's fold after its merge, if no one folded the job lately (the API is
-        down or behind): the image refreshes without the API."""
+    def _since_fold(self, record: JobRecord) -> float:
+        return time.time() - max(record.folded_at, record.started or 0.0)
+
+    def fold_if_due(self, job_id: str) -> Folded | None:
+        """The API's fold (its folder thread, and before a read): once `fold_interval`
+        has passed since the last round."""
         record = self.get(job_id)
-        if record is None or time.time() - max(record.folded_at, record.started or 0.0) < FOLD_STALE_SECONDS:
+        if record is None or self._since_fold(record) < policy.fold_interval(record.fold_seconds):
+            return None
+        return self.fold(job_id)
+
+    def fold_if_stale(self, job_id: str) -> Folded | None:
+        """A worker's fold after its merge, if no one folded the job for FOLD_STALE_SECONDS
+        past its interval (the API is down or behind): the image refreshes without the API."""
+        record = self.get(job_id)
+        if record is None or \
+                self._since_fold(record) < policy.fold_interval(record.fold_seconds) + FOLD_STALE_SECONDS:
             return None
         return self.fold(job_id)

@@ -54,6 +54,10 @@ return 1
 """
 
 
+def _setup_widths(integrator: Integrator) -> dict[str, int]:
+    return {name: integrator.state_widths[name] for name in integrator.setup_arrays}
+
+
 class FoldContended(Exception):
     """Another folder changed a tile during this round: it has the lease now."""
 
@@ -100,9 +104,10 @@ class TiledState:
 
     # ------------------------------------------------------------------ setup
     def init(self, job_id: str, tiling: Tiling, integrator: Integrator, setup: dict[str, np.ndarray]) -> None:
-        """Write the empty state and the first inputs of every tile (the first writer wins)."""
+        """Write the setup arrays and the first inputs of every tile (the first writer wins).
+        A tile's state holds only its setup arrays until its first fold (the sums are zero)."""
         state = integrator.start(setup)
-        arrays, inputs, widths = state.arrays(), integrator.batch_inputs(state), integrator.state_widths
+        arrays, inputs, widths = state.arrays(), integrator.batch_inputs(state), _setup_widths(integrator)
         self._each_node(tiling, lambda pipe, k: (
             pipe.set(keys.tile(job_id, k, "state"), encode_state(arrays, widths, tiling.span(k)), nx=True),
             pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)), nx=True)))
@@ -156,12 +161,17 @@ class TiledState:
                 out[k] = blob
         return out
 
-    def _arrays(self, tiling: Tiling, widths: dict[str, int], blobs: dict[int, bytes]) -> dict[str, np.ndarray]:
-        n = tiling.n_pixels
-        arrays = {name: np.empty((n, w) if w > 1 else n) for name, w in widths.items()}
+    @staticmethod
+    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, bytes]) -> dict[str, np.ndarray]:
+        """The whole frame's state arrays from its tiles' (a tile not yet folded holds only
+        its setup arrays: the rest are zero there)."""
+        n, widths, setup = tiling.n_pixels, integrator.state_widths, _setup_widths(integrator)
+        arrays = {name: np.zeros((n, w) if w > 1 else n) for name, w in widths.items()}
         for k, blob in blobs.items():
             span = tiling.span(k)
-            for name, part in decode_state(blob, widths, span.stop - span.start).items():
+            size = span.stop - span.start
+            held = setup if len(blob) == 8 * size * sum(setup.values()) else widths
+            for name, part in decode_state(blob, held, size).items():
                 arrays[name][span] = part
         return arrays
 
@@ -173,7 +183,7 @@ class TiledState:
                 break
             except FoldContended:
                 continue
-        return integrator.restore(self._arrays(tiling, integrator.state_widths, blobs), emitted, passes)
+        return integrator.restore(self._arrays(tiling, integrator, blobs), emitted, passes)
 
     # ------------------------------------------------------------------- fold
     def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
@@ -189,7 +199,7 @@ class TiledState:
             pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids),
             pipe.hmget(keys.tile(job_id, k, "pending"), batch_ids)))
         versions = {k: int(g[0] or 0) for k, g in got.items()}
-        state = integrator.restore(self._arrays(tiling, widths, self._blobs(job_id, tiling, versions)),
+        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, versions)),
                                    emitted, passes)
         # The round's delta: each tile's batches it has not folded yet.
         sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
@@ -242,13 +252,13 @@ class TiledState:
             keep_lease()
         return Folded(state, estimate.average if estimate is not None else None)
 
-    def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any] | None) -> None:
-        """Count folded batches in the record (once each) and log the error after the round."""
+    def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
+        """Count folded batches in the record (once each), log the error after the round and
+        when and how long the round took."""
         pipe = self.main.pipeline()
         self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
-        if history is not None:
-            pipe.hset(keys.job(job_id), "folded_at", time.time())
-            pipe.rpush(keys.history(job_id), json.dumps(history))
+        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds})
+        pipe.rpush(keys.history(job_id), json.dumps(history))
         pipe.execute()
 
     # --------------------------------------------------------------- lifetime

@@ -27,17 +27,20 @@ from typing import Any
 import numpy as np
 import redis
 
+from worker.store.connection import connect
+
 # Pixels a tile holds (a job keeps the size it was created with; tests make tiles small).
 TILE_PIXELS = int(os.environ.get("PHOTONFARM_TILE_PIXELS", str(1 << 16)))
 STATE_URLS_ENV = "PHOTONFARM_STATE_URLS"
-# Folded tiles a process keeps (the API process reads what it folded without a round trip).
-CACHE_BYTES = int(float(os.environ.get("PHOTONFARM_TILE_CACHE_MB", "1024")) * 1e6)
+# Folded tiles a process keeps (the API process reads what it folded without a round trip;
+# 2 GB holds a 3840 x 2160 job's state).
+CACHE_BYTES = int(float(os.environ.get("PHOTONFARM_TILE_CACHE_MB", "2048")) * 1e6)
 
 
 def state_nodes(main: redis.Redis) -> list[redis.Redis]:
     """The Redis nodes that hold job states: PHOTONFARM_STATE_URLS, else the main Redis."""
     urls = [u.strip() for u in os.environ.get(STATE_URLS_ENV, "").split(",") if u.strip()]
-    return [redis.Redis.from_url(u, health_check_interval=10) for u in urls] or [main]
+    return [connect(u) for u in urls] or [main]
 
 
 @dataclass(frozen=True)
