@@ -120,7 +120,7 @@ def _push_then_die(urls: list[str], job_id: str, deltas_file: str, nodes_before_
     pushed = []
     real = TiledState._each_node
 
-    def each_node(self, tiling, queue, transaction=False):  # noqa: ANN001, ANN202
+    def each_node(self, tiling, queue):  # noqa: ANN001, ANN202
         node_of = {k: tiling.node(k) for k in range(tiling.count)}
 
         def counted(pipe, k):  # noqa: ANN001, ANN202
@@ -129,7 +129,7 @@ def _push_then_die(urls: list[str], job_id: str, deltas_file: str, nodes_before_
                     os.kill(os.getpid(), signal.SIGKILL)
                 pushed.append(node_of[k])
             return queue(pipe, k)
-        return real(self, tiling, counted, transaction)
+        return real(self, tiling, counted)
 
     TiledState._each_node = each_node
     Jobs.accept = lambda *args: os.kill(os.getpid(), signal.SIGKILL)  # pushed everywhere: dies before accepting

@@ -15,10 +15,11 @@ own rule gives for that pass time and the merge time measured alone
 (worker/store/policy.py batch_passes). Workers start staggered over one batch.
 
 Per frame size, node count and N: merge seconds (push + accept + encode; median, p95),
-its share of a worker's time (merge / (batch + merge)), the refresh interval (the largest
-gap between completed folds, and the median), and the fold backlog at the end. N is
-sustained when the p95 share is at most 5%, the largest refresh gap at most 10 s, and the
-backlog at the end at most N batches (the folder keeps up).
+its share of a worker's time (merge / (batch + merge)), the refresh interval (per accepted
+batch, the seconds until a fold round that started after it ended: when the image a
+client reads holds it; largest and median), and the fold backlog at the end. N is
+sustained when the p95 share is at most 5%, the largest refresh interval at most 10 s,
+and the backlog at the end at most N batches (the folder keeps up).
 
     python -m bench.merge_capacity --smoke   # a few minutes: small frames, N up to 2
     python -m bench.merge_capacity           # the real run: 1920x1080 and 3840x2160, N to 100
@@ -79,7 +80,7 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, ba
     store = _store(urls)
     delta, payloads, encode = _delta(store, job_id)
     due = {w: start + batch_seconds * (1 + w / n_workers) for w in workers}
-    latencies, lateness, batch_no = [], [], first_batch
+    latencies, lateness, accepted, batch_no = [], [], [], first_batch
     while True:
         w = min(due, key=due.get)
         if due[w] > end:
@@ -89,22 +90,29 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, ba
         t0 = time.perf_counter()
         _merge(store, job_id, Batch(job_id, batch_no, 1), delta, payloads)
         latencies.append(time.perf_counter() - t0 + encode)
+        accepted.append(time.time())
         batch_no += 1
         due[w] = time.time() + batch_seconds
-    out.put({"latencies": latencies, "lateness": lateness})
+    out.put({"latencies": latencies, "lateness": lateness, "accepted": accepted})
 
 
 def _folder(urls: list[str], job_id: str, end: float, out: mp.Queue) -> None:
-    """The reaper's fold, every REAP_SECONDS: completion times and round seconds."""
+    """The API's folder thread: every REAP_SECONDS, a round if one is due. Each round's
+    start and end."""
     store = _store(urls)
-    done, rounds = [time.time()], []
+    rounds = []
     while time.time() < end:
         t0 = time.time()
-        if store.fold(job_id, wait=True) is not None:
-            done.append(time.time())
-            rounds.append(done[-1] - t0)
+        if store.fold_if_due(job_id) is not None:
+            rounds.append((t0, time.time()))
         time.sleep(max(0.0, REAP_SECONDS - (time.time() - t0)))
-    out.put({"done": done, "rounds": rounds, "backlog": store.r.hlen(keys.tofold(job_id))})
+    out.put({"rounds": rounds, "backlog": store.r.hlen(keys.tofold(job_id))})
+
+
+def _image_lags(accepted: list[float], rounds: list[tuple[float, float]]) -> list[float]:
+    """Per accepted batch, seconds until the end of the first fold round that started
+    after it (the batch is in the image then); inf if none did."""
+    return [min((end - t for start, end in rounds if start >= t), default=float("inf")) for t in accepted]
 
 
 def _job(store: Jobs, w: int, h: int) -> str:
@@ -139,10 +147,10 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     results = [out.get() for _ in procs]
     for p in procs:
         p.join()
-    fold = next(r for r in results if "done" in r)
+    fold = next(r for r in results if "rounds" in r)
     pushes = [r for r in results if "latencies" in r]
     latencies = sorted(x for r in pushes for x in r["latencies"])
-    gaps = np.diff(fold["done"]) if len(fold["done"]) > 1 else np.array([float("inf")])
+    lags = _image_lags([t for r in pushes for t in r["accepted"]], fold["rounds"]) or [float("inf")]
     p95 = latencies[int(0.95 * (len(latencies) - 1))] if latencies else float("nan")
     record = store.get(job_id)
     assert record.passes == 1 + len(latencies), "a merge was lost or counted twice"
@@ -152,8 +160,10 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
               "merge_median_seconds": statistics.median(latencies) if latencies else None,
               "merge_p95_seconds": p95, "share_p95": p95 / (batch_seconds + p95),
               "lateness_max_seconds": max((x for r in pushes for x in r["lateness"]), default=0.0),
-              "refresh_max_seconds": float(gaps.max()), "refresh_median_seconds": float(np.median(gaps)),
-              "fold_round_median_seconds": statistics.median(fold["rounds"]) if fold["rounds"] else None,
+              "refresh_max_seconds": max(lags), "refresh_median_seconds": statistics.median(lags),
+              "fold_rounds": len(fold["rounds"]),
+              "fold_round_median_seconds": statistics.median(e - s for s, e in fold["rounds"])
+              if fold["rounds"] else None,
               "backlog_at_end": fold["backlog"]}
     report["sustained"] = bool(report["share_p95"] <= MERGE_SHARE and report["refresh_max_seconds"] <= REFRESH_LIMIT
                                and report["backlog_at_end"] <= n_workers)
@@ -172,7 +182,7 @@ def chart(report: dict, name: str) -> None:
         axes[1].plot(xs, [r["refresh_max_seconds"] for r in runs], "o-", label=label)
     axes[0].axhline(100 * MERGE_SHARE, color="grey", ls="--", label="5% of a worker's time")
     axes[1].axhline(REFRESH_LIMIT, color="grey", ls="--", label="10 s")
-    for ax, title in zip(axes, ("merge share of a worker's time, p95 (%)", "refresh interval, largest gap (s)")):
+    for ax, title in zip(axes, ("merge share of a worker's time, p95 (%)", "refresh interval, largest (s)")):
         ax.set_xscale("log")
         ax.set_xlabel("simulated workers")
         ax.set_title(title)

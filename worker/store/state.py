@@ -58,6 +58,10 @@ def _setup_widths(integrator: Integrator) -> dict[str, int]:
     return {name: integrator.state_widths[name] for name in integrator.setup_arrays}
 
 
+# Tiles per round trip to a node: 4 tiles of state are 34 MB at 128 bytes a pixel.
+TILES_PER_TRIP = 4
+
+
 class FoldContended(Exception):
     """Another folder changed a tile during this round: it has the lease now."""
 
@@ -85,21 +89,25 @@ class TiledState:
                                f"{len(self.nodes)} (PHOTONFARM_STATE_URLS)")
         return Tiling(n_pixels, shards, tile_pixels)
 
-    def _each_node(self, tiling: Tiling, queue: Any, transaction: bool = False) -> dict[int, list[Any]]:
-        """Run `queue(pipe, k)` for every tile, one pipeline per node; results by tile."""
+    def _each_node(self, tiling: Tiling, queue: Any) -> dict[int, list[Any]]:
+        """Run `queue(pipe, k)` for every tile, pipelined per node TILES_PER_TRIP tiles at a
+        time (a node buffers a trip's requests and replies, which count against its
+        memory cap); results by tile."""
         out: dict[int, list[Any]] = {}
-        for node, ks in tiling.by_node().items():
-            pipe = self.nodes[node].pipeline(transaction=transaction)
-            counts = []
-            for k in ks:
-                before = len(pipe)
-                queue(pipe, k)
-                counts.append(len(pipe) - before)
-            results = pipe.execute()
-            at = 0
-            for k, count in zip(ks, counts):
-                out[k] = results[at:at + count]
-                at += count
+        for node, tiles in tiling.by_node().items():
+            for at in range(0, len(tiles), TILES_PER_TRIP):
+                ks = tiles[at:at + TILES_PER_TRIP]
+                pipe = self.nodes[node].pipeline(transaction=False)
+                counts = []
+                for k in ks:
+                    before = len(pipe)
+                    queue(pipe, k)
+                    counts.append(len(pipe) - before)
+                results = pipe.execute()
+                first = 0
+                for k, count in zip(ks, counts):
+                    out[k] = results[first:first + count]
+                    first += count
         return out
 
     # ------------------------------------------------------------------ setup
@@ -193,25 +201,23 @@ class TiledState:
         another folder got to a tile first (this round's other tiles stay valid)."""
         batch_ids = sorted(accepted)
         widths = integrator.state_widths
-        # Read: versions, which tiles already hold which batch, the pending deltas, the state.
+        # Read: versions, which tiles already hold which batch, the state.
         got = self._each_node(tiling, lambda pipe, k: (
             pipe.hget(keys.tile(job_id, k, "meta"), "version"),
-            pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids),
-            pipe.hmget(keys.tile(job_id, k, "pending"), batch_ids)))
+            pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids)))
         versions = {k: int(g[0] or 0) for k, g in got.items()}
+        todo = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items()}
+        todo = {k: ids for k, ids in todo.items() if ids}
         state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, versions)),
                                    emitted, passes)
-        # The round's delta: each tile's batches it has not folded yet.
+        # The round's delta: each tile's batches it has not folded yet, read a tile at a time.
         sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
-        todo: dict[int, list[str]] = {}
-        for k, (_, folded, payloads) in got.items():
+        for k, ids in todo.items():
             span = tiling.span(k)
-            for batch_id, done, payload in zip(batch_ids, folded, payloads):
-                if done:
-                    continue
+            payloads = self.nodes[tiling.node(k)].hmget(keys.tile(job_id, k, "pending"), ids)
+            for batch_id, payload in zip(ids, payloads):
                 if payload is None:
                     raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
-                todo.setdefault(k, []).append(batch_id)
                 for name, part in decode_delta(payload, widths, span.stop - span.start).items():
                     sums[name][span] += part
         counters: dict[str, float] = {}
