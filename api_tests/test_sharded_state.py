@@ -25,6 +25,7 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
+from worker.store import state as state_module
 from worker.store.state import TiledState
 
 SHARDS = 3
@@ -157,19 +158,18 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
 
 
 def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int) -> None:
-    """One fold round, SIGKILLed after writing `tiles_before_kill` tiles."""
-    written = []
-    real = TiledState.fold_round
+    """One fold round, SIGKILLed after writing `tiles_before_kill` tiles (as it encodes
+    the next tile's inputs, inside that tile's transaction)."""
+    encoded = []
+    real = state_module.encode_inputs
 
-    def fold_round(self, *args, keep_lease, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
-        def count() -> None:
-            written.append(1)
-            if len(written) == tiles_before_kill:
-                os.kill(os.getpid(), signal.SIGKILL)
-            keep_lease()
-        return real(self, *args, keep_lease=count, **kwargs)
+    def encode_inputs(inputs, span):  # noqa: ANN001, ANN202
+        encoded.append(span)
+        if len(encoded) == tiles_before_kill + 1:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(inputs, span)
 
-    TiledState.fold_round = fold_round
+    state_module.encode_inputs = encode_inputs
     _store(urls).fold(job_id)
 
 

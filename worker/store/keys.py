@@ -5,7 +5,7 @@
     pf:job:{id}                    hash    the job record (worker/store/record.py)
     pf:job:{id}:merged             set     batch ids accepted (counted in the record, exactly once)
     pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet folded
-    pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (a redis-py lock)
+    pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
     pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each merge
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped
     pf:leases                      zset    batch member "job/first/n" -> deadline

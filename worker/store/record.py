@@ -26,14 +26,14 @@ from typing import Any, Callable
 
 import numpy as np
 import redis
-from redis.exceptions import LockError
 
 from worker.integrators import Integrator, integrator_for
 from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
+from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
-from worker.store.policy import FOLD_LEASE_SECONDS, FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
+from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
 from worker.store.state import Folded, FoldContended, TiledState
 from worker.store.tiles import TILE_PIXELS, Tiling
 
@@ -467,30 +467,23 @@ class Jobs:
         converges. None if there was nothing to fold or another folder had the lease."""
         if not self.r.hlen(keys.tofold(job_id)):
             return None
-        lock = self.r.lock(keys.fold_lock(job_id), timeout=FOLD_LEASE_SECONDS, blocking=wait,
-                           blocking_timeout=2 * FOLD_LEASE_SECONDS, thread_local=False)
-        if not lock.acquire():
-            return None
-        try:
+        with FoldLease(self.r, job_id, wait) as held:
+            if not held:
+                return None
             record = self.get(job_id)
             accepted = {b.decode(): json.loads(v) for b, v in self.r.hgetall(keys.tofold(job_id)).items()}
             if record is None or not record.setup or not accepted:
                 return None
             fold_start = time.perf_counter()
-            folded = self.tiles.fold_round(
-                job_id, self.tiling(record), record.integrator, record.folded_emitted, record.folded_passes,
-                accepted, keep_lease=lambda: lock.extend(FOLD_LEASE_SECONDS, replace_ttl=True))
+            try:
+                folded = self.tiles.fold_round(job_id, self.tiling(record), record.integrator,
+                                               record.folded_emitted, record.folded_passes, accepted)
+            except FoldContended:
+                return None  # another folder holds the tiles now; its round counts
             self.tiles.account(job_id, list(accepted), {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
                 time.perf_counter() - fold_start)
-        except (FoldContended, LockError):
-            return None  # another folder holds the tiles now; its round counts
-        finally:
-            try:
-                lock.release()
-            except LockError:
-                pass
         status = self.status(job_id)
         if status in policy.FINAL:
             self._expire_tiles(job_id)  # a fold racing the final move rewrote tiles

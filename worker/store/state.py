@@ -195,7 +195,7 @@ class TiledState:
 
     # ------------------------------------------------------------------- fold
     def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
-                   accepted: dict[str, dict[str, Any]], keep_lease: Any) -> Folded:
+                   accepted: dict[str, dict[str, Any]]) -> Folded:
         """Fold the accepted batches (id -> {n, e, c}; at least one) into every tile that lacks them;
         `emitted` and `passes` are the record's folded counters. Raises FoldContended if
         another folder got to a tile first (this round's other tiles stay valid)."""
@@ -255,7 +255,6 @@ class TiledState:
                     raise FoldContended(f"tile {k} was folded by another folder") from exc
             if blob is not None:
                 CACHE.put(job_id, k, versions[k] + 1, blob)
-            keep_lease()
         return Folded(state, estimate.average if estimate is not None else None)
 
     def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
