@@ -5,8 +5,9 @@
     pf:job:{id}                    hash    the job record (worker/store/record.py)
     pf:job:{id}:merged             set     batch ids accepted (counted in the record, exactly once)
     pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet folded
+                                           (folded counters add into the record: folded_passes, folded_emitted, counter:NAME)
     pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
-    pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each merge
+    pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each fold round
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped
     pf:leases                      zset    batch member "job/first/n" -> deadline
     pf:lease-owner                 hash    batch member -> worker name
@@ -20,7 +21,7 @@ On the state nodes (worker/store/tiles.py: tile k of a job on node k mod nodes):
     pf:job:{id}:t{k}:inputs        string  what a batch reads for tile k (e.g. radius, bias; float32)
     pf:job:{id}:t{k}:pending       hash    batch id -> the batch's delta for tile k, pushed and not yet folded
     pf:job:{id}:t{k}:folded        set     batch ids folded into tile k (exactly once per tile)
-    pf:job:{id}:t{k}:meta          hash    version (bumped by every fold of the tile; folds WATCH it), passes
+    pf:job:{id}:t{k}:meta          hash    version (bumped by every fold of the tile; folds WATCH it)
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ A worker never reads or writes the folded state. It pushes its batch's delta, cu
 tiles, into each tile's pending hash (HSET by batch id: a re-pushed batch overwrites its
 own entry, never adds a second one), and the job record then accepts the batch
 (worker/store/record.py). The folder, whoever holds the job's fold lease (the API's
-reaper thread, a reader, or a worker when the last fold is stale), folds every accepted
+folder thread, a reader, or a worker when the last fold is stale), folds every accepted
 batch not yet folded: it reads the state (from its cache when the tile's version is
 unchanged), adds the round's deltas with the integrator's own merge (one merge per round:
 a big pass, digest 11.2 (i)), and writes each tile in one transaction that WATCHes the
@@ -32,7 +32,6 @@ from worker.store.tiles import (CACHE, Tiling, decode_delta, decode_inputs, deco
 
 # Applies a folded round to the job record once per batch, however many folders try.
 ACCOUNT = """
-local passes, emitted = 0, 0
 for i = 1, #ARGV do
   local h = redis.call('HGET', KEYS[1], ARGV[i])
   if h then
@@ -248,7 +247,6 @@ class TiledState:
                         pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
                         pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
                         pipe.hincrby(meta, "version", 1)
-                        pipe.hincrby(meta, "passes", sum(accepted[b]["n"] for b in todo[k]))
                     pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, span))
                     pipe.execute()
                 except redis.WatchError as exc:
