@@ -174,13 +174,13 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
         return await http_exception_handler(request, exc)
 
-    # Encoded bodies keyed by the passes merged: a new merge makes a new key, so nothing stale
-    # is served; concurrent misses of one key wait for a single encode (the condition).
+    # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
+    # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
     encoded = cachetools.LRUCache(maxsize=ENCODED_CACHE_BYTES, getsizeof=lambda value: len(value[0]))
     encoding = threading.Condition()
 
     def by_passes(kind: str):  # type: ignore[no-untyped-def]
-        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.passes, fmt),
+        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.folded_passes, fmt),
                                  condition=encoding)
 
     @by_passes("image")
@@ -210,7 +210,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
         return body, {"X-Passes": str(state.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
 
-    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.passes),
+    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.folded_passes),
                        condition=threading.Condition())
     def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
         """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
@@ -414,7 +414,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         def value(name: str) -> float | None:  # none where unknown (an infinite bound) or not estimated
             v = float(arrays[name][y, x]) if name in arrays else math.nan
             return v if math.isfinite(v) else None
-        return PixelView(x=x, y=y, passes=record.passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
+        return PixelView(x=x, y=y, passes=record.folded_passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
                          luminance=value("luminance"), bound=value("bound"), relative_error=value("relative"),
                          measured=bool(arrays["measured"][y, x]) if "measured" in arrays else None,
                          confidence=record.settings.confidence if "relative" in arrays else None)

@@ -491,8 +491,11 @@ class Jobs:
             self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
         return folded
 
-    def _since_fold(self, record: JobRecord) -> float:
-        return time.time() - max(record.folded_at, record.started or 0.0)
+    @staticmethod
+    def _since_fold(record: JobRecord) -> float:
+        """Seconds since the job's last fold round (infinite before the first: the first
+        image appears as soon as a batch is accepted)."""
+        return time.time() - record.folded_at if record.folded_at else float("inf")
 
     def fold_if_due(self, job_id: str) -> Folded | None:
         """The API's fold (its folder thread, and before a read): once `fold_interval`
