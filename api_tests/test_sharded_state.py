@@ -158,8 +158,8 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
 
 
 def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int) -> None:
-    """One fold round, SIGKILLed after writing `tiles_before_kill` tiles (as it encodes
-    the next tile's inputs, inside that tile's transaction)."""
+    """One fold round, SIGKILLed as it encodes its (tiles_before_kill + 1)-th tile's inputs,
+    inside that tile's transaction."""
     encoded = []
     real = state_module.encode_inputs
 
@@ -191,7 +191,8 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
     tiling = store.tiling(record)
     versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
                 for k in range(tiling.count)]
-    assert versions == [1, 1, 1, 0, 0, 0]  # half the tiles folded the round, then the folder died
+    # The nodes are written at once, a thread each: the folder died after 1 to 3 tiles.
+    assert set(versions) == {0, 1} and 1 <= sum(versions) <= 3, versions
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 4
     assert store.fold(job_id, wait=True) is not None  # after its lease lapsed, the next folder
     _assert_folded_once(store, job_id, made)

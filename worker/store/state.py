@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -88,12 +89,23 @@ class TiledState:
                                f"{len(self.nodes)} (PHOTONFARM_STATE_URLS)")
         return Tiling(n_pixels, shards, tile_pixels)
 
+    def _per_node(self, tiling: Tiling, work: Callable[[int, list[int]], dict[int, Any]]) -> dict[int, Any]:
+        """`work(node, its tiles)` for every node, the nodes at once (a thread each)."""
+        by_node = tiling.by_node()
+        if len(by_node) == 1:
+            return work(*next(iter(by_node.items())))
+        out: dict[int, Any] = {}
+        with ThreadPoolExecutor(len(by_node)) as pool:
+            for part in pool.map(lambda item: work(*item), by_node.items()):
+                out |= part
+        return out
+
     def _each_node(self, tiling: Tiling, queue: Any) -> dict[int, list[Any]]:
         """Run `queue(pipe, k)` for every tile, pipelined per node TILES_PER_TRIP tiles at a
         time (a node buffers a trip's requests and replies, which count against its
-        memory cap); results by tile."""
-        out: dict[int, list[Any]] = {}
-        for node, tiles in tiling.by_node().items():
+        memory cap), the nodes at once; results by tile."""
+        def trips(node: int, tiles: list[int]) -> dict[int, list[Any]]:
+            out: dict[int, list[Any]] = {}
             for at in range(0, len(tiles), TILES_PER_TRIP):
                 ks = tiles[at:at + TILES_PER_TRIP]
                 pipe = self.nodes[node].pipeline(transaction=False)
@@ -107,7 +119,8 @@ class TiledState:
                 for k, count in zip(ks, counts):
                     out[k] = results[first:first + count]
                     first += count
-        return out
+            return out
+        return self._per_node(tiling, trips)
 
     # ------------------------------------------------------------------ setup
     def init(self, job_id: str, tiling: Tiling, integrator: Integrator, setup: dict[str, np.ndarray]) -> None:
@@ -211,14 +224,19 @@ class TiledState:
                                    emitted, passes)
         # The round's delta: each tile's batches it has not folded yet, read a tile at a time.
         sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
-        for k, ids in todo.items():
-            span = tiling.span(k)
-            payloads = self.nodes[tiling.node(k)].hmget(keys.tile(job_id, k, "pending"), ids)
-            for batch_id, payload in zip(ids, payloads):
-                if payload is None:
-                    raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
-                for name, part in decode_delta(payload, widths, span.stop - span.start).items():
-                    sums[name][span] += part
+
+        def add(node: int, tiles: list[int]) -> dict[int, None]:
+            for k in (k for k in tiles if k in todo):
+                span = tiling.span(k)
+                payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), todo[k])
+                for batch_id, payload in zip(todo[k], payloads):
+                    if payload is None:
+                        raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
+                    for name, part in decode_delta(payload, widths, span.stop - span.start).items():
+                        sums[name][span] += part  # tiles are disjoint: threads never add to one pixel
+            return {}
+
+        self._per_node(tiling, add)
         counters: dict[str, float] = {}
         for header in accepted.values():
             for name, value in header["c"].items():
@@ -231,28 +249,31 @@ class TiledState:
         inputs = integrator.batch_inputs(state)
         estimate = integrator.estimate(state)
         arrays = state.arrays()
-        # Write each tile in a transaction on its version.
-        for k in range(tiling.count):
-            span, node = tiling.span(k), self.nodes[tiling.node(k)]
-            meta = keys.tile(job_id, k, "meta")
-            blob = encode_state(arrays, widths, span) if k in todo else None
-            with node.pipeline() as pipe:
-                try:
-                    pipe.watch(meta)
-                    if int(pipe.hget(meta, "version") or 0) != versions[k]:
-                        raise FoldContended(f"tile {k} was folded by another folder")
-                    pipe.multi()
-                    if blob is not None:
-                        pipe.set(keys.tile(job_id, k, "state"), blob)
-                        pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
-                        pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
-                        pipe.hincrby(meta, "version", 1)
-                    pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, span))
-                    pipe.execute()
-                except redis.WatchError as exc:
-                    raise FoldContended(f"tile {k} was folded by another folder") from exc
-            if blob is not None:
-                CACHE.put(job_id, k, versions[k] + 1, blob)
+        # Write each tile in a transaction on its version (the nodes at once).
+        def write(node: int, tiles: list[int]) -> dict[int, None]:
+            for k in tiles:
+                span, meta = tiling.span(k), keys.tile(job_id, k, "meta")
+                blob = encode_state(arrays, widths, span) if k in todo else None
+                with self.nodes[node].pipeline() as pipe:
+                    try:
+                        pipe.watch(meta)
+                        if int(pipe.hget(meta, "version") or 0) != versions[k]:
+                            raise FoldContended(f"tile {k} was folded by another folder")
+                        pipe.multi()
+                        if blob is not None:
+                            pipe.set(keys.tile(job_id, k, "state"), blob)
+                            pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
+                            pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
+                            pipe.hincrby(meta, "version", 1)
+                        pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, span))
+                        pipe.execute()
+                    except redis.WatchError as exc:
+                        raise FoldContended(f"tile {k} was folded by another folder") from exc
+                if blob is not None:
+                    CACHE.put(job_id, k, versions[k] + 1, blob)
+            return {}
+
+        self._per_node(tiling, write)
         return Folded(state, estimate.average if estimate is not None else None)
 
     def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
