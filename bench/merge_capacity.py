@@ -5,7 +5,7 @@ long as a real worker of the given speed would (it waits), then pushes a real-si
 to the job's tiles and has it accepted, as worker/tasks.py does (Jobs.merge without the
 encoding: every simulated worker pushes the same pre-encoded delta, random float64 in
 every sum of the default SPPM layout, so nothing compresses; the encoding's CPU time is
-measured once and added to each merge). One folder process folds every REAP_SECONDS, as
+measured once and added to each merge). One folder process folds every FOLD_POLL_SECONDS, as
 the API's folder thread does. Against one Redis and against 3 state nodes, all redis-servers of
 the embedded default (service/redis_server.py: append-only file, fsync always).
 
@@ -43,7 +43,7 @@ import redis
 from bench.common import save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
-from worker.scheduler import REAP_SECONDS
+from worker.scheduler import FOLD_POLL_SECONDS
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.policy import MAX_BATCH_PASSES, MERGE_SHARE, batch_passes
@@ -104,7 +104,7 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pa
 
 
 def _folder(urls: list[str], job_id: str, end: float, out: mp.Queue) -> None:
-    """The API's folder thread: every REAP_SECONDS, a round if one is due. Each round's
+    """The API's folder thread: every FOLD_POLL_SECONDS, a round if one is due. Each round's
     start and end."""
     store = _store(urls)
     rounds = []
@@ -112,7 +112,7 @@ def _folder(urls: list[str], job_id: str, end: float, out: mp.Queue) -> None:
         t0 = time.time()
         if store.fold_if_due(job_id) is not None:
             rounds.append((t0, time.time()))
-        time.sleep(max(0.0, REAP_SECONDS - (time.time() - t0)))
+        time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
     out.put({"rounds": rounds, "backlog": store.r.hlen(keys.tofold(job_id))})
 
 
@@ -147,7 +147,7 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     groups = [list(range(p, n_workers, processes)) for p in range(min(processes, n_workers))]
     procs = [ctx.Process(target=_pusher, args=(urls, job_id, g, n_workers, pass_seconds, alone, start, end,
                                                1 + i * 10 ** 6, out)) for i, g in enumerate(groups)]
-    procs.append(ctx.Process(target=_folder, args=(urls, job_id, end + 2 * REAP_SECONDS, out)))
+    procs.append(ctx.Process(target=_folder, args=(urls, job_id, end + 2 * FOLD_POLL_SECONDS, out)))
     for p in procs:
         p.start()
     results = [out.get() for _ in procs]

@@ -33,6 +33,7 @@ from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
 REAP_SECONDS = 2.0
+FOLD_POLL_SECONDS = 0.5  # the folder thread looks this often (each job's rounds are paced by fold_if_due)
 PRUNE_SECONDS = 60.0
 
 log = logging.getLogger("photonfarm.scheduler")
@@ -142,7 +143,7 @@ class Reaper:
                          threading.Thread(target=self._fold, name="folder", daemon=True)]
 
     def _fold(self) -> None:
-        while not self._stop.wait(self.interval):
+        while not self._stop.wait(FOLD_POLL_SECONDS):
             try:
                 fold_active(self.jobs)
             except redis.RedisError as exc:

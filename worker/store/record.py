@@ -506,10 +506,13 @@ class Jobs:
         return self.fold(job_id)
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
-        """A worker's fold after its merge, if no one folded the job for FOLD_STALE_SECONDS
-        past its interval (the API is down or behind): the image refreshes without the API."""
+        """A worker's fold after its merge, if no one folded the job (or, before its first
+        fold, no one since it started) for FOLD_STALE_SECONDS past its interval: the API is
+        down or behind, and the image still refreshes."""
         record = self.get(job_id)
-        if record is None or \
-                self._since_fold(record) < policy.fold_interval(record.fold_seconds) + FOLD_STALE_SECONDS:
+        if record is None:
+            return None
+        since = time.time() - (record.folded_at or record.started or time.time())
+        if since < policy.fold_interval(record.fold_seconds) + FOLD_STALE_SECONDS:
             return None
         return self.fold(job_id)
