@@ -20,6 +20,7 @@ from service.child_process import spawn
 from service.redis_server import EmbeddedRedis, free_port
 from worker.store import Batch, keys
 from worker.store.policy import FINAL
+from worker.store.tiles import STATE_URLS_ENV
 
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
 
@@ -27,13 +28,16 @@ LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's pati
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
                  redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None,
-                 redis_maxmemory: str = "1gb") -> None:
+                 redis_maxmemory: str = "1gb", shards: int = 0) -> None:
         self.data_dir = data_dir
         self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind, maxmemory=redis_maxmemory).start(supervise=False)
+        # With shards, the job states lie on that many more redis-servers (the same binary).
+        self.shards = [EmbeddedRedis(data_dir / f"shard{i}", bind=redis_bind, maxmemory=redis_maxmemory).start(
+            supervise=False) for i in range(shards)]
         # REDIS_URL carries the password: the environment, never a command line.
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
                     "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", "REDIS_URL": self.redis.url,
-                    **(env or {})}
+                    **({STATE_URLS_ENV: ",".join(s.url for s in self.shards)} if shards else {}), **(env or {})}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()
@@ -76,11 +80,12 @@ class Cluster:
         self.api.send_signal(signal.SIGKILL)
         self.api.wait()
 
-    def restart_redis(self) -> None:
-        """SIGKILL the server, then start it again on the same port and data."""
-        self.redis.proc.send_signal(signal.SIGKILL)
-        self.redis.proc.wait()
-        self.redis.start(supervise=False)
+    def restart_redis(self, server: EmbeddedRedis | None = None) -> None:
+        """SIGKILL a server (default the main one), then start it again on the same port and data."""
+        server = server or self.redis
+        server.proc.send_signal(signal.SIGKILL)
+        server.proc.wait()
+        server.start(supervise=False)
 
     def submit(self, **body: Any) -> dict[str, Any]:
         resp = self.http.post("/v1/jobs", json=body)
@@ -116,7 +121,8 @@ class Cluster:
                     proc.wait(timeout=10)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-        self.redis.stop()
+        for server in [self.redis, *self.shards]:
+            server.stop()
 
 
 def finished(job: dict[str, Any]) -> bool:

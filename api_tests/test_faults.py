@@ -1,7 +1,8 @@
 """Faults: a worker SIGKILLed mid-batch, the API killed and restarted, Redis killed and
-restarted. Each job must still finish, with every pass merged exactly once: the passes
-and photon totals add up exactly, and the merged batches tile 0..max_passes-1. Each with
-SPPM and with the hybrid integrator (vcm), whose sums the store merges the same way."""
+restarted; each with one Redis and with the job state sharded over three more. Each job
+must still finish, with every pass merged exactly once: the passes and photon totals add
+up exactly, and the merged batches tile 0..max_passes-1. Each with SPPM and with the
+hybrid integrator (vcm), whose sums the store merges the same way."""
 
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ P = 1 << 16
 PASSES = 40
 
 
-@pytest.fixture()
-def faulty(tmp_path) -> Cluster:  # noqa: ANN001 - a fresh cluster per fault
-    c = Cluster(tmp_path, workers=2)
+@pytest.fixture(params=[0, 3], ids=["one-redis", "3-shards"])
+def faulty(tmp_path, request) -> Cluster:  # noqa: ANN001 - a fresh cluster per fault
+    """One Redis, or the job state over 3 more (tiles of 2048 pixels: 5 tiles a job)."""
+    c = Cluster(tmp_path, workers=2, shards=request.param, env={"PHOTONFARM_TILE_PIXELS": "2048"})
     yield c
     c.close()
 
@@ -78,7 +80,8 @@ def test_redis_restart(faulty: Cluster, method: str) -> None:
     job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 4)
     before = faulty.job(job["id"])["passes"]
-    faulty.restart_redis()
+    for server in [faulty.redis, *faulty.shards[:1]]:  # the main Redis, and a state node
+        faulty.restart_redis(server)
     after = faulty.wait(job["id"], lambda j: True)
     assert after["passes"] >= before  # nothing merged was lost (append-only file, fsync always)
     _assert_exact(faulty, job["id"])

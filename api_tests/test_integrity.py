@@ -76,7 +76,7 @@ def test_dead_workers_do_not_count_as_capacity(tmp_path: Path) -> None:
 
 
 def test_a_cancel_between_a_merges_read_and_write_is_kept(tmp_path: Path) -> None:
-    """The cancel lands while a merge holds its read state (white box: the merge's state
+    """The cancel lands while a merge holds its read record (white box: the acceptance's
     read triggers it). The merge must retry and see it, not write 'running' back."""
     server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
     try:
@@ -96,11 +96,12 @@ def test_a_cancel_between_a_merges_read_and_write_is_kept(tmp_path: Path) -> Non
         class CancelledMidMerge(Jobs):
             fired = False
 
-            def state(self, rec):  # noqa: ANN001, ANN202 - called between the merge's read and write
+            def _read(self, pipe, job):  # noqa: ANN001, ANN202 - the acceptance's read, before its write
+                record = super()._read(pipe, job)
                 if not CancelledMidMerge.fired:
                     CancelledMidMerge.fired = True
-                    Jobs(conn).cancel(job_id)
-                return super().state(rec)
+                    Jobs(conn).cancel(job)
+                return record
 
         outcome = CancelledMidMerge(conn).merge(batch, Delta(batch.first, batch.n, batch.n * P, delta_sums), 0.1)
         assert CancelledMidMerge.fired and outcome == "merged"

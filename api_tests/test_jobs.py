@@ -114,7 +114,7 @@ def test_bad_inline_scenes_are_422_with_the_field(cluster: Cluster) -> None:
     _bad(cluster, {"scene": bad}, ["body", "scene", "materials", "wall", "ior"])
     bad = {**scene, "shapes": [{"type": "mesh", "file": "../../etc/passwd.obj", "material": "wall"}]}
     _bad(cluster, {"scene": bad}, ["body", "scene", "shapes", 0, "file"])
-    bad = {**scene, "camera": {**scene["camera"], "resolution": [2000, 2000]}}
+    bad = {**scene, "camera": {**scene["camera"], "resolution": [4000, 2200]}}
     _bad(cluster, {"scene": bad}, ["body", "scene", "camera"])
     resp = cluster.http.post("/v1/jobs", content=b"{not json", headers={"content-type": "application/json"})
     assert resp.status_code == 422

@@ -33,6 +33,7 @@ def test_metrics_workers_and_logs(cluster: Cluster) -> None:
     assert _metric(text, "photonfarm_passes_merged_total") >= 6
     assert _metric(text, "photonfarm_merge_latency_seconds_count") >= 1
     assert _metric(text, "photonfarm_merge_latency_seconds_sum") > 0
+    assert 0 <= _metric(text, "photonfarm_image_age_seconds") <= 60
     assert _metric(text, "photonfarm_queue_depth", '{queue="photonfarm-normal"}') >= 0
     assert _metric(text, "photonfarm_workers_alive") == len(cluster.workers)
 

@@ -10,13 +10,18 @@ import sys
 import time
 
 BENCHES = ("error_vs_time", "stability", "accuracy", "engine_speed", "peer_smallppm", "error_estimation",
-           "service_scaling")
+           "service_scaling", "merge_capacity")
 
 
 def main() -> int:
     full = ["--full"] if "--full" in sys.argv[1:] else []
     for name in BENCHES:
-        args = [*full] if name != "peer_smallppm" else (["--sweep"] if full else [])
+        if name == "peer_smallppm":
+            args = ["--sweep"] if full else []
+        elif name == "merge_capacity":
+            args = [] if full else ["--smoke"]
+        else:
+            args = [*full]
         t0 = time.perf_counter()
         print(f"== bench.{name} {' '.join(args)}", flush=True)
         subprocess.run([sys.executable, "-m", f"bench.{name}", *args], check=True)

@@ -45,6 +45,7 @@ from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, Scene,
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
+from worker.store.connection import connect
 from worker.store.policy import FINAL
 from worker.store.record import JobLimitReached
 
@@ -105,7 +106,7 @@ MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 
 
 def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
-    conn = redis.Redis.from_url(redis_url, health_check_interval=10)
+    conn = connect(redis_url)
     jobs = Jobs(conn)
 
     @asynccontextmanager
@@ -149,7 +150,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             request._body = body  # noqa: SLF001 - the stream is consumed; hand the body on
         try:
             return await call_next(request)
-        except redis.ConnectionError:
+        except (redis.ConnectionError, redis.TimeoutError):
             return JSONResponse({"detail": "job store unavailable, retry shortly"}, 503)
         except redis.exceptions.OutOfMemoryError:  # the memory cap (maxmemory, no eviction)
             return JSONResponse({"detail": "job store full: delete finished jobs or raise its memory cap"}, 507)
@@ -174,22 +175,22 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
         return await http_exception_handler(request, exc)
 
-    # Encoded bodies keyed by the passes merged: a new merge makes a new key, so nothing stale
-    # is served; concurrent misses of one key wait for a single encode (the condition).
+    # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
+    # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
     encoded = cachetools.LRUCache(maxsize=ENCODED_CACHE_BYTES, getsizeof=lambda value: len(value[0]))
     encoding = threading.Condition()
 
     def by_passes(kind: str):  # type: ignore[no-untyped-def]
-        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.passes, fmt),
+        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.folded_passes, fmt),
                                  condition=encoding)
 
     @by_passes("image")
     def image_body(record: JobRecord, fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
         w, h = record.width, record.height
         state = jobs.state(record)
-        headers = {"X-Passes": str(record.passes), "X-Photons": str(record.emitted)}
         if state is None:
-            return encode_image(np.zeros((h, w, 3)), fmt), headers
+            return encode_image(np.zeros((h, w, 3)), fmt), {"X-Passes": "0", "X-Photons": "0"}
+        headers = {"X-Passes": str(state.passes), "X-Photons": str(state.emitted)}  # as folded
         # EXR: with the render's metadata (passes, photons, seed, settings, error estimate)
         return encode_with(fmt, lambda path: write_render(path, record.integrator, state, w, h, error_layers=False)), \
             headers
@@ -208,9 +209,9 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         else:
             channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
-        return body, {"X-Passes": str(record.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
+        return body, {"X-Passes": str(state.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
 
-    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.passes),
+    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.folded_passes),
                        condition=threading.Condition())
     def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
         """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
@@ -417,7 +418,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         def value(name: str) -> float | None:  # none where unknown (an infinite bound) or not estimated
             v = float(arrays[name][y, x]) if name in arrays else math.nan
             return v if math.isfinite(v) else None
-        return PixelView(x=x, y=y, passes=record.passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
+        return PixelView(x=x, y=y, passes=record.folded_passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
                          luminance=value("luminance"), bound=value("bound"), relative_error=value("relative"),
                          measured=bool(arrays["measured"][y, x]) if "measured" in arrays else None,
                          confidence=record.settings.confidence if "relative" in arrays else None)

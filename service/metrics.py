@@ -37,7 +37,8 @@ class ServiceCollector:
     def collect(self) -> Iterator[Metric]:
         by_status = dict.fromkeys(Status, 0)
         merges = passes = photons = 0
-        merge_seconds = rate = 0.0
+        merge_seconds = rate = image_age = 0.0
+        now = time.time()
         for job_id in self.jobs.ids():
             record = self.jobs.get(job_id)
             if record is None:
@@ -49,6 +50,8 @@ class ServiceCollector:
             photons += record.emitted
             if record.status == Status.RUNNING:
                 rate += record.photons_per_second
+                if record.passes > record.folded_passes:  # accepted batches not yet in its image
+                    image_age = max(image_age, now - max(record.folded_at, record.started or now))
         jobs = GaugeMetricFamily("photonfarm_jobs", "Jobs by status", labels=["status"])
         for status, count in by_status.items():
             jobs.add_metric([status.value], count)
@@ -58,8 +61,11 @@ class ServiceCollector:
         yield CounterMetricFamily("photonfarm_photons_emitted", "Photon paths of merged passes", value=photons)
         yield GaugeMetricFamily("photonfarm_photons_per_second", "Photon paths per second over running jobs",
                                 value=rate)
-        yield SummaryMetricFamily("photonfarm_merge_latency_seconds", "Time a merge takes (lock wait included)",
+        yield SummaryMetricFamily("photonfarm_merge_latency_seconds",
+                                  "Time a merge takes (the delta pushed to the tiles and accepted)",
                                   count_value=merges, sum_value=merge_seconds)
+        yield GaugeMetricFamily("photonfarm_image_age_seconds", "Largest time since the last fold over running "
+                                "jobs with accepted batches not yet folded (the image's staleness)", value=image_age)
         depth = GaugeMetricFamily("photonfarm_queue_depth", "Batches waiting in a queue", labels=["queue"])
         for name in QUEUE_NAMES:
             depth.add_metric([name], Queue(name, connection=self.jobs.r).count)

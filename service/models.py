@@ -12,7 +12,7 @@ from worker.store.policy import Status
 
 # Service limits (README, "Limits"): each answers 413 or 422 naming what it limits.
 MAX_BODY_BYTES = 16 * 1024 * 1024
-MAX_SERVICE_PIXELS = 1280 * 1024  # per job
+MAX_SERVICE_PIXELS = 3840 * 2160  # per job
 MAX_SERVICE_PHOTONS_PER_PASS = 1 << 22
 MAX_ACTIVE_JOBS = 16
 

@@ -24,7 +24,7 @@ from tests.conftest import render
 from tests.test_closed_scenes import CORNELL_CORNERS, concave_corner_pixels
 from worker.image_io import read_image
 from worker.integrators.base import Delta
-from worker.integrators.connect_merge import HybridState, hybrid_estimate
+from worker.integrators.connect_merge import HybridInputs, HybridState, hybrid_estimate
 from worker.scene import bundled_scene_path, load_scene_file
 
 METHODS = ("lt", "bpt", "vcm")
@@ -122,7 +122,7 @@ def test_same_seed_same_sums(make_engine) -> None:
     sums = []
     for _ in range(2):
         eng = make_engine("cornell-caustics", resolution=(32, 32), method="vcm", photons_per_pass=2048, seed=21)
-        sums.append(eng.run_batch(0.05, 0, 3).sums)
+        sums.append(eng.run_batch(HybridInputs(0.05), 0, 3).sums)
     for name in sums[0]:
         np.testing.assert_array_equal(sums[0][name], sums[1][name])
 
@@ -131,10 +131,10 @@ def test_batches_add_up_in_any_order_and_split(make_engine) -> None:
     """The radius follows the global pass index alone, so batches are independent sums:
     merged in shuffled order, or cut differently, they give the same state to 1e-12."""
     eng = make_engine("cornell-caustics", resolution=(24, 24), method="vcm", photons_per_pass=1024, seed=5)
-    r0 = 0.05
+    r0 = HybridInputs(0.05)
 
     def merged(batches: list[Delta]) -> dict[str, np.ndarray]:
-        state = eng.integrator.start({"R0": np.full(24 * 24, r0)})
+        state = eng.integrator.start({"R0": np.full(24 * 24, r0.r0)})
         for delta in batches:
             eng.integrator.merge(state, delta)
         assert state.passes == 6 and state.emitted == 6 * 1024
@@ -155,11 +155,12 @@ def test_batches_add_up_in_any_order_and_split(make_engine) -> None:
 BATCH_IN_ANOTHER_PROCESS = """
 import sys, numpy as np
 from worker.engine import Engine
+from worker.integrators.connect_merge import HybridInputs
 from worker.scene import bundled_scene_path, load_any_scene
 from worker.settings import Settings
 scene, base = load_any_scene(bundled_scene_path("cornell-caustics"))
 eng = Engine(scene, base, Settings(resolution=(24, 24), method="vcm", photons_per_pass=1024, seed=5))
-np.savez(sys.argv[1], **eng.run_batch(0.05, 2, 2).sums)
+np.savez(sys.argv[1], **eng.run_batch(HybridInputs(0.05), 2, 2).sums)
 """
 
 
@@ -170,7 +171,7 @@ def test_a_batch_from_another_process_is_bit_identical(make_engine, tmp_path) ->
     subprocess.run([sys.executable, "-c", BATCH_IN_ANOTHER_PROCESS, str(out)], check=True)
     theirs = np.load(out)
     eng = make_engine("cornell-caustics", resolution=(24, 24), method="vcm", photons_per_pass=1024, seed=5)
-    ours = eng.run_batch(0.05, 2, 2).sums
+    ours = eng.run_batch(HybridInputs(0.05), 2, 2).sums
     assert sorted(theirs.files) == sorted(ours)
     for name in ours:
         np.testing.assert_array_equal(theirs[name], ours[name])

@@ -33,6 +33,7 @@ from worker.heartbeat import Heartbeat
 from worker.logs import configure_logging
 from worker.scheduler import QUEUE_NAMES
 from worker.store import Leases
+from worker.store.connection import connect
 
 log = logging.getLogger("photonfarm.worker")
 TASKS = ("worker.tasks.run_batch",)  # the only functions a queued job may name
@@ -70,7 +71,7 @@ def _handle_stop_signals() -> None:
 
 def run_worker(redis_url: str, burst: bool = False) -> int:
     configure_logging()
-    conn = redis.Redis.from_url(redis_url)
+    conn = connect(redis_url)
     _handle_stop_signals()
     while not BatchWorker.stopping.is_set():
         name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"  # says where it runs

@@ -24,8 +24,8 @@ from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, load_m
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
 # Documented limits (README, "Limits"). They bound memory and kernel time per pass.
-MAX_RESOLUTION = 4096  # pixels along either image axis
-MAX_PIXELS = 4096 * 2160
+MAX_RESOLUTION = 8192  # pixels along either image axis
+MAX_PIXELS = 8192 * 4320
 MAX_SHAPES = 10_000
 MAX_TRIANGLES = 500_000  # after quads are split and meshes loaded
 MAX_LIGHTS = 64

@@ -5,7 +5,9 @@ asks for the next one, which joins the END of its priority queue: batches of dif
 jobs interleave, so a small job never waits for a large one to finish, only for the
 batches already queued. Workers take the high queue first, then normal, then low.
 
-The reaper (a thread of the API process, every few seconds) looks at leases that expired:
+The folder (a thread of the API process, every few seconds) folds every active job's
+accepted batches into its state (worker/store/state.py). The reaper (another thread of it)
+looks at leases that expired:
 a batch still waiting in a queue gets more time; one whose worker vanished (killed, or
 its Redis connection lost) is put on the queue again. Its passes keep their indices and
 seeds, and the merged set guarantees they count once whichever copy finishes first.
@@ -31,6 +33,7 @@ from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
 REAP_SECONDS = 2.0
+FOLD_POLL_SECONDS = 0.5  # the folder thread looks this often (each job's rounds are paced by fold_if_due)
 PRUNE_SECONDS = 60.0
 
 log = logging.getLogger("photonfarm.scheduler")
@@ -122,14 +125,29 @@ def reap(jobs: Jobs) -> int:
     return reissued
 
 
+def fold_active(jobs: Jobs) -> int:
+    """The reducer: a fold round for every active job with accepted batches waiting whose
+    round is due (a job another process is folding is skipped). Returns how many were folded."""
+    return sum(jobs.fold_if_due(job_id) is not None for job_id in jobs.active_ids())
+
+
 class Reaper:
-    """The reaper as a daemon thread (started by the API process)."""
+    """The reaper and the folder as daemon threads (started by the API process): a long
+    fold of a large job does not delay re-issuing lost batches."""
 
     def __init__(self, jobs: Jobs, interval: float = REAP_SECONDS) -> None:
         self.jobs = jobs
         self.interval = interval
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="reaper", daemon=True)
+        self._threads = [threading.Thread(target=self._run, name="reaper", daemon=True),
+                         threading.Thread(target=self._fold, name="folder", daemon=True)]
+
+    def _fold(self) -> None:
+        while not self._stop.wait(FOLD_POLL_SECONDS):
+            try:
+                fold_active(self.jobs)
+            except redis.RedisError as exc:
+                log.warning("folder: redis unavailable: %s", exc)
 
     def _run(self) -> None:
         last_prune = 0.0
@@ -144,7 +162,8 @@ class Reaper:
                 log.warning("reaper: redis unavailable: %s", exc)
 
     def start(self) -> "Reaper":
-        self._thread.start()
+        for thread in self._threads:
+            thread.start()
         return self
 
     def stop(self) -> None:

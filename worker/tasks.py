@@ -12,6 +12,7 @@ import time
 from collections import OrderedDict
 
 import pyopencl as cl
+import redis
 from rq import get_current_job
 
 from kernels.program import create_context
@@ -84,4 +85,8 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
         feed(jobs, job_id, pass_seconds=seconds / n)
+        try:
+            jobs.fold_if_stale(job_id)
+        except redis.RedisError as exc:  # the batch counts; the next fold takes it
+            log.warning("fold failed: %s", exc, extra=context)
     return outcome

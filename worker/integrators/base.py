@@ -60,8 +60,9 @@ class Integrator(ABC):
     pinhole_only: ClassVar[bool] = False  # its kernels cannot trace a thin lens (jobs refused up front)
     # Per-pixel arrays fixed once per job by its first batch (first writer wins), e.g. R0.
     setup_arrays: ClassVar[tuple[str, ...]] = ()
-    # Per-pixel arrays a batch reads from the job state before it starts.
-    input_arrays: ClassVar[tuple[str, ...]] = ()
+    # The dataclass of per-pixel arrays `batch_inputs` returns (None: a batch reads nothing);
+    # the store keeps it per tile and rebuilds it for a batch.
+    inputs_type: ClassVar[type | None] = None
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
@@ -87,7 +88,7 @@ class Integrator(ABC):
 
     @abstractmethod
     def batch_inputs(self, state: State) -> Any:
-        """What a batch starting now reads from the state (needs only `input_arrays`)."""
+        """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
     @abstractmethod
     def merge(self, state: State, delta: Delta) -> None:

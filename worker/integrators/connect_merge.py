@@ -50,6 +50,14 @@ class HybridState:
         return {"R0": self.R0, **self.sums}
 
 
+@dataclass(frozen=True)
+class HybridInputs:
+    """What a batch of hybrid passes reads: R0 (one value for the image); the merging
+    radius of every pass follows from it and the pass index (`pass_radius`)."""
+
+    r0: float
+
+
 def pass_radius(r0: float, alpha: float, pass_index: int) -> float:
     """The merging radius of global pass k: r_k^2 = R0^2 (k + 1)^(alpha - 1)."""
     return r0 * (pass_index + 1) ** (0.5 * (alpha - 1.0))
@@ -64,7 +72,7 @@ class ConnectMerge(Integrator):
     connects = True  # vertex connection: NEE, subpath connections (and light tracing, always on)
     merges = True  # vertex merging: the density estimate
     setup_arrays = ("R0",)
-    input_arrays = ("R0",)
+    inputs_type = HybridInputs
 
     @property
     def sums(self) -> SumLayout:
@@ -86,9 +94,8 @@ class ConnectMerge(Integrator):
         return HybridState(R0=arrays["R0"], sums=sums, emitted=emitted, passes=passes,
                            counters=dict(counters or {}))
 
-    def batch_inputs(self, state: HybridState) -> float:
-        """R0 (one value for the image): the radius of every pass follows from it."""
-        return float(state.R0[0])
+    def batch_inputs(self, state: HybridState) -> HybridInputs:
+        return HybridInputs(float(state.R0[0]))
 
     def merge(self, state: HybridState, delta: Delta) -> None:  # type: ignore[override]
         for name in state.sums:

@@ -17,7 +17,7 @@ import pyopencl as cl
 from kernels.program import f32, i32, u32, u64
 from worker.integrators import camera_problem
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
-from worker.integrators.connect_merge import ConnectMerge, pass_radius
+from worker.integrators.connect_merge import ConnectMerge, HybridInputs, pass_radius
 from worker.integrators.photon_mapping import PhotonMapping
 from worker.integrators.photon_mapping_passes import R0_FOOTPRINTS, PhotonMappingPasses, _next_pow2
 
@@ -152,9 +152,10 @@ class ConnectMergePasses:
         return {"R0": np.full(dev.arrays.n_pixels, R0_FOOTPRINTS * footprint)}
 
     # -------------------------------------------------------------------- batch
-    def run_batch(self, inputs: float, first_pass: int, n_passes: int, keep_going: KeepGoing | None = None) -> Delta:
-        """Passes first_pass .. first_pass + n_passes - 1; `inputs` is R0."""
-        r0 = float(inputs)
+    def run_batch(self, inputs: HybridInputs, first_pass: int, n_passes: int,
+                  keep_going: KeepGoing | None = None) -> Delta:
+        """Passes first_pass .. first_pass + n_passes - 1 at the job's R0."""
+        r0 = inputs.r0
         if not (r0 > 0.0 and math.isfinite(r0)):
             raise ValueError("R0 must be positive and finite")
         dev = self.dev

@@ -67,7 +67,7 @@ class PhotonMapping(Integrator):
     name = "sppm"
     fixed_points = False  # PPM: every pass uses pass 0's measurement points
     setup_arrays = ("R0",)
-    input_arrays = ("R0", "N", "D", "G")
+    inputs_type = GatherInputs
 
     @property
     def sums(self) -> SumLayout:

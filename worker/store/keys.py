@@ -3,17 +3,25 @@
     pf:jobs                        zset    job id -> creation time
     pf:active                      set     ids of jobs holding an active slot (queued, running, cancelling)
     pf:job:{id}                    hash    the job record (worker/store/record.py)
-    pf:job:{id}:{name}             string  a float64 per-pixel array of the job state
-    pf:job:{id}:version            int     bumped by every merge; merges WATCH it
-    pf:job:{id}:merge-lock         string  serialises one job's merges (a redis-py lock)
-    pf:job:{id}:merged             set     batch ids already merged (exactly once)
-    pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each merge
+    pf:job:{id}:merged             set     batch ids accepted (counted in the record, exactly once)
+    pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet folded
+                                           (folded counters add into the record: folded_passes, folded_emitted, counter:NAME)
+    pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
+    pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each fold round
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped
     pf:leases                      zset    batch member "job/first/n" -> deadline
     pf:lease-owner                 hash    batch member -> worker name
     pf:batch-rq                    hash    batch member -> id of the RQ job that carries it
     pf:worker:{name}               hash    heartbeat: job, batch, passes, last_seen (expires)
     pf:workers                     zset    worker name -> last heartbeat (live workers: recent scores)
+
+On the state nodes (worker/store/tiles.py: tile k of a job on node k mod nodes):
+
+    pf:job:{id}:t{k}:state         string  the folded state of tile k (every state array, float64)
+    pf:job:{id}:t{k}:inputs        string  what a batch reads for tile k (e.g. radius, bias; float32)
+    pf:job:{id}:t{k}:pending       hash    batch id -> the batch's delta for tile k, pushed and not yet folded
+    pf:job:{id}:t{k}:folded        set     batch ids folded into tile k (exactly once per tile)
+    pf:job:{id}:t{k}:meta          hash    version (bumped by every fold of the tile; folds WATCH it)
 """
 
 from __future__ import annotations
@@ -30,16 +38,19 @@ def job(job_id: str) -> str:
     return f"pf:job:{job_id}"
 
 
-def array(job_id: str, name: str) -> str:
-    return f"pf:job:{job_id}:{name}"
+def tofold(job_id: str) -> str:
+    return f"pf:job:{job_id}:tofold"
 
 
-def version(job_id: str) -> str:
-    return f"pf:job:{job_id}:version"
+def fold_lock(job_id: str) -> str:
+    return f"pf:job:{job_id}:fold-lock"
 
 
-def merge_lock(job_id: str) -> str:
-    return f"pf:job:{job_id}:merge-lock"
+TILE_PARTS = ("state", "inputs", "pending", "folded", "meta")
+
+
+def tile(job_id: str, k: int, part: str) -> str:
+    return f"pf:job:{job_id}:t{k}:{part}"
 
 
 def merged(job_id: str) -> str:
@@ -54,10 +65,13 @@ def inflight(job_id: str) -> str:
     return f"pf:job:{job_id}:inflight"
 
 
-def job_keys(job_id: str, arrays: tuple[str, ...]) -> list[str]:
-    """Every key of one job, given the names of its state arrays."""
-    return [job(job_id), version(job_id), merge_lock(job_id), merged(job_id), history(job_id), inflight(job_id),
-            *(array(job_id, name) for name in arrays)]
+def job_keys(job_id: str) -> list[str]:
+    """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
+    return [job(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id), inflight(job_id)]
+
+
+def tile_keys(job_id: str, k: int) -> list[str]:
+    return [tile(job_id, k, part) for part in TILE_PARTS]
 
 
 def worker(name: str) -> str:

@@ -35,6 +35,14 @@ MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
 MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
 MAX_INFLIGHT_PER_JOB = 8
+# The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
+# The API's folder thread folds a job FOLD_SECONDS after its last round, or later for a
+# large state (`fold_interval`); a worker folds after its merge when the API has not for
+# FOLD_STALE_SECONDS more (the API is down or behind).
+FOLD_LEASE_SECONDS = LEASE_SECONDS
+FOLD_SECONDS = 2.0
+REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
+FOLD_STALE_SECONDS = 5.0
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
 # not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
 ALIVE_SECONDS = 3 * LEASE_SECONDS
@@ -42,12 +50,16 @@ ALIVE_SECONDS = 3 * LEASE_SECONDS
 RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 * 86_400)))
 
 
-def batch_passes(pass_seconds: float, mean_merge_seconds: float) -> int:
+def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None) -> int:
     """Passes for the next batch: about BATCH_TARGET_SECONDS of rendering, and long enough
-    that a merge costs at most MERGE_SHARE of a worker's time. One until a pass was timed."""
+    that a merge costs at most MERGE_SHARE of a worker's time, but not past the job's time
+    budget (`seconds_left`), so a job ends within its budget plus one pass. One until a
+    pass was timed."""
     if pass_seconds <= 0.0:
         return 1
     target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE)
+    if seconds_left is not None:
+        target = min(target, seconds_left)
     return max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
 
 
@@ -61,13 +73,28 @@ def passes_left(settings: Settings, passes: int) -> int | None:
     return None if settings.max_passes is None else max(0, settings.max_passes - passes)
 
 
-def after_merge(status: Status, settings: Settings, passes: int, elapsed: float, error: float | None) -> Status:
-    """A job's status once a batch has merged: cancelled if asked, converged at its error
-    threshold, completed when a budget is spent, else as it was."""
+def fold_interval(fold_seconds: float) -> float:
+    """Seconds from one fold round's end to the next one's start, given how long the last
+    round took: FOLD_SECONDS for a small state; for a large one twice a round (a state node
+    writes the state at most a third of the time), but short enough that a round starts
+    and ends within REFRESH_SECONDS of the last one's end."""
+    return max(FOLD_SECONDS, min(2.0 * fold_seconds, REFRESH_SECONDS - fold_seconds))
+
+
+def seconds_left(settings: Settings, elapsed: float) -> float | None:
+    return None if settings.max_seconds is None else max(0.0, settings.max_seconds - elapsed)
+
+
+def converged(settings: Settings, error: float | None) -> bool:
+    """The image's estimated error (after a fold) is at the job's threshold."""
+    return settings.error_threshold is not None and error is not None and error <= settings.error_threshold
+
+
+def after_merge(status: Status, settings: Settings, passes: int, elapsed: float) -> Status:
+    """A job's status once a batch is accepted: cancelled if asked, completed when a budget
+    is spent, else as it was (convergence is decided where the error is known: the fold)."""
     if status == Status.CANCEL_REQUESTED:
         return Status.CANCELLED
-    if settings.error_threshold is not None and error is not None and error <= settings.error_threshold:
-        return Status.CONVERGED
     if passes_left(settings, passes) == 0 or out_of_time(settings, elapsed):
         return Status.COMPLETED
     return status

@@ -1,11 +1,15 @@
-"""The job record in Redis: creation, status transitions, the job state's arrays, batch
-allocation and the exactly-once merge.
+"""The job record in Redis: creation, status transitions, batch allocation, and the
+exactly-once acceptance of a batch whose delta was pushed to the job's tiles.
 
-A batch's seeds come from (job seed, pass index), so a re-issued batch recomputes exactly
-the same passes, and the merged set makes sure they count once. The merge is one
-MULTI/EXEC under WATCH of the job's version key and record: a worker that dies before EXEC
-leaves nothing behind, two concurrent merges cannot both apply, and a cancel landing
-between a merge's read and its write makes the merge retry and see it.
+A batch's seeds come from (job seed, pass index), so a re-issued batch recomputes the same
+passes, and the merged set makes sure they count once. A batch merges in two steps: its
+worker pushes the delta to every tile's pending hash (worker/store/state.py), then one
+MULTI/EXEC under WATCH of the record accepts it: counters, the merged set, the to-fold
+hash, the lease released. A worker that dies before EXEC leaves at most pending entries
+that the re-issued batch overwrites; a cancel landing between the acceptance's read and
+write makes it retry and see it. Folding is separate (`fold`): only accepted batches are
+folded, each into each tile once. A job moves to a final status only once everything
+accepted is folded, so its final image holds every pass it counts.
 
 Active jobs are a set (`pf:active`) changed in the same transaction as the status: a job
 is created only if the set is below the limit (checked and added atomically), and every
@@ -27,8 +31,11 @@ from worker.integrators import Integrator, integrator_for
 from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
+from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
-from worker.store.policy import RETENTION_SECONDS, Status
+from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
+from worker.store.state import Folded, FoldContended, TiledState
+from worker.store.tiles import TILE_PIXELS, Tiling
 
 
 COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
@@ -51,8 +58,16 @@ class JobRecord:
     created: float
     started: float | None
     finished: float | None
-    passes: int  # merged
-    emitted: int  # photon paths of the merged passes
+    passes: int  # accepted (merged)
+    emitted: int  # photon paths of the accepted passes
+    folded_passes: int  # in the folded state (the image)
+    folded_emitted: int
+    folded_at: float
+    fold_seconds: float  # the last fold round's
+    setup: bool  # the tiles hold the setup arrays (e.g. R0)
+    stopping: bool  # a move to a final status is under way: no new batches
+    shards: int  # state nodes the tiles are spread over
+    tile_pixels: int
     next_pass: int  # first pass index not yet allocated
     pass_seconds: float  # smoothed render seconds per pass
     render_seconds: float
@@ -71,7 +86,13 @@ class JobRecord:
         return cls(id=job_id, status=Status(f["status"]), settings=Settings.model_validate_json(f["settings"]),
                    scene_name=f["scene_name"] or None, width=int(f["width"]), height=int(f["height"]),
                    created=float(f["created"]), started=when("started"), finished=when("finished"),
-                   passes=int(f["passes"]), emitted=int(f["emitted"]), next_pass=int(f["next_pass"]),
+                   passes=int(f["passes"]), emitted=int(f["emitted"]),
+                   folded_passes=int(f.get("folded_passes", 0)), folded_emitted=int(f.get("folded_emitted", 0)),
+                   folded_at=float(f.get("folded_at", 0.0)),
+                   fold_seconds=float(f.get("fold_seconds", 0.0)), setup=f.get("setup") == "1",
+                   stopping=f.get("stopping") == "1",
+                   shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
+                   next_pass=int(f["next_pass"]),
                    pass_seconds=float(f["pass_seconds"]), render_seconds=float(f.get("render_seconds", 0.0)),
                    merges=int(f.get("merges", 0)), merge_seconds=float(f.get("merge_seconds", 0.0)),
                    failure=f.get("error") or None,
@@ -104,9 +125,12 @@ class JobRecord:
 class Jobs:
     """Every read and write of job records and job states goes through here."""
 
-    def __init__(self, conn: redis.Redis) -> None:
+    def __init__(self, conn: redis.Redis, state_nodes: list[redis.Redis] | None = None,
+                 tile_pixels: int = TILE_PIXELS) -> None:
         self.r = conn
         self.leases = Leases(conn)
+        self.tiles = TiledState(conn, state_nodes)
+        self.tile_pixels = tile_pixels  # of the jobs this process creates
 
     # ------------------------------------------------------------------ records
     def create(self, scene: dict[str, Any], settings: Settings, width: int, height: int,
@@ -116,7 +140,8 @@ class Jobs:
         now = time.time()
         fields = {"status": Status.QUEUED.value, "scene": json.dumps(scene), "settings": settings.model_dump_json(),
                   "scene_name": scene_name or "", "width": width, "height": height, "created": now,
-                  "passes": 0, "emitted": 0, "next_pass": 0, "pass_seconds": 0.0, "attempts": "{}"}
+                  "passes": 0, "emitted": 0, "next_pass": 0, "pass_seconds": 0.0, "attempts": "{}",
+                  "shards": len(self.tiles.nodes), "tile_pixels": self.tile_pixels}
         with self.r.pipeline() as pipe:
             while True:
                 try:
@@ -157,26 +182,30 @@ class Jobs:
     def active_ids(self) -> list[str]:
         return sorted(j.decode() for j in self.r.smembers(keys.ACTIVE))
 
-    def _arrays_of(self, job_id: str) -> tuple[str, ...]:
-        """The names of a job's state arrays (from its settings; all possible ones if unknown)."""
-        settings = self.r.hget(keys.job(job_id), "settings")
-        record_settings = Settings.model_validate_json(settings) if settings else Settings(error_estimation=True)
-        return tuple(integrator_for(record_settings).state_widths)
+    def tiling(self, record: JobRecord) -> Tiling:
+        return self.tiles.tiling(record.n_pixels, record.shards, record.tile_pixels)
 
-    def _finish(self, pipe: redis.client.Pipeline, job_id: str, status: Status, arrays: tuple[str, ...],
-                now: float) -> None:
-        """Queue a move to a final status: the slot is freed and every key of the job gets
-        its retention time."""
+    @staticmethod
+    def _finish(pipe: redis.client.Pipeline, job_id: str, status: Status, now: float) -> None:
+        """Queue a move to a final status: the slot is freed and every key of the job on the
+        main Redis gets its retention time (its tiles get theirs after: `_expire_tiles`)."""
         pipe.hset(keys.job(job_id), mapping={"status": status.value, "finished": now})
         pipe.srem(keys.ACTIVE, job_id)
-        for key in keys.job_keys(job_id, arrays):
+        for key in keys.job_keys(job_id):
             pipe.expire(key, int(RETENTION_SECONDS))
+
+    def _expire_tiles(self, job_id: str) -> None:
+        record = self.get(job_id)
+        if record is not None and record.status in policy.FINAL:
+            self.tiles.expire(job_id, self.tiling(record), int(RETENTION_SECONDS))
 
     def delete(self, job_id: str) -> None:
         """Remove a job and every key it has."""
-        arrays = self._arrays_of(job_id)
+        record = self.get(job_id)
+        if record is not None:
+            self.tiles.delete(job_id, self.tiling(record))
         pipe = self.r.pipeline()
-        pipe.delete(*keys.job_keys(job_id, arrays))
+        pipe.delete(*keys.job_keys(job_id))
         pipe.zrem(keys.JOBS, job_id)
         pipe.srem(keys.ACTIVE, job_id)
         pipe.execute()
@@ -200,36 +229,28 @@ class Jobs:
         last = self.r.lindex(keys.history(job_id), -1)
         return json.loads(last) if last else None
 
-    # ------------------------------------------------------------------- arrays
-    def _arrays(self, record: JobRecord, names: tuple[str, ...]) -> dict[str, np.ndarray]:
-        integrator = record.integrator
-        out = {}
-        for name, blob in zip(names, self.r.mget([keys.array(record.id, name) for name in names])):
-            empty = integrator.zeros(record.n_pixels, name)
-            out[name] = np.frombuffer(blob, np.float64).reshape(empty.shape).copy() if blob else empty
-        return out
-
+    # -------------------------------------------------------------------- state
     def has_setup(self, record: JobRecord) -> bool:
-        return all(self.r.exists(keys.array(record.id, name)) for name in record.integrator.setup_arrays)
+        return bool(self.r.hget(keys.job(record.id), "setup") == b"1")
 
     def init_setup(self, record: JobRecord, setup: dict[str, np.ndarray]) -> None:
-        """Fix the job's setup arrays (e.g. R0) once: the first writer wins."""
-        for name, value in setup.items():
-            self.r.set(keys.array(record.id, name), np.ascontiguousarray(value, np.float64).tobytes(), nx=True)
+        """Fix the job's setup arrays (e.g. R0) once: the first writer wins, per tile."""
+        self.tiles.init(record.id, self.tiling(record), record.integrator, setup)
+        self.r.hset(keys.job(record.id), "setup", "1")
 
     def state(self, record: JobRecord) -> State | None:
-        """The job state, or None before its first batch fixed the setup arrays."""
-        if not self.has_setup(record):
+        """The job state as folded (a fold round first if one is due and the lease is
+        free), or None before its first batch fixed the setup arrays."""
+        self.fold_if_due(record.id)
+        record = self.get(record.id) or record
+        if not record.setup:
             return None
-        return record.integrator.restore(self._arrays(record, tuple(record.integrator.state_widths)),
-                                         record.emitted, record.passes, record.counters)
+        return self.tiles.read(record.id, self.tiling(record), record.integrator, record.folded_emitted,
+                               record.folded_passes, record.counters)
 
     def batch_inputs(self, record: JobRecord) -> Any:
-        """What a batch starting now needs, reading only the integrator's input arrays."""
-        integrator = record.integrator
-        state = integrator.restore(self._arrays(record, integrator.input_arrays), record.emitted, record.passes,
-                                   record.counters)
-        return integrator.batch_inputs(state)
+        """What a batch starting now needs: the inputs the last fold wrote to the tiles."""
+        return self.tiles.inputs(record.id, self.tiling(record), record.integrator)
 
     # ------------------------------------------------------------------ batches
     def allocate(self, job_id: str, pass_seconds: float | None = None) -> Batch | None:
@@ -239,11 +260,13 @@ class Jobs:
             try:
                 with self.r.pipeline() as pipe:
                     pipe.watch(key)
-                    record = JobRecord.parse(job_id, pipe.hgetall(key))
-                    if record.status not in policy.RENDERING or policy.out_of_time(record.settings,
-                                                                                   record.elapsed_seconds()):
+                    record = self._read(pipe, job_id)
+                    elapsed = record.elapsed_seconds()
+                    if record.status not in policy.RENDERING or record.stopping or \
+                            policy.out_of_time(record.settings, elapsed):
                         return None
-                    n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds)
+                    n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds,
+                                            policy.seconds_left(record.settings, elapsed))
                     left = policy.passes_left(record.settings, record.next_pass)
                     n = n if left is None else min(n, left)
                     if n <= 0:
@@ -301,19 +324,48 @@ class Jobs:
         return False
 
     # --------------------------------------------------------------- lifecycle
-    def settle(self, job_id: str, status: Status, final: Status) -> None:
-        """A job in `status` with nothing in flight ends as `final` (atomically)."""
+    @staticmethod
+    def _read(pipe: redis.client.Pipeline, job_id: str) -> JobRecord:
+        """The record, read inside a transaction that WATCHes it."""
+        return JobRecord.parse(job_id, pipe.hgetall(keys.job(job_id)))
+
+    def _end(self, job_id: str, allowed: frozenset[Status], final: Status, fields: dict[str, Any] | None = None,
+             idle: bool = False, fold: bool = True) -> bool:
+        """Move a job in one of `allowed` to `final`, atomically, once every accepted batch
+        is folded (unless `fold` is off) and, if `idle`, nothing is in flight. False if the
+        job was not in `allowed` (or, if `idle`, still had batches in flight)."""
         key = keys.job(job_id)
-        arrays = self._arrays_of(job_id)
-        with self.r.pipeline() as pipe:
-            try:
-                pipe.watch(key, keys.inflight(job_id))
-                if pipe.hget(key, "status") == status.value.encode() and pipe.scard(keys.inflight(job_id)) == 0:
+        if self.status(job_id) not in allowed:
+            return False
+        if not idle:  # no new batches meanwhile, so the folds below catch up with the accepted ones
+            self.r.hset(key, "stopping", "1")
+        while True:
+            if fold:
+                self.fold(job_id, wait=True, decide=False)
+            with self.r.pipeline() as pipe:
+                try:
+                    pipe.watch(key, keys.tofold(job_id), keys.inflight(job_id))
+                    status = pipe.hget(key, "status")
+                    if status is None or Status(status.decode()) not in allowed:
+                        return False
+                    if idle and pipe.scard(keys.inflight(job_id)) > 0:
+                        return False
+                    if fold and pipe.hlen(keys.tofold(job_id)) > 0:
+                        continue  # accepted since the fold: fold it too
                     pipe.multi()
-                    self._finish(pipe, job_id, final, arrays, time.time())
+                    if fields:
+                        pipe.hset(key, mapping=fields)
+                    self._finish(pipe, job_id, final, time.time())
                     pipe.execute()
-            except redis.WatchError:
-                pass  # something changed meanwhile: the next merge or reap decides
+                    break
+                except redis.WatchError:
+                    continue
+        self._expire_tiles(job_id)
+        return True
+
+    def settle(self, job_id: str, status: Status, final: Status) -> None:
+        """A job in `status` with nothing in flight ends as `final`."""
+        self._end(job_id, frozenset({status}), final, idle=True)
 
     def _transition(self, job_id: str, allowed: frozenset[Status],
                     write: Callable[[redis.client.Pipeline], None]) -> bool:
@@ -334,13 +386,8 @@ class Jobs:
                     continue
 
     def fail(self, job_id: str, message: str) -> None:
-        arrays = self._arrays_of(job_id)
-
-        def failed(pipe: redis.client.Pipeline) -> None:
-            pipe.hset(keys.job(job_id), "error", message[:2000])
-            self._finish(pipe, job_id, Status.FAILED, arrays, time.time())
-
-        self._transition(job_id, policy.ACTIVE, failed)
+        """Fail the job at once (what was folded stays its image)."""
+        self._end(job_id, policy.ACTIVE, Status.FAILED, {"error": message[:2000]}, fold=False)
 
     def cancel(self, job_id: str) -> Status | None:
         """Request cancellation; returns the resulting status. Batches no worker has taken
@@ -355,63 +402,122 @@ class Jobs:
 
     # -------------------------------------------------------------------- merge
     def merge(self, batch: Batch, delta: Delta, seconds: float) -> str:
-        """Add a batch's delta exactly once. Returns 'merged', 'duplicate' or 'inactive'.
-        Read the state, merge, decide the job's status, write: one transaction."""
+        """Push a batch's delta to the job's tiles, then accept it exactly once. Returns
+        'merged', 'duplicate' or 'inactive'. The batch that ends the job folds everything
+        accepted before the job takes its final status."""
         key = keys.job(batch.job_id)
         merge_start = time.perf_counter()
-        with self.r.lock(keys.merge_lock(batch.job_id), timeout=60, blocking_timeout=120):
-            # The lock serialises one job's merges (saves re-reads); correctness comes from WATCH.
+        record = self.get(batch.job_id)
+        if record is None or record.status not in policy.MERGING or \
+                self.r.sismember(keys.merged(batch.job_id), batch.id):
+            outcome = "duplicate" if record is not None and record.status in policy.MERGING else "inactive"
+            self.drop(batch)
+            return outcome
+        # Push.
+        tiling = self.tiling(record)
+        self.tiles.push(batch.job_id, tiling, batch.id, delta)
+        # Accept.
+        outcome, final = self.accept(batch, delta, seconds)
+        if outcome != "merged":
+            self.tiles.discard(batch.job_id, tiling, batch.id, folded_only=outcome == "duplicate")
+            self.drop(batch)
+            return outcome
+        self.r.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)  # push and accept
+        if final is not None:
+            self._end(batch.job_id, policy.MERGING, final)
+        return outcome
+
+    def accept(self, batch: Batch, delta: Delta, seconds: float) -> tuple[str, Status | None]:
+        """Count a batch whose delta every tile holds, once: read the record, decide the job's status, write. One
+        transaction. Returns the outcome and the final status the batch decided, if any."""
+        key = keys.job(batch.job_id)
+        with self.r.pipeline() as pipe:
             while True:
                 try:
-                    with self.r.pipeline() as pipe:
-                        pipe.watch(keys.version(batch.job_id), key)
-                        # Read.
-                        record = JobRecord.parse(batch.job_id, pipe.hgetall(key))
-                        if pipe.sismember(keys.merged(batch.job_id), batch.id):
-                            outcome = "duplicate"
-                            break
-                        if record.status not in policy.MERGING:
-                            outcome = "inactive"
-                            break
-                        state = self.state(record)
-                        # Merge.
-                        integrator = record.integrator
-                        integrator.merge(state, delta)
-                        # Decide.
-                        estimate = integrator.estimate(state)
-                        error = estimate.average if estimate is not None else None
-                        now = time.time()
-                        elapsed = record.elapsed_seconds(now)
-                        status = policy.after_merge(record.status, record.settings, state.passes, elapsed, error)
-                        per_pass = seconds / batch.n
-                        fields: dict[str, Any] = {
-                            "passes": state.passes, "emitted": state.emitted, "status": status.value,
-                            "pass_seconds": per_pass if record.pass_seconds == 0 else
-                            0.7 * record.pass_seconds + 0.3 * per_pass,
-                            "render_seconds": record.render_seconds + seconds, "merges": record.merges + 1,
-                            **{COUNTER + name: value for name, value in state.counters.items()}}
-                        if status != record.status:
-                            fields["finished"] = now
-                        # Write.
-                        pipe.multi()
-                        pipe.mset({keys.array(batch.job_id, name): array.tobytes()
-                                   for name, array in state.arrays().items() if name not in integrator.setup_arrays})
-                        pipe.hset(key, mapping=fields)
-                        pipe.rpush(keys.history(batch.job_id), json.dumps(
-                            {"passes": state.passes, "photons": state.emitted, "seconds": round(elapsed, 3),
-                             "error": error}))
-                        pipe.sadd(keys.merged(batch.job_id), batch.id)
-                        Leases.release(pipe, batch)
-                        pipe.incr(keys.version(batch.job_id))
-                        if status in policy.FINAL:  # last: SET clears a key's time to live
-                            self._finish(pipe, batch.job_id, status, tuple(integrator.state_widths), now)
-                        pipe.execute()
-                        outcome = "merged"
-                        break
+                    pipe.watch(key, keys.merged(batch.job_id))
+                    if not pipe.exists(key):
+                        return "inactive", None
+                    # Read.
+                    record = self._read(pipe, batch.job_id)
+                    if pipe.sismember(keys.merged(batch.job_id), batch.id):
+                        return "duplicate", None
+                    if record.status not in policy.MERGING:
+                        return "inactive", None
+                    # Decide.
+                    passes, emitted = record.passes + delta.n_passes, record.emitted + delta.emitted
+                    status = policy.after_merge(record.status, record.settings, passes, record.elapsed_seconds())
+                    per_pass = seconds / batch.n
+                    fields: dict[str, Any] = {
+                        "passes": passes, "emitted": emitted,
+                        "pass_seconds": per_pass if record.pass_seconds == 0 else
+                        0.7 * record.pass_seconds + 0.3 * per_pass,
+                        "render_seconds": record.render_seconds + seconds, "merges": record.merges + 1}
+                    counters = delta.counters
+                    # Write.
+                    pipe.multi()
+                    pipe.hset(key, mapping=fields)
+                    pipe.sadd(keys.merged(batch.job_id), batch.id)
+                    pipe.hset(keys.tofold(batch.job_id), batch.id,
+                              json.dumps({"n": delta.n_passes, "e": delta.emitted, "c": counters}))
+                    Leases.release(pipe, batch)
+                    pipe.execute()
+                    return "merged", (status if status in policy.FINAL else None)
                 except redis.WatchError:
                     continue
-        if outcome != "merged":
-            self.drop(batch)
-        else:  # the merge's own cost: lock wait, read, add, write
-            self.r.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)
-        return outcome
+
+    # --------------------------------------------------------------------- fold
+    def fold(self, job_id: str, wait: bool = False, decide: bool = True) -> Folded | None:
+        """One fold round of the job's accepted batches, if any, by whoever gets the fold
+        lease (`wait`: wait for it). With `decide`, a job whose error reached its threshold
+        converges. None if there was nothing to fold or another folder had the lease."""
+        if not self.r.hlen(keys.tofold(job_id)):
+            return None
+        with FoldLease(self.r, job_id, wait) as held:
+            if not held:
+                return None
+            record = self.get(job_id)
+            accepted = {b.decode(): json.loads(v) for b, v in self.r.hgetall(keys.tofold(job_id)).items()}
+            if record is None or not record.setup or not accepted:
+                return None
+            fold_start = time.perf_counter()
+            try:
+                folded = self.tiles.fold_round(job_id, self.tiling(record), record.integrator,
+                                               record.folded_emitted, record.folded_passes, record.counters, accepted)
+            except FoldContended:
+                return None  # another folder holds the tiles now; its round counts
+            self.tiles.account(job_id, list(accepted), {
+                "passes": folded.state.passes, "photons": folded.state.emitted,
+                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
+                time.perf_counter() - fold_start)
+        status = self.status(job_id)
+        if status in policy.FINAL:
+            self._expire_tiles(job_id)  # a fold racing the final move rewrote tiles
+        elif decide and status == Status.RUNNING and policy.converged(record.settings, folded.error):
+            self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
+        return folded
+
+    @staticmethod
+    def _since_fold(record: JobRecord) -> float:
+        """Seconds since the job's last fold round (infinite before the first: the first
+        image appears as soon as a batch is accepted)."""
+        return time.time() - record.folded_at if record.folded_at else float("inf")
+
+    def fold_if_due(self, job_id: str) -> Folded | None:
+        """The API's fold (its folder thread, and before a read): once `fold_interval`
+        has passed since the last round."""
+        record = self.get(job_id)
+        if record is None or self._since_fold(record) < policy.fold_interval(record.fold_seconds):
+            return None
+        return self.fold(job_id)
+
+    def fold_if_stale(self, job_id: str) -> Folded | None:
+        """A worker's fold after its merge, if no one folded the job (or, before its first
+        fold, no one since it started) for FOLD_STALE_SECONDS past its interval: the API is
+        down or behind, and the image still refreshes."""
+        record = self.get(job_id)
+        if record is None:
+            return None
+        since = time.time() - (record.folded_at or record.started or time.time())
+        if since < policy.fold_interval(record.fold_seconds) + FOLD_STALE_SECONDS:
+            return None
+        return self.fold(job_id)

@@ -1,0 +1,62 @@
+"""The service's largest frame, 3840 x 2160, through real HTTP, Redis and workers: the job
+completes with exact pass and photon totals, its image is the whole frame, and the bytes
+a pixel its state takes in Redis are the ones README states (folded state 128, batch
+inputs 8, nothing left pending). And a time budget holds at a large frame: the job ends
+within its seconds plus one batch (its render, merge and the final fold)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from api_tests.cluster import Cluster, finished, merged_passes
+from api_tests.test_jobs import _decode
+from service.models import MAX_SERVICE_PIXELS
+from worker.store import Jobs
+
+W, H = 3840, 2160
+P = 1 << 14
+PASSES = 3
+
+
+def _bytes_per_pixel(c: Cluster, job_id: str, part: str) -> float:
+    r = c.redis_client
+    return sum(r.memory_usage(k) for k in r.scan_iter(f"pf:job:{job_id}:t*:{part}")) / (W * H)
+
+
+def test_a_3840x2160_job_completes_with_exact_totals(tmp_path: Path) -> None:
+    assert W * H == MAX_SERVICE_PIXELS
+    c = Cluster(tmp_path, workers=2, redis_maxmemory="6gb")
+    try:
+        job = c.submit(scene_name="furnace", settings={"resolution": [W, H], "max_passes": PASSES,
+                                                        "photons_per_pass": P, "seed": 2})
+        done = c.wait(job["id"], finished, timeout=1500)
+        assert done["status"] == "completed", done
+        assert done["passes"] == PASSES and done["photons"] == PASSES * P, done
+        assert merged_passes(c.redis_client, job["id"]) == list(range(PASSES))
+        assert 128.0 <= _bytes_per_pixel(c, job["id"], "state") < 128.5
+        assert 8.0 <= _bytes_per_pixel(c, job["id"], "inputs") < 8.5
+        assert _bytes_per_pixel(c, job["id"], "pending") == 0.0
+        resp = c.http.get(job["links"]["image_exr"])
+        assert resp.status_code == 200 and resp.headers["x-passes"] == str(PASSES)
+        rgb = _decode(resp.content, ".exr")
+        assert rgb.shape == (H, W, 3) and np.isfinite(rgb).all() and rgb.mean() > 0.0
+    finally:
+        c.close()
+
+
+def test_a_time_budget_holds_at_1920x1080(tmp_path: Path) -> None:
+    budget = 20.0
+    c = Cluster(tmp_path, workers=2, redis_maxmemory="4gb")
+    try:
+        job = c.submit(scene_name="furnace", settings={"resolution": [1920, 1080], "max_seconds": budget,
+                                                        "photons_per_pass": P, "seed": 3})
+        done = c.wait(job["id"], finished, timeout=600)
+        assert done["status"] == "completed" and done["passes"] >= 2, done
+        record = Jobs(c.redis_client).get(job["id"])
+        one_batch = record.render_seconds / record.merges + record.mean_merge_seconds + record.fold_seconds
+        assert done["elapsed_seconds"] <= budget + one_batch, (done["elapsed_seconds"], one_batch)
+        assert done["photons"] == done["passes"] * P
+    finally:
+        c.close()

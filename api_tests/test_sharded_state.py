@@ -1,0 +1,198 @@
+"""The job state sharded over three redis-servers (tiles spread over the nodes, records
+and queues on the main one): shuffled concurrent merges with folds racing the pushes, a
+worker SIGKILLed while pushing, a folder SIGKILLed mid-round. Every batch counts once in
+the record and folds once into every tile; the folded state equals the sum of the
+deltas. (The fault tests over HTTP run on sharded state too: api_tests/test_faults.py.)"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import pickle
+import random
+import signal
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pytest
+import redis
+
+from service.redis_server import EmbeddedRedis
+from worker.engine import Engine
+from worker.integrators.base import Delta
+from worker.integrators.photon_mapping import GatherInputs
+from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
+from worker.settings import Settings
+from worker.store import Batch, Jobs, keys
+from worker.store import state as state_module
+from worker.store.state import TiledState
+
+SHARDS = 3
+TILE = 512  # pixels a tile: the 64 x 48 frame has 6 tiles, two on each node
+W, H = 64, 48
+BATCHES = 12
+PROCESSES = 4
+
+
+@pytest.fixture(scope="module")
+def servers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[EmbeddedRedis]]:
+    base = tmp_path_factory.mktemp("sharded")
+    started = [EmbeddedRedis(base / f"redis{i}").start(supervise=False) for i in range(1 + SHARDS)]
+    yield started
+    for server in started:
+        server.stop()
+
+
+@pytest.fixture(scope="module")
+def deltas(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, Settings, np.ndarray]:
+    parsed, base = load_scene_file(bundled_scene_path("cornell-caustics"))
+    settings = Settings(photons_per_pass=1 << 14, seed=21, resolution=(W, H))
+    engine = Engine(parsed, base, settings)
+    r0 = engine.start().R0
+    made = [engine.run_batch(GatherInputs(r0 * (1.0 - 0.03 * i)), 2 * i, 2) for i in range(BATCHES)]
+    path = tmp_path_factory.mktemp("deltas") / "deltas.pkl"
+    path.write_bytes(pickle.dumps(made))
+    return path, inline_meshes(parsed, base), settings, r0
+
+
+def _store(urls: list[str]) -> Jobs:
+    return Jobs(redis.Redis.from_url(urls[0]), [redis.Redis.from_url(u) for u in urls[1:]], tile_pixels=TILE)
+
+
+def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray) -> str:
+    job_id = store.create(scene, settings.model_copy(update={"max_passes": 1000, "max_seconds": None}), W, H,
+                          "cornell-caustics")
+    store.init_setup(store.get(job_id), {"R0": r0})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
+    return job_id
+
+
+def _merge_and_fold(urls: list[str], job_id: str, deltas_file: str, order_seed: int) -> list[str]:
+    made: list[Delta] = pickle.loads(Path(deltas_file).read_bytes())
+    store = _store(urls)
+    order = list(range(len(made)))
+    random.Random(order_seed).shuffle(order)
+    outcomes = []
+    for i in order:
+        outcomes.append(store.merge(Batch(job_id, made[i].first_pass, made[i].n_passes), made[i], 0.1))
+        store.fold(job_id)  # folds race the other processes' pushes and folds
+    return outcomes
+
+
+def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
+    store.fold(job_id, wait=True)
+    record = store.get(job_id)
+    state = store.state(record)
+    record = store.get(job_id)
+    assert record.folded_passes == record.passes == sum(d.n_passes for d in made)
+    assert record.folded_emitted == record.emitted == sum(d.emitted for d in made)
+    assert not store.r.exists(keys.tofold(job_id))
+    ids = {Batch(job_id, d.first_pass, d.n_passes).id.encode() for d in made}
+    tiling = store.tiling(record)
+    assert tiling.count == 6
+    for k in range(tiling.count):
+        node = store.tiles.nodes[tiling.node(k)]
+        assert node.smembers(keys.tile(job_id, k, "folded")) == ids
+        assert not node.exists(keys.tile(job_id, k, "pending"))
+        for other in store.tiles.nodes:  # each tile on its own node only
+            assert bool(other.exists(keys.tile(job_id, k, "state"))) == (other is node)
+    for name in store.get(job_id).integrator.sums.names:
+        expected = sum(getattr(d, name) for d in made)
+        np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_concurrent_shuffled_merges_fold_once_per_tile(servers: list[EmbeddedRedis], deltas: tuple) -> None:
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    with mp.get_context("spawn").Pool(PROCESSES) as pool:
+        outcomes = pool.starmap(_merge_and_fold, [(urls, job_id, str(path), p) for p in range(PROCESSES)])
+    flat = [o for per_process in outcomes for o in per_process]
+    assert flat.count("merged") == BATCHES and flat.count("duplicate") == (PROCESSES - 1) * BATCHES
+    _assert_folded_once(store, job_id, pickle.loads(path.read_bytes()))
+
+
+def _push_then_die(urls: list[str], job_id: str, deltas_file: str, nodes_before_kill: int) -> None:
+    """Merge batch 0, SIGKILLed after pushing to `nodes_before_kill` of the nodes (all of
+    them: killed before its acceptance)."""
+    made: list[Delta] = pickle.loads(Path(deltas_file).read_bytes())
+    pushed = []
+    real = TiledState._each_node
+
+    def each_node(self, tiling, queue):  # noqa: ANN001, ANN202
+        node_of = {k: tiling.node(k) for k in range(tiling.count)}
+
+        def counted(pipe, k):  # noqa: ANN001, ANN202
+            if node_of[k] not in pushed:
+                if len(pushed) == nodes_before_kill:
+                    os.kill(os.getpid(), signal.SIGKILL)
+                pushed.append(node_of[k])
+            return queue(pipe, k)
+        return real(self, tiling, counted)
+
+    TiledState._each_node = each_node
+    Jobs.accept = lambda *args: os.kill(os.getpid(), signal.SIGKILL)  # pushed everywhere: dies before accepting
+    _store(urls).merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1)
+
+
+@pytest.mark.parametrize("nodes_before_kill", [1, SHARDS])
+def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[EmbeddedRedis], deltas: tuple,
+                                                               nodes_before_kill: int) -> None:
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    child = mp.get_context("spawn").Process(target=_push_then_die, args=(urls, job_id, str(path), nodes_before_kill))
+    child.start()
+    child.join(120)
+    assert child.exitcode == -signal.SIGKILL
+    made: list[Delta] = pickle.loads(path.read_bytes())
+    first = Batch(job_id, made[0].first_pass, made[0].n_passes)
+    assert not store.r.sismember(keys.merged(job_id), first.id)  # never accepted
+    # The re-issued batch (the same passes) and the rest; a second copy of batch 0 is a duplicate.
+    assert [store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) for d in made[:3]] == ["merged"] * 3
+    assert store.merge(first, made[0], 0.1) == "duplicate"
+    _assert_folded_once(store, job_id, made[:3])
+
+
+def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int) -> None:
+    """One fold round, SIGKILLed as it encodes its (tiles_before_kill + 1)-th tile's inputs,
+    inside that tile's transaction."""
+    encoded = []
+    real = state_module.encode_inputs
+
+    def encode_inputs(inputs, span):  # noqa: ANN001, ANN202
+        encoded.append(span)
+        if len(encoded) == tiles_before_kill + 1:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(inputs, span)
+
+    state_module.encode_inputs = encode_inputs
+    _store(urls).fold(job_id)
+
+
+def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRedis], deltas: tuple,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    made: list[Delta] = pickle.loads(path.read_bytes())[:4]
+    for d in made:
+        assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    monkeypatch.setenv("PHOTONFARM_LEASE_SECONDS", "2")  # the dead folder's lease lapses soon
+    child = mp.get_context("spawn").Process(target=_fold_then_die, args=(urls, job_id, 3))
+    child.start()
+    child.join(120)
+    assert child.exitcode == -signal.SIGKILL
+    record = store.get(job_id)
+    tiling = store.tiling(record)
+    versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
+                for k in range(tiling.count)]
+    # The nodes are written at once, a thread each: the folder died after 1 to 3 tiles.
+    assert set(versions) == {0, 1} and 1 <= sum(versions) <= 3, versions
+    assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 4
+    assert store.fold(job_id, wait=True) is not None  # after its lease lapsed, the next folder
+    _assert_folded_once(store, job_id, made)

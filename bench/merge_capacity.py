@@ -1,0 +1,251 @@
+"""The merge path's capacity beyond this machine, by simulation (issue 14).
+
+Processes stand in for N workers of one job. Each simulated worker renders a batch for as
+long as a real worker of the given speed would (it waits), then pushes a real-sized delta
+to the job's tiles and has it accepted, as worker/tasks.py does (Jobs.merge without the
+encoding: every simulated worker pushes the same pre-encoded delta, random float64 in
+every sum of the default SPPM layout, so nothing compresses; the encoding's CPU time is
+measured once and added to each merge). One folder process folds every FOLD_POLL_SECONDS, as
+the API's folder thread does. Against one Redis and against 3 state nodes, all redis-servers of
+the embedded default (service/redis_server.py: append-only file, fsync always).
+
+The worker's speed: a pass takes trace + seconds-per-megapixel x megapixels (defaults:
+issue 14's figures at 1024 x 768, one PoCL thread), a batch the passes the scheduler's
+own rule gives for that pass time and the mean merge so far (worker/store/policy.py
+batch_passes: at least 20 merges long, at most MAX_BATCH_PASSES passes). Workers start
+staggered over one batch.
+
+Per frame size, node count and N: merge seconds (push + accept + encode; median, p95),
+its share of the simulated workers' time, the passes a batch needs for the mean merge to
+be 5% of it, the refresh interval (per accepted batch, the seconds until a fold round that
+started after it ended: when the image a client reads holds it; largest and median), and
+the fold backlog at the end. N is sustained when the scheduler can keep the merge at 5% of
+a worker's time (the batch it needs is at most MAX_BATCH_PASSES passes), every refresh
+interval is at most 10 s, and the backlog at the end is at most N batches (the folder
+keeps up).
+
+    python -m bench.merge_capacity --smoke   # a few minutes: small frames, N up to 2
+    python -m bench.merge_capacity           # the real run: 1920x1080 and 3840x2160, N to 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import redis
+
+from bench.common import save_figure, write_json
+from service.redis_server import EmbeddedRedis
+from worker.integrators.base import Delta
+from worker.scheduler import FOLD_POLL_SECONDS
+from worker.settings import Settings
+from worker.store import Batch, Jobs, keys
+from worker.store.policy import MAX_BATCH_PASSES, MERGE_SHARE, batch_passes
+from worker.store.tiles import encode_delta
+
+REFRESH_LIMIT = 10.0
+FULL = {"sizes": [(1920, 1080), (3840, 2160)], "workers": [1, 2, 5, 10, 20, 50, 100], "batches": 3}
+SMOKE = {"sizes": [(320, 180), (640, 360)], "workers": [1, 2], "batches": 2}
+
+
+def _store(urls: list[str]) -> Jobs:
+    return Jobs(redis.Redis.from_url(urls[0]), [redis.Redis.from_url(u) for u in urls[1:]] or None)
+
+
+def _delta(store: Jobs, job_id: str) -> tuple[Delta, dict[int, bytes], float]:
+    """A real-sized random delta, its tiles' payloads, and the seconds encoding them took."""
+    record = store.get(job_id)
+    layout, n = record.integrator.sums, record.n_pixels
+    rng = np.random.default_rng(1)
+    delta = Delta(0, 1, 1, {name: rng.random(layout.zeros(n, name).shape) for name in layout.names})
+    tiling = store.tiling(record)
+    t0 = time.perf_counter()
+    payloads = {k: encode_delta(delta.sums, tiling.span(k)) for k in range(tiling.count)}
+    return delta, payloads, time.perf_counter() - t0
+
+
+def _merge(store: Jobs, job_id: str, batch: Batch, delta: Delta, payloads: dict[int, bytes]) -> None:
+    record = store.get(job_id)
+    store.tiles.push_encoded(job_id, store.tiling(record), batch.id, payloads.__getitem__)
+    header = Delta(batch.first, batch.n, batch.n, {})
+    assert store.accept(batch, header, 1.0)[0] == "merged"
+
+
+def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pass_seconds: float,
+            first_merge: float, start: float, end: float, first_batch: int, out: mp.Queue) -> None:
+    """Simulated workers `workers` (of n_workers): render a batch (wait), push, accept,
+    repeat; each batch sized by the scheduler's rule from the mean merge so far."""
+    store = _store(urls)
+    delta, payloads, encode = _delta(store, job_id)
+    first = batch_passes(pass_seconds, first_merge) * pass_seconds
+    due = {w: start + first * (1 + w / n_workers) for w in workers}
+    latencies, lateness, accepted, rendered, batch_no = [first_merge], [], [], 0.0, first_batch
+    while True:
+        w = min(due, key=due.get)
+        if due[w] > end:
+            break
+        time.sleep(max(0.0, due[w] - time.time()))
+        lateness.append(time.time() - due[w])
+        t0 = time.perf_counter()
+        _merge(store, job_id, Batch(job_id, batch_no, 1), delta, payloads)
+        latencies.append(time.perf_counter() - t0 + encode)
+        accepted.append(time.time())
+        batch_no += 1
+        batch = batch_passes(pass_seconds, statistics.fmean(latencies)) * pass_seconds
+        rendered += batch
+        due[w] = time.time() + batch
+    out.put({"latencies": latencies[1:], "lateness": lateness, "accepted": accepted, "rendered": rendered})
+
+
+def _folder(urls: list[str], job_id: str, end: float, out: mp.Queue) -> None:
+    """The API's folder thread: every FOLD_POLL_SECONDS, a round if one is due. Each round's
+    start and end."""
+    store = _store(urls)
+    rounds = []
+    while time.time() < end:
+        t0 = time.time()
+        if store.fold_if_due(job_id) is not None:
+            rounds.append((t0, time.time()))
+        time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
+    out.put({"rounds": rounds, "backlog": store.r.hlen(keys.tofold(job_id))})
+
+
+def _image_lags(accepted: list[float], rounds: list[tuple[float, float]]) -> list[float]:
+    """Per accepted batch, seconds until the end of the first fold round that started
+    after it (the batch is in the image then); inf if none did."""
+    return [min((end - t for start, end in rounds if start >= t), default=float("inf")) for t in accepted]
+
+
+def _job(store: Jobs, w: int, h: int) -> str:
+    job_id = store.create({}, Settings(max_passes=10 ** 7), w, h, None)
+    store.init_setup(store.get(job_id), {"R0": np.ones(w * h)})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": time.time()})
+    return job_id
+
+
+def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, batches: int,
+        processes: int) -> dict:
+    store = _store(urls)
+    # Calibrate: one merge alone gives the scheduler's batch size.
+    job_id = _job(store, w, h)
+    delta, payloads, encode = _delta(store, job_id)
+    t0 = time.perf_counter()
+    _merge(store, job_id, Batch(job_id, 0, 1), delta, payloads)
+    alone = time.perf_counter() - t0 + encode
+    batch_seconds = batch_passes(pass_seconds, alone) * pass_seconds
+    # Run N workers and the folder for `batches` batches each.
+    ctx = mp.get_context("spawn")
+    out: mp.Queue = ctx.Queue()
+    start = time.time() + 5.0  # the pushers build their deltas meanwhile
+    end = start + batch_seconds * (batches + 1)
+    groups = [list(range(p, n_workers, processes)) for p in range(min(processes, n_workers))]
+    procs = [ctx.Process(target=_pusher, args=(urls, job_id, g, n_workers, pass_seconds, alone, start, end,
+                                               1 + i * 10 ** 6, out)) for i, g in enumerate(groups)]
+    procs.append(ctx.Process(target=_folder, args=(urls, job_id, end + 2 * FOLD_POLL_SECONDS, out)))
+    for p in procs:
+        p.start()
+    results = [out.get() for _ in procs]
+    for p in procs:
+        p.join()
+    fold = next(r for r in results if "rounds" in r)
+    pushes = [r for r in results if "latencies" in r]
+    latencies = sorted(x for r in pushes for x in r["latencies"])
+    lags = _image_lags([t for r in pushes for t in r["accepted"]], fold["rounds"]) or [float("inf")]
+    p95 = latencies[int(0.95 * (len(latencies) - 1))] if latencies else float("nan")
+    record = store.get(job_id)
+    assert record.passes == 1 + len(latencies), "a merge was lost or counted twice"
+    report = {"width": w, "height": h, "nodes": len(urls) - 1 or 1, "workers": n_workers,
+              "pass_seconds": pass_seconds, "first_batch_seconds": batch_seconds,
+              "merge_alone_seconds": alone, "encode_seconds": encode, "merges": len(latencies),
+              "merge_median_seconds": statistics.median(latencies) if latencies else None,
+              "merge_p95_seconds": p95,
+              "share": sum(latencies) / (sum(latencies) + sum(r["rendered"] for r in pushes)) if latencies else None,
+              "needed_batch_passes": statistics.fmean(latencies) / MERGE_SHARE / pass_seconds if latencies else None,
+              "lateness_max_seconds": max((x for r in pushes for x in r["lateness"]), default=0.0),
+              "refresh_max_seconds": max(lags), "refresh_median_seconds": statistics.median(lags),
+              "fold_rounds": len(fold["rounds"]),
+              "fold_round_median_seconds": statistics.median(e - s for s, e in fold["rounds"])
+              if fold["rounds"] else None,
+              "backlog_at_end": fold["backlog"]}
+    report["sustained"] = bool(latencies and report["needed_batch_passes"] <= MAX_BATCH_PASSES
+                               and report["refresh_max_seconds"] <= REFRESH_LIMIT
+                               and report["backlog_at_end"] <= n_workers)
+    store.delete(job_id)
+    return report
+
+
+def chart(report: dict, name: str) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for (w, h, nodes), runs in _series(report["runs"]).items():
+        label = f"{w}x{h}, {nodes} node{'s' if nodes > 1 else ''}"
+        xs = [r["workers"] for r in runs]
+        axes[0].plot(xs, [r["needed_batch_passes"] for r in runs], "o-", label=label)
+        axes[1].plot(xs, [r["refresh_max_seconds"] for r in runs], "o-", label=label)
+    axes[0].axhline(MAX_BATCH_PASSES, color="grey", ls="--", label="the largest batch")
+    axes[1].axhline(REFRESH_LIMIT, color="grey", ls="--", label="10 s")
+    for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)")):
+        ax.set_xscale("log")
+        ax.set_xlabel("simulated workers")
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, name)
+
+
+def _series(runs: list[dict]) -> dict[tuple[int, int, int], list[dict]]:
+    out: dict[tuple[int, int, int], list[dict]] = {}
+    for r in runs:
+        out.setdefault((r["width"], r["height"], r["nodes"]), []).append(r)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--smoke", action="store_true", help="small frames and few workers: checks the bench runs")
+    parser.add_argument("--seconds-per-megapixel", type=float, default=0.77,
+                        help="a pass's per-pixel cost (eye, gather, readback, host) per megapixel")
+    parser.add_argument("--trace-seconds", type=float, default=0.127, help="a pass's photon tracing")
+    parser.add_argument("--processes", type=int, default=8, help="pusher processes the simulated workers share")
+    args = parser.parse_args()
+    plan = SMOKE if args.smoke else FULL
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n_nodes in (1, 3):
+            servers = [EmbeddedRedis(Path(tmp) / f"{n_nodes}-{i}", maxmemory="0").start(supervise=False)
+                       for i in range(1 + (n_nodes if n_nodes > 1 else 0))]
+            urls = [s.url for s in servers]
+            try:
+                for w, h in plan["sizes"]:
+                    pass_seconds = args.trace_seconds + args.seconds_per_megapixel * w * h / 1e6
+                    for n in plan["workers"]:
+                        r = run(urls, w, h, n, pass_seconds, plan["batches"], args.processes)
+                        runs.append(r)
+                        print(f"{w}x{h} nodes={r['nodes']} workers={n}: merge p95 {r['merge_p95_seconds']:.3f} s, "
+                              f"share {100 * r['share']:.2f}%, batch needs {r['needed_batch_passes']:.1f} passes, "
+                              f"refresh max {r['refresh_max_seconds']:.1f} s, "
+                              f"backlog {r['backlog_at_end']}, sustained {r['sustained']}", flush=True)
+                        if not r["sustained"]:
+                            break
+            finally:
+                for s in servers:
+                    s.stop()
+    capacity = {f"{w}x{h}, {nodes} node(s)": max((r["workers"] for r in rs if r["sustained"]), default=0)
+                for (w, h, nodes), rs in _series(runs).items()}
+    report = {"smoke": args.smoke, "seconds_per_megapixel": args.seconds_per_megapixel,
+              "trace_seconds": args.trace_seconds, "capacity": capacity, "runs": runs}
+    name = "merge_capacity_smoke" if args.smoke else "merge_capacity"
+    write_json(name, report)
+    chart(report, name)
+    print(capacity)
+
+
+if __name__ == "__main__":
+    main()

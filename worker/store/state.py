@@ -1,0 +1,293 @@
+"""The job state on its nodes: batches push their deltas per tile, a folder adds them in.
+
+A worker never reads or writes the folded state. It pushes its batch's delta, cut into
+tiles, into each tile's pending hash (HSET by batch id: a re-pushed batch overwrites its
+own entry, never adds a second one), and the job record then accepts the batch
+(worker/store/record.py). The folder, whoever holds the job's fold lease (the API's
+folder thread, a reader, or a worker when the last fold is stale), folds every accepted
+batch not yet folded: it reads the state (from its cache when the tile's version is
+unchanged), adds the round's deltas with the integrator's own merge (one merge per round:
+a big pass, digest 11.2 (i)), and writes each tile in one transaction that WATCHes the
+tile's version: new state, new batch inputs, the batches added to the tile's folded set,
+their pending entries removed. So a tile takes a batch exactly once, whichever folder
+gets there, and a folder killed mid-round leaves each tile either folded or not; the next
+round folds the rest (tiles that have the batch skip it).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import redis
+
+from worker.integrators import Integrator
+from worker.integrators.base import Delta, State
+from worker.store import keys
+from worker.store.tiles import (CACHE, Tiling, decode_delta, decode_inputs, decode_state, encode_delta,
+                                encode_inputs, encode_state, state_nodes)
+
+# Applies a folded round to the job record once per batch, however many folders try.
+ACCOUNT = """
+for i = 1, #ARGV do
+  local h = redis.call('HGET', KEYS[1], ARGV[i])
+  if h then
+    local t = cjson.decode(h)
+    redis.call('HDEL', KEYS[1], ARGV[i])
+    redis.call('HINCRBY', KEYS[2], 'folded_passes', t.n)
+    redis.call('HINCRBY', KEYS[2], 'folded_emitted', t.e)
+    for name, value in pairs(t.c) do
+      redis.call('HINCRBY', KEYS[2], 'counter:' .. name, value)
+    end
+  end
+end
+return 1
+"""
+# Drops a tile's pending entry of a batch the tile has already folded (a late duplicate).
+DISCARD_FOLDED = """
+if redis.call('SISMEMBER', KEYS[1], ARGV[1]) == 1 then redis.call('HDEL', KEYS[2], ARGV[1]) end
+return 1
+"""
+
+
+def _setup_widths(integrator: Integrator) -> dict[str, int]:
+    return {name: integrator.state_widths[name] for name in integrator.setup_arrays}
+
+
+# Tiles per round trip to a node: 4 tiles of state are 34 MB at 128 bytes a pixel.
+TILES_PER_TRIP = 4
+
+
+class FoldContended(Exception):
+    """Another folder changed a tile during this round: it has the lease now."""
+
+
+@dataclass(frozen=True)
+class Folded:
+    """What a fold round made of the job: its state, and the image's error after it."""
+
+    state: State
+    error: float | None
+
+
+class TiledState:
+    """One process's access to the job states on the state nodes."""
+
+    def __init__(self, main: redis.Redis, nodes: list[redis.Redis] | None = None) -> None:
+        self.main = main
+        self.nodes = nodes if nodes is not None else state_nodes(main)
+        self._account = main.register_script(ACCOUNT)
+        self._discard = [node.register_script(DISCARD_FOLDED) for node in self.nodes]
+
+    def tiling(self, n_pixels: int, shards: int, tile_pixels: int) -> Tiling:
+        if shards != len(self.nodes):
+            raise RuntimeError(f"the job's state lies on {shards} Redis nodes, this process names "
+                               f"{len(self.nodes)} (PHOTONFARM_STATE_URLS)")
+        return Tiling(n_pixels, shards, tile_pixels)
+
+    def _per_node(self, tiling: Tiling, work: Callable[[int, list[int]], dict[int, Any]]) -> dict[int, Any]:
+        """`work(node, its tiles)` for every node, the nodes at once (a thread each)."""
+        by_node = tiling.by_node()
+        if len(by_node) == 1:
+            return work(*next(iter(by_node.items())))
+        out: dict[int, Any] = {}
+        with ThreadPoolExecutor(len(by_node)) as pool:
+            for part in pool.map(lambda item: work(*item), by_node.items()):
+                out |= part
+        return out
+
+    def _each_node(self, tiling: Tiling, queue: Any) -> dict[int, list[Any]]:
+        """Run `queue(pipe, k)` for every tile, pipelined per node TILES_PER_TRIP tiles at a
+        time (a node buffers a trip's requests and replies, which count against its
+        memory cap), the nodes at once; results by tile."""
+        def trips(node: int, tiles: list[int]) -> dict[int, list[Any]]:
+            out: dict[int, list[Any]] = {}
+            for at in range(0, len(tiles), TILES_PER_TRIP):
+                ks = tiles[at:at + TILES_PER_TRIP]
+                pipe = self.nodes[node].pipeline(transaction=False)
+                counts = []
+                for k in ks:
+                    before = len(pipe)
+                    queue(pipe, k)
+                    counts.append(len(pipe) - before)
+                results = pipe.execute()
+                first = 0
+                for k, count in zip(ks, counts):
+                    out[k] = results[first:first + count]
+                    first += count
+            return out
+        return self._per_node(tiling, trips)
+
+    # ------------------------------------------------------------------ setup
+    def init(self, job_id: str, tiling: Tiling, integrator: Integrator, setup: dict[str, np.ndarray]) -> None:
+        """Write the setup arrays and the first inputs of every tile (the first writer wins).
+        A tile's state holds only its setup arrays until its first fold (the sums are zero)."""
+        state = integrator.start(setup)
+        arrays, inputs, widths = state.arrays(), integrator.batch_inputs(state), _setup_widths(integrator)
+        self._each_node(tiling, lambda pipe, k: (
+            pipe.set(keys.tile(job_id, k, "state"), encode_state(arrays, widths, tiling.span(k)), nx=True),
+            pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)), nx=True)))
+
+    def inputs(self, job_id: str, tiling: Tiling, integrator: Integrator) -> Any:
+        """What a batch starting now reads: the inputs the last fold wrote."""
+        blobs = self._each_node(tiling, lambda pipe, k: pipe.get(keys.tile(job_id, k, "inputs")))
+        return decode_inputs([blobs[k][0] for k in range(tiling.count)], [tiling.span(k) for k in range(tiling.count)],
+                             tiling.n_pixels, integrator.inputs_type)
+
+    # ------------------------------------------------------------------- push
+    def push(self, job_id: str, tiling: Tiling, batch_id: str, delta: Delta) -> None:
+        self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k)))
+
+    def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str, payload: Callable[[int], bytes]) -> None:
+        """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash."""
+        self._each_node(tiling, lambda pipe, k: pipe.hset(keys.tile(job_id, k, "pending"), batch_id, payload(k)))
+
+    def discard(self, job_id: str, tiling: Tiling, batch_id: str, folded_only: bool) -> None:
+        """Remove a batch's pending entries: all of them (it was not accepted), or only
+        where the tile already folded it (a duplicate of an accepted batch)."""
+        for node, ks in tiling.by_node().items():
+            pipe = self.nodes[node].pipeline(transaction=False)
+            for k in ks:
+                pending = keys.tile(job_id, k, "pending")
+                if folded_only:
+                    self._discard[node](keys=[keys.tile(job_id, k, "folded"), pending], args=[batch_id], client=pipe)
+                else:
+                    pipe.hdel(pending, batch_id)
+            pipe.execute()
+
+    # ------------------------------------------------------------------- read
+    def _versions(self, job_id: str, tiling: Tiling) -> dict[int, int]:
+        got = self._each_node(tiling, lambda pipe, k: pipe.hget(keys.tile(job_id, k, "meta"), "version"))
+        return {k: int(v[0] or 0) for k, v in got.items()}
+
+    def _blobs(self, job_id: str, tiling: Tiling, versions: dict[int, int]) -> dict[int, bytes]:
+        """Each tile's state at the version given: from the cache, else read (and checked)."""
+        out = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
+        missing = [k for k, blob in out.items() if blob is None]
+        if missing:
+            want = set(missing)
+            read = self._each_node(tiling, lambda pipe, k: (
+                pipe.hget(keys.tile(job_id, k, "meta"), "version"), pipe.get(keys.tile(job_id, k, "state")))
+                if k in want else None)
+            for k in missing:
+                version, blob = read[k]
+                if int(version or 0) != versions[k]:
+                    raise FoldContended(f"tile {k} changed while read")
+                CACHE.put(job_id, k, versions[k], blob)
+                out[k] = blob
+        return out
+
+    @staticmethod
+    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, bytes]) -> dict[str, np.ndarray]:
+        """The whole frame's state arrays from its tiles' (a tile not yet folded holds only
+        its setup arrays: the rest are zero there)."""
+        n, widths, setup = tiling.n_pixels, integrator.state_widths, _setup_widths(integrator)
+        arrays = {name: np.zeros((n, w) if w > 1 else n) for name, w in widths.items()}
+        for k, blob in blobs.items():
+            span = tiling.span(k)
+            size = span.stop - span.start
+            held = setup if len(blob) == 8 * size * sum(setup.values()) else widths
+            for name, part in decode_state(blob, held, size).items():
+                arrays[name][span] = part
+        return arrays
+
+    def read(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
+             counters: dict[str, int]) -> State:
+        """The folded state (a tile a folder writes meanwhile is read again)."""
+        while True:
+            try:
+                blobs = self._blobs(job_id, tiling, self._versions(job_id, tiling))
+                break
+            except FoldContended:
+                continue
+        return integrator.restore(self._arrays(tiling, integrator, blobs), emitted, passes, counters)
+
+    # ------------------------------------------------------------------- fold
+    def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
+                   counters: dict[str, int], accepted: dict[str, dict[str, Any]]) -> Folded:
+        """Fold the accepted batches (id -> {n, e, c}; at least one) into every tile that lacks them;
+        `emitted`, `passes` and `counters` are the record's folded counters. Raises FoldContended if
+        another folder got to a tile first (this round's other tiles stay valid)."""
+        batch_ids = sorted(accepted)
+        widths = integrator.state_widths
+        # Read: versions, which tiles already hold which batch, the state.
+        got = self._each_node(tiling, lambda pipe, k: (
+            pipe.hget(keys.tile(job_id, k, "meta"), "version"),
+            pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids)))
+        versions = {k: int(g[0] or 0) for k, g in got.items()}
+        todo = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items()}
+        todo = {k: ids for k, ids in todo.items() if ids}
+        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, versions)),
+                                   emitted, passes, counters)
+        # The round's delta: each tile's batches it has not folded yet, read a tile at a time.
+        sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
+
+        def add(node: int, tiles: list[int]) -> dict[int, None]:
+            for k in (k for k in tiles if k in todo):
+                span = tiling.span(k)
+                payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), todo[k])
+                for batch_id, payload in zip(todo[k], payloads):
+                    if payload is None:
+                        raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
+                    for name, part in decode_delta(payload, widths, span.stop - span.start).items():
+                        sums[name][span] += part  # tiles are disjoint: threads never add to one pixel
+            return {}
+
+        self._per_node(tiling, add)
+        added: dict[str, int] = {}
+        for header in accepted.values():
+            for name, value in header["c"].items():
+                added[name] = added.get(name, 0) + int(value)
+        delta = Delta(first_pass=-1, n_passes=sum(h["n"] for h in accepted.values()),
+                      emitted=sum(h["e"] for h in accepted.values()), sums=sums, counters=added)
+        # Merge, then what the next batches read and the error.
+        integrator.merge(state, delta)
+        inputs = integrator.batch_inputs(state)
+        estimate = integrator.estimate(state)
+        arrays = state.arrays()
+        # Write each tile in a transaction on its version (the nodes at once).
+        def write(node: int, tiles: list[int]) -> dict[int, None]:
+            for k in tiles:
+                span, meta = tiling.span(k), keys.tile(job_id, k, "meta")
+                blob = encode_state(arrays, widths, span) if k in todo else None
+                with self.nodes[node].pipeline() as pipe:
+                    try:
+                        pipe.watch(meta)
+                        if int(pipe.hget(meta, "version") or 0) != versions[k]:
+                            raise FoldContended(f"tile {k} was folded by another folder")
+                        pipe.multi()
+                        if blob is not None:
+                            pipe.set(keys.tile(job_id, k, "state"), blob)
+                            pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
+                            pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
+                            pipe.hincrby(meta, "version", 1)
+                        pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, span))
+                        pipe.execute()
+                    except redis.WatchError as exc:
+                        raise FoldContended(f"tile {k} was folded by another folder") from exc
+                if blob is not None:
+                    CACHE.put(job_id, k, versions[k] + 1, blob)
+            return {}
+
+        self._per_node(tiling, write)
+        return Folded(state, estimate.average if estimate is not None else None)
+
+    def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
+        """Count folded batches in the record (once each), log the error after the round and
+        when and how long the round took."""
+        pipe = self.main.pipeline()
+        self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
+        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds})
+        pipe.rpush(keys.history(job_id), json.dumps(history))
+        pipe.execute()
+
+    # --------------------------------------------------------------- lifetime
+    def expire(self, job_id: str, tiling: Tiling, seconds: int) -> None:
+        self._each_node(tiling, lambda pipe, k: [pipe.expire(key, seconds) for key in keys.tile_keys(job_id, k)])
+
+    def delete(self, job_id: str, tiling: Tiling) -> None:
+        self._each_node(tiling, lambda pipe, k: pipe.delete(*keys.tile_keys(job_id, k)))
