@@ -54,6 +54,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     if not jobs.start(batch, worker):
         log.info("batch skipped: merged or no longer wanted", extra=context)
         return "skipped"
+    taken = time.perf_counter()
     record = jobs.get(job_id)
     try:
         engine = engine_for(jobs, record)
@@ -81,7 +82,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         raise
     seconds = time.perf_counter() - start
     # Merge, then ask for the next batch.
-    outcome = jobs.merge(batch, delta, seconds)
+    outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken)
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
         feed(jobs, job_id, pass_seconds=seconds / n)
