@@ -29,6 +29,27 @@ inline int pick_emitter(__global const float* cdf, int n, float u) {
     return lo;
 }
 
+// A uniform point on an area emitter (a triangle or sphere record, rows r0..r2), its
+// outward normal and the emitter's area, from two uniform numbers: what the light sample,
+// the photon pass and the hybrid integrator's light subpaths all start from.
+typedef struct { float3 y, n; float area; } EmitterPoint;
+
+inline EmitterPoint sample_emitter_point(int kind, float4 r0, float4 r1, float4 r2, float u1, float u2) {
+    EmitterPoint p;
+    if (kind == EMIT_TRIANGLE) {
+        float su = sqrt(u1);
+        p.y = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
+        float3 c = cross(r1.xyz, r2.xyz);
+        p.area = 0.5f * length(c);
+        p.n = normalize(c);
+    } else {
+        p.n = sample_sphere(u1, u2);
+        p.y = r0.xyz + r2.w * p.n;
+        p.area = 4.0f * PI_F * r2.w * r2.w;
+    }
+    return p;
+}
+
 inline float power_heuristic(float a, float b) { return a * a / (a * a + b * b); }
 
 // The light sample: MIS-weighted L f cos / p from one emitter chosen by power, or 0 if
@@ -44,19 +65,9 @@ inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, 
     float3 wi, li;  // direction to the light; radiance (area) or intensity / d^2 or irradiance (delta)
     float dist, pdf = r3.w, mis = 1.0f;
     if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
-        float3 y, nl;
-        float area;
-        if (kind == EMIT_TRIANGLE) {
-            float su = sqrt(u1);
-            y = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
-            float3 c = cross(r1.xyz, r2.xyz);
-            area = 0.5f * length(c);
-            nl = normalize(c);
-        } else {
-            nl = sample_sphere(u1, u2);
-            y = r0.xyz + r2.w * nl;
-            area = 4.0f * PI_F * r2.w * r2.w;
-        }
+        EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
+        float3 y = ep.y, nl = ep.n;
+        float area = ep.area;
         float3 to = y - x;
         float d2 = dot(to, to);
         dist = sqrt(d2);

@@ -99,17 +99,10 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __gl
     float u1 = rng_float(rng), u2 = rng_float(rng), u3 = rng_float(rng), u4 = rng_float(rng);
     float3 o, d;
     int kind = as_int(r0.w);
-    if (kind == EMIT_TRIANGLE) {
-        float su = sqrt(u1);
-        o = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
-        float3 n = normalize(cross(r1.xyz, r2.xyz));
-        d = sample_cosine(n, u3, u4);
-        o += n * ray_eps(o);
-    } else if (kind == EMIT_SPHERE) {
-        float3 n = sample_sphere(u1, u2);
-        o = r0.xyz + r2.w * n;
-        d = sample_cosine(n, u3, u4);
-        o += n * ray_eps(o);
+    if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
+        EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
+        d = sample_cosine(ep.n, u3, u4);
+        o = ep.y + ep.n * ray_eps(ep.y);
     } else if (kind == EMIT_POINT) {
         o = r0.xyz;
         d = sample_sphere(u1, u2);

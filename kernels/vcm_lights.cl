@@ -49,19 +49,10 @@ inline Emission sample_emission(__global const float4* emitters, __global const 
     e.dVC = 0.0f;
     int kind = as_int(r0.w);
     if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
-        float3 n;
-        float area;
-        if (kind == EMIT_TRIANGLE) {
-            float su = sqrt(u1);
-            e.o = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
-            float3 c = cross(r1.xyz, r2.xyz);
-            area = 0.5f * length(c);
-            n = normalize(c);
-        } else {
-            n = sample_sphere(u1, u2);
-            e.o = r0.xyz + r2.w * n;
-            area = 4.0f * PI_F * r2.w * r2.w;
-        }
+        EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
+        float3 n = ep.n;
+        float area = ep.area;
+        e.o = ep.y;
         e.d = sample_cosine(n, u3, u4);
         e.o += n * ray_eps(e.o);
         float cos_l = fmax(dot(e.d, n), 1e-6f);
@@ -98,19 +89,9 @@ inline bool sample_direct(__global const float4* emitters, __global const float*
     s->delta = kind != EMIT_TRIANGLE && kind != EMIT_SPHERE;
     s->cos_light = 1.0f;
     if (!s->delta) {
-        float3 y, nl;
-        float area;
-        if (kind == EMIT_TRIANGLE) {
-            float su = sqrt(u1);
-            y = r0.xyz + (1.0f - su) * r1.xyz + u2 * su * r2.xyz;
-            float3 c = cross(r1.xyz, r2.xyz);
-            area = 0.5f * length(c);
-            nl = normalize(c);
-        } else {
-            nl = sample_sphere(u1, u2);
-            y = r0.xyz + r2.w * nl;
-            area = 4.0f * PI_F * r2.w * r2.w;
-        }
+        EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
+        float3 y = ep.y, nl = ep.n;
+        float area = ep.area;
         float3 to = y - x;
         float d2 = dot(to, to), dist = sqrt(d2);
         s->wi = to / dist;

@@ -180,8 +180,8 @@ def test_a_batch_from_another_process_is_bit_identical(make_engine, tmp_path) ->
 def test_near_clip_camera_against_sppm_reference(make_engine) -> None:
     """smallppm's camera starts its rays 140 units out, past its front wall: the camera
     subpath's first area pdf must use the distance from the pinhole (with the ray's length
-    it came out 24% bright). Against the cached SPPM reference (bench/reference, 226 passes
-    of 2^18 photons, 100 s) within 3%: bpt misses only the caustics seen in the mirror and
+    it came out 24% bright). Against the cached SPPM reference (bench/reference, its JSON says
+    how it was made) within 3%: bpt misses only the caustics seen in the mirror and
     through the glass (measured -1.6%, standard error 0.13%, seed 7)."""
     ref = read_image(BENCH_DIR / "reference" / "smallppm-64x48.exr")[..., :3].astype(np.float64)
     eng = make_engine("smallppm", resolution=(64, 48), method="bpt", photons_per_pass=64 * 48, seed=7)
