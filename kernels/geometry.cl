@@ -81,6 +81,17 @@ typedef struct {
     int n_spheres;
 } SceneGeom;
 
+// The scene's buffers as every tracing kernel takes them, in the host's order (Device.geometry,
+// then Device.emitter_args, worker/engine.py), and the SceneGeom a kernel makes of them.
+#define SCENE_PARAMS \
+    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2, \
+    __global const float4* tri_nrm, \
+    __global const float4* node_lo, __global const float4* node_hi, int n_nodes, \
+    __global const float4* spheres, __global const int* sphere_surf, int n_spheres, \
+    __global const float4* surf_a, __global const float4* surf_b, \
+    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
+#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres}
+
 // No point of the sphere lies within tmax of o: a bounded query skips it (smallppm's walls
 // are spheres of radius 1e5, so the distance is taken in double).
 inline bool sphere_beyond(float4 sph, float3 o, float tmax) {

@@ -114,12 +114,7 @@ inline void splat_state(const Tracer* t, ChainState* s, ulong record, int in_pla
 }
 
 __kernel void photon_chains(
-    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
-    __global const float4* tri_nrm,
-    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
-    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
-    __global const float4* surf_a, __global const float4* surf_b,
-    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    SCENE_PARAMS,
     ulong seed, uint pass, int max_bounces, uint capacity, int skip_first_hit,
     uint n_chains, uint iterations,   // the pass's photon paths: `iterations` split over the chains
     float theta, uint boot_cap,
@@ -136,7 +131,7 @@ __kernel void photon_chains(
 {
     uint chain = (uint)get_global_id(0);
     if (chain >= n_chains || n_emitters == 0) return;
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    SceneGeom g = SCENE_GEOM;
     Tracer tracer = {&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, max_bounces, skip_first_hit};
     Rng rng = rng_make(seed, pass, chain, DOMAIN_CHAIN);
     uint per = iterations / n_chains, iters = per + (chain < iterations % n_chains ? 1u : 0u);

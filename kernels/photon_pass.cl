@@ -149,12 +149,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __gl
 }
 
 __kernel void photon_pass(
-    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
-    __global const float4* tri_nrm,
-    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
-    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
-    __global const float4* surf_a, __global const float4* surf_b,
-    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    SCENE_PARAMS,
     ulong seed, uint pass, int max_bounces, uint capacity,
     int skip_first_hit,          // 1: store nothing at a photon's first hit (direct light is NEE's)
     __global float4* ph_pos,     // xyz position, w: count (1)
@@ -165,7 +160,7 @@ __kernel void photon_pass(
 {
     uint path = (uint)get_global_id(0);
     if (n_emitters == 0) return;
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    SceneGeom g = SCENE_GEOM;
     Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
     PhotonSink sink;
     sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};

@@ -115,12 +115,7 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
 }
 
 __kernel void vcm_camera_pass(
-    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
-    __global const float4* tri_nrm,
-    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
-    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
-    __global const float4* surf_a, __global const float4* surf_b,
-    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    SCENE_PARAMS,
     __global const float4* camera, int width, int height,
     ulong seed, uint pass, int max_bounces, uint n_light_paths,
     int connect, int merge, float eta_vcm, float radius,
@@ -134,7 +129,7 @@ __kernel void vcm_camera_pass(
 {
     int gid = get_global_id(0);
     if (gid >= width * height) return;
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    SceneGeom g = SCENE_GEOM;
     Pinhole cam = pinhole(camera, width, height);
     Rng rng = rng_make(seed, pass, (uint)gid, DOMAIN_CAMERA_PATH);
     MisEtas eta = mis_etas(connect, merge, eta_vcm);

@@ -39,12 +39,7 @@ inline void splat(__global volatile long* acc, int pixel, float3 value) {
 }
 
 __kernel void vcm_light_pass(
-    __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2,
-    __global const float4* tri_nrm,
-    __global const float4* node_lo, __global const float4* node_hi, int n_nodes,
-    __global const float4* spheres, __global const int* sphere_surf, int n_spheres,
-    __global const float4* surf_a, __global const float4* surf_b,
-    __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
+    SCENE_PARAMS,
     __global const float4* camera, int width, int height,
     ulong seed, uint pass, int max_bounces, uint n_paths, uint capacity,
     int connect, int merge,        // the techniques on (bpt: connect; vcm: both; lt: neither)
@@ -59,7 +54,7 @@ __kernel void vcm_light_pass(
     uint path = (uint)get_global_id(0);
     if (path >= n_paths) return;
     if (n_emitters == 0) { path_last[path] = -1; return; }
-    SceneGeom g = {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres};
+    SceneGeom g = SCENE_GEOM;
     Pinhole cam = pinhole(camera, width, height);
     Rng rng = rng_make(seed, pass, path, DOMAIN_LIGHT_PATH);
     MisEtas eta = mis_etas(connect, merge, eta_vcm);
