@@ -83,6 +83,17 @@ def concave_corner_pixels(eng: Engine, band: float, sub: int = 4) -> np.ndarray:
     return (np.isfinite(t_hit) & (gap < band)).reshape(h, sub, w, sub).all(axis=(1, 3))
 
 
+def assert_corners_match_mitsuba(eng: Engine, img: np.ndarray) -> None:
+    """A 96x96 cornell-box image's pixels within 10 and within 30 (of 555) of a concave
+    corner, per channel, within 3% of Mitsuba 3's path tracer (CORNELL_CORNERS)."""
+    ref = read_image(CORNELL_CORNERS)[..., :3]
+    for band in (10.0, 30.0):
+        corners = concave_corner_pixels(eng, band)
+        assert corners.sum() > 150
+        ratio = img[corners].mean(axis=0) / ref[corners].mean(axis=0)
+        np.testing.assert_array_less(np.abs(ratio - 1.0), 0.03, err_msg=f"band {band}: {ratio}")
+
+
 def test_cornell_box_corners_match_mitsuba(make_engine) -> None:
     """Mean radiance over the pixels within 10 and within 30 (of 555) of a concave corner,
     per channel, against Mitsuba 3's path tracer at 2 x 8192 spp (bench/reference; its
@@ -91,9 +102,4 @@ def test_cornell_box_corners_match_mitsuba(make_engine) -> None:
     (2^18 photons, 32 passes, against 512 spp)."""
     eng = make_engine("cornell-box", resolution=(96, 96), photons_per_pass=1 << 17, seed=13)
     img = image(eng, render(eng, 24))
-    ref = read_image(CORNELL_CORNERS)[..., :3]
-    for band in (10.0, 30.0):
-        corners = concave_corner_pixels(eng, band)
-        assert corners.sum() > 150
-        ratio = img[corners].mean(axis=0) / ref[corners].mean(axis=0)
-        np.testing.assert_array_less(np.abs(ratio - 1.0), 0.03, err_msg=f"band {band}: {ratio}")
+    assert_corners_match_mitsuba(eng, img)
