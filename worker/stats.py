@@ -40,7 +40,17 @@ from kernels.contract import SumLayout
 from worker import adaptive
 
 if TYPE_CHECKING:
-    from worker.integrators.base import Delta
+    from worker.integrators.base import Delta, State
+
+
+def add_delta(state: "State", delta: "Delta") -> None:
+    """The additive part of every merge: a batch's sums, photons, passes and counters."""
+    for name in state.sums:
+        state.sums[name] += delta.sums[name]
+    state.emitted += delta.emitted
+    state.passes += delta.n_passes
+    for name, value in delta.counters.items():
+        state.counters[name] = state.counters.get(name, 0) + value
 
 
 def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -108,12 +118,7 @@ class Accumulators:
         dN *= self.alpha * math.pi
         dN *= delta.D
         self.N += dN
-        for name in self.sums:
-            self.sums[name] += delta.sums[name]
-        self.emitted += delta.emitted
-        self.passes += delta.n_passes
-        for name, value in delta.counters.items():
-            self.counters[name] = self.counters.get(name, 0) + value
+        add_delta(self, delta)
         self._radius = None
 
     @property

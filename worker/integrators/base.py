@@ -45,6 +45,7 @@ class Delta:
 class State(Protocol):
     """A job's progressive state, as the store keeps it: named per-pixel arrays and counters."""
 
+    sums: dict[str, np.ndarray]  # the integrator's additive per-pixel sums
     emitted: int
     passes: int
     counters: dict[str, int]  # summed like `emitted` (Delta.counters)

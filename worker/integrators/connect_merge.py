@@ -28,6 +28,7 @@ import numpy as np
 from kernels.contract import LUMINANCE, SumLayout
 from worker.error_estimate import EDGE_FACTOR, EDGE_MARGIN, FLOOR_FRACTION, ErrorEstimate, image_average, student_t
 from worker.integrators.base import Delta, Integrator
+from worker.stats import add_delta
 
 
 @dataclass
@@ -98,12 +99,7 @@ class ConnectMerge(Integrator):
         return HybridInputs(float(state.R0[0]))
 
     def merge(self, state: HybridState, delta: Delta) -> None:  # type: ignore[override]
-        for name in state.sums:
-            state.sums[name] += delta.sums[name]
-        state.emitted += delta.emitted
-        state.passes += delta.n_passes
-        for name, value in delta.counters.items():
-            state.counters[name] = state.counters.get(name, 0) + value
+        add_delta(state, delta)
 
     def image(self, state: HybridState) -> np.ndarray:
         return state.C / state.passes if state.passes else np.zeros_like(state.C)
