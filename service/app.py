@@ -81,7 +81,7 @@ def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
     base = f"/v1/jobs/{record.id}"
     return JobView(
         id=record.id, status=record.status, scene_name=record.scene_name, settings=record.settings,
-        width=record.width, height=record.height, passes=record.passes, photons=record.emitted,
+        width=record.width, height=record.height, passes=record.passes, image_passes=record.folded_passes, photons=record.emitted,
         elapsed_seconds=round(record.elapsed_seconds(), 3), photons_per_second=round(record.photons_per_second, 1),
         workers_active=jobs.leases.owners(record.id), created=_iso(record.created), started=_iso(record.started),
         finished=_iso(record.finished), failure=record.failure, error_estimate=jobs.last_error(record.id),

@@ -77,7 +77,9 @@ class JobView(BaseModel):
     settings: Settings
     width: int
     height: int
-    passes: int = Field(description="passes merged into the estimate")
+    passes: int = Field(description="passes merged into the job (accepted: they count toward its budget)")
+    image_passes: int = Field(description="passes in the current image and error map (folded); at most `passes`, "
+                                          "and equal to it once the job is final")
     photons: int = Field(description="photon paths emitted by the merged passes")
     elapsed_seconds: float
     photons_per_second: float

@@ -280,7 +280,7 @@ function showJob(job) {
   $("eta").dataset.seconds = eta === null ? "" : String(eta);
   $("cancel").disabled = FINISHED.includes(job.status);
   $("delete").disabled = !FINISHED.includes(job.status);
-  $("download-png").disabled = $("download-exr").disabled = job.passes === 0;
+  $("download-png").disabled = $("download-exr").disabled = job.image_passes === 0;
   const history = job.error_history || [];
   drawChart($("chart-time"), history, "seconds", "seconds", job.settings.error_threshold);
   drawChart($("chart-passes"), history, "passes", "passes", job.settings.error_threshold);
@@ -400,17 +400,19 @@ $("zoom").addEventListener("change", applyZoom);
 
 async function showImage(job) {
   const map = $("errormap").checked;
-  if (job.passes === 0 || (job.passes === state.shownPasses && map === state.shownMap)) return;
+  if (job.image_passes === 0 || (job.image_passes === state.shownPasses && map === state.shownMap)) return;
   const link = map ? job.links.error_png : job.links.image_png;
-  let bitmap;
+  let bitmap, passes;
   try {
-    bitmap = await createImageBitmap(await (await api(link)).blob());
+    const resp = await api(link);
+    passes = Number(resp.headers.get("X-Passes"));  // the passes in this image (a fold may have landed since the poll)
+    bitmap = await createImageBitmap(await resp.blob());
   } catch (e) {
     return; // 409 (no error estimation): keep what is shown
   }
   if (job.id !== state.selected) return;  // another job was picked meanwhile
   state.bitmap = bitmap;
-  state.shownPasses = job.passes;
+  state.shownPasses = passes;
   state.shownMap = map;
   draw();
 }
