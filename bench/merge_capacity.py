@@ -74,7 +74,7 @@ def _merge(store: Jobs, job_id: str, batch: Batch, delta: Delta, payloads: dict[
     record = store.get(job_id)
     store.tiles.push_encoded(job_id, store.tiling(record), batch.id, payloads.__getitem__)
     header = Delta(batch.first, batch.n, batch.n, {})
-    assert store.accept(batch, header, 1.0)[0] == "merged"
+    assert store.accept(batch, header, 1.0, 1.0)[0] == "merged"
 
 
 def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pass_seconds: float,
