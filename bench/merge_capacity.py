@@ -19,7 +19,7 @@ Per frame size, node count and N: merge seconds (push + accept + encode; median,
 its share of the simulated workers' time, the passes a batch needs for the mean merge to
 be 5% of it, the refresh interval (per accepted batch, the seconds until a fold round that
 started after it ended: when the image a client reads holds it; largest and median), and
-the fold backlog at the end. N is sustained when the scheduler can keep the merge at 5% of
+the fold backlog when the workers stop. N is sustained when the scheduler can keep the merge at 5% of
 a worker's time (the batch it needs is at most MAX_BATCH_PASSES passes), every refresh
 interval is at most 10 s, and the backlog at the end is at most N batches (the folder
 keeps up).
@@ -35,6 +35,7 @@ import multiprocessing as mp
 import statistics
 import tempfile
 import time
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -103,17 +104,20 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pa
     out.put({"latencies": latencies[1:], "lateness": lateness, "accepted": accepted, "rendered": rendered})
 
 
-def _folder(urls: list[str], job_id: str, end: float, out: mp.Queue) -> None:
-    """The API's folder thread: every FOLD_POLL_SECONDS, a round if one is due. Each round's
-    start and end."""
+def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
+    """The API's folder thread: every FOLD_POLL_SECONDS, a round if one is due, until the
+    simulated workers are done (`pushed`) and everything they had accepted is folded. Each
+    round's start and end, and the backlog when the workers stopped (did it keep up?)."""
     store = _store(urls)
-    rounds = []
-    while time.time() < end:
+    rounds, backlog = [], None
+    while backlog is None or store.r.hlen(keys.tofold(job_id)):
         t0 = time.time()
+        if backlog is None and pushed.is_set():
+            backlog = store.r.hlen(keys.tofold(job_id))
         if store.fold_if_due(job_id) is not None:
             rounds.append((t0, time.time()))
         time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
-    out.put({"rounds": rounds, "backlog": store.r.hlen(keys.tofold(job_id))})
+    out.put({"rounds": rounds, "backlog": backlog})
 
 
 def _image_lags(accepted: list[float], rounds: list[tuple[float, float]]) -> list[float]:
@@ -147,14 +151,15 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     groups = [list(range(p, n_workers, processes)) for p in range(min(processes, n_workers))]
     procs = [ctx.Process(target=_pusher, args=(urls, job_id, g, n_workers, pass_seconds, alone, start, end,
                                                1 + i * 10 ** 6, out)) for i, g in enumerate(groups)]
-    procs.append(ctx.Process(target=_folder, args=(urls, job_id, end + 2 * FOLD_POLL_SECONDS, out)))
+    pushed = ctx.Event()
+    procs.append(ctx.Process(target=_folder, args=(urls, job_id, pushed, out)))
     for p in procs:
         p.start()
-    results = [out.get() for _ in procs]
+    pushes = [out.get() for _ in groups]
+    pushed.set()
+    fold = out.get()
     for p in procs:
         p.join()
-    fold = next(r for r in results if "rounds" in r)
-    pushes = [r for r in results if "latencies" in r]
     latencies = sorted(x for r in pushes for x in r["latencies"])
     lags = _image_lags([t for r in pushes for t in r["accepted"]], fold["rounds"]) or [float("inf")]
     p95 = latencies[int(0.95 * (len(latencies) - 1))] if latencies else float("nan")
