@@ -30,6 +30,7 @@ def test_submit_poll_and_fetch_images(cluster: Cluster) -> None:
     done = cluster.wait(job["id"], finished)
     assert done["status"] == "completed", done
     assert done["passes"] == 24 and done["photons"] == 24 * p
+    assert done["image_passes"] == 24  # a final job's image holds every pass it counts
     assert merged_passes(cluster.redis_client, job["id"]) == list(range(24))
     assert done["elapsed_seconds"] > 0 and done["photons_per_second"] > 0
 
