@@ -57,3 +57,19 @@ def test_skipping_coverage_rays_changes_no_pass(make_engine, exhaustive_ctx, mon
     coverage = weight[point[:, 3] > 0.0, 3]
     assert (a.D > 0).any() and len(coverage) > 0
     assert (coverage < 1.0).any() == (scene != "furnace"), np.unique(coverage)[:5]
+
+
+@pytest.mark.parametrize("scene", ["cornell-box", "cornell-caustics"])
+def test_skipping_coverage_rays_changes_no_vcm_pass(make_engine, exhaustive_ctx, monkeypatch, scene) -> None:
+    """The same for vcm's merging, which tests the disc at every camera vertex that merged
+    something (kernels/vcm_camera_pass.cl), about the side the path arrived from."""
+    settings = dict(resolution=(32, 32), photons_per_pass=1 << 10, seed=11, method="vcm", initial_radius=40.0)
+    fast = make_engine(SCENES[scene], **settings)
+    monkeypatch.setattr(kernels.contract, "COVERAGE_PRETEST", 0)
+    parsed, base = load_any_scene(SCENES[scene])
+    exhaustive = Engine(parsed, base, Settings(**settings), ctx=exhaustive_ctx)
+    inputs = fast.integrator.batch_inputs(fast.start())
+    a, b = fast.run_batch(inputs, 0, 2), exhaustive.run_batch(inputs, 0, 2)
+    assert (a.sums["C"] > 0).any()
+    for name in a.sums:
+        assert np.array_equal(a.sums[name], b.sums[name]), name
