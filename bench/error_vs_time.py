@@ -10,8 +10,9 @@ Error: relative RMS per pixel, sqrt(mean(((image - reference) / max(reference, f
 over all pixels and channels, floor = 5% of the reference's mean (as the error estimator's
 policy): every pixel counts by its relative error, so a few bright pixels (a visible lamp)
 cannot decide the comparison, and dark ones cannot dominate it. Time: wall clock from the start, set-up included, for our engine
-(every pass is a point); each Mitsuba point is a whole render at 1, 2, 4, ... samples per
-pixel. References (bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
+(every pass is a point; one untimed warm-up pass first, so PoCL compiling the kernels is not
+counted); each Mitsuba point is a whole render at 1, 2, 4, ... samples per pixel (its scene
+loading not counted). References (bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
 a long Mitsuba path-tracing run where path tracing converges (an area light reaches every
 path), otherwise a long SPPM run with the exact grid, marked `sppm` (point, spot and
 directional lights through glass: paths no unbiased tracer from the camera can sample).
