@@ -4,14 +4,15 @@ the hybrid integrator's bpt and vcm (one light subpath per pixel per pass), and 
 Mitsuba 3 (`scalar_rgb`) path tracer and particle tracer, on the same scene converted
 automatically (bench/mitsuba_peer.py).
 
-    python -m bench.error_vs_time [--full] [--make-references] [--seconds S] [--scenes A,B]
+    python -m bench.error_vs_time [--full] [--make-references] [--seconds S] [--scenes A,B] [--methods M,N]
 
 Error: relative RMS per pixel, sqrt(mean(((image - reference) / max(reference, floor))^2))
 over all pixels and channels, floor = 5% of the reference's mean (as the error estimator's
 policy): every pixel counts by its relative error, so a few bright pixels (a visible lamp)
 cannot decide the comparison, and dark ones cannot dominate it. Time: wall clock from the start, set-up included, for our engine
-(every pass is a point); each Mitsuba point is a whole render at 1, 2, 4, ... samples per
-pixel. References (bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
+(every pass is a point; one untimed warm-up pass first, so PoCL compiling the kernels is not
+counted); each Mitsuba point is a whole render at 1, 2, 4, ... samples per pixel (its scene
+loading not counted). References (bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
 a long Mitsuba path-tracing run where path tracing converges (an area light reaches every
 path), otherwise a long SPPM run with the exact grid, marked `sppm` (point, spot and
 directional lights through glass: paths no unbiased tracer from the camera can sample).
@@ -89,9 +90,15 @@ def rel_rms(img: np.ndarray, ref: np.ndarray) -> float:
 
 def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, budget: float, method: str, gather: str,
              direct: str = "photons") -> list:
-    t0 = time.perf_counter()
     photons = res[0] * res[1] if method in HYBRID else PHOTONS
-    eng = bench_engine(scene, res, method=method, gather=gather, direct=direct, photons_per_pass=photons, seed=7)
+    settings = dict(method=method, gather=gather, direct=direct, photons_per_pass=photons)
+    # Warm-up, not timed: one pass of the same configuration first, so the clock does not
+    # count PoCL compiling the kernels (once per machine and kernel source, then loaded from
+    # its cache; a worker pays it once, not per job). A vcm run after a kernel change
+    # otherwise started 0.67 s late on cornell-box at 64 px (its build options differ from bpt's).
+    render(bench_engine(scene, res, seed=6, **settings), passes=1)
+    t0 = time.perf_counter()
+    eng = bench_engine(scene, res, seed=7, **settings)
     state = eng.start()
     setup = time.perf_counter() - t0
     curve = []
@@ -118,7 +125,7 @@ def time_to(curve: list, target: float) -> float | None:
     return next((t for t, e in curve if e <= target), None)
 
 
-def chart(scene: str, curves: dict[str, list], ref_method: str) -> None:
+def chart(scene: str, curves: dict[str, list], ref_method: str, report_name: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
@@ -132,7 +139,7 @@ def chart(scene: str, curves: dict[str, list], ref_method: str) -> None:
     ax.set_title(f"{scene} (reference: {ref_method})")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    save_figure(fig, f"error_vs_time_{scene}")
+    save_figure(fig, f"{report_name}_{scene}")
 
 
 def main() -> None:
@@ -142,10 +149,16 @@ def main() -> None:
     parser.add_argument("--reference-seconds", type=float, default=120.0)
     parser.add_argument("--seconds", type=float, help="budget per method (a smoke run; default 12, --full 60)")
     parser.add_argument("--scenes", help="comma-separated subset of the scenes")
+    parser.add_argument("--methods", help=f"comma-separated subset of the methods: {', '.join((*OURS, *PEERS))}")
     args = parser.parse_args()
     side, budget = (128, 60.0) if args.full else (64, 12.0)
     budget = args.seconds or budget
     scenes = {name: SCENES[name] for name in args.scenes.split(",")} if args.scenes else SCENES
+    methods = args.methods.split(",") if args.methods else [*OURS, *PEERS]
+    unknown = sorted(set(methods) - {*OURS, *PEERS})
+    if unknown:
+        parser.error(f"unknown method(s) {', '.join(unknown)}; choose from {', '.join((*OURS, *PEERS))}")
+    report_name = "error_vs_time_methods" if args.methods else "error_vs_time"  # a subset keeps the full run's files
     report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget, "photons_per_pass": PHOTONS,
               "scenes": {}}
     for scene, ref_method in scenes.items():
@@ -153,17 +166,18 @@ def main() -> None:
         if args.make_references or not reference_path(scene, res).exists():
             make_reference(scene, res, args.reference_seconds)
         ref = read_image(reference_path(scene, res))[..., :3].astype(np.float64)
-        curves = {name: run_ours(scene, res, ref, budget, *how) for name, how in OURS.items()}
-        curves.update({name: run_peer(scene, res, ref, name.split()[1], budget) for name in PEERS})
+        curves = {name: run_ours(scene, res, ref, budget, *how) for name, how in OURS.items() if name in methods}
+        curves.update({name: run_peer(scene, res, ref, name.split()[1], budget) for name in PEERS if name in methods})
         times = {name: {f"{t:.2f}": time_to(c, t) for t in TARGETS} for name, c in curves.items()}
-        best_peer = {f"{t:.2f}": min((times[p][f"{t:.2f}"] for p in PEERS if times[p][f"{t:.2f}"] is not None),
+        peers = [p for p in PEERS if p in curves]
+        best_peer = {f"{t:.2f}": min((times[p][f"{t:.2f}"] for p in peers if times[p][f"{t:.2f}"] is not None),
                                      default=None) for t in TARGETS}
         report["scenes"][scene] = {"resolution": list(res), "reference": json.loads(
             reference_path(scene, res).with_suffix(".json").read_text()), "time_to_error": times,
             "best_peer": best_peer, "final_error": {n: c[-1][1] for n, c in curves.items() if c}, "curves": curves}
-        chart(scene, curves, ref_method)
+        chart(scene, curves, ref_method, report_name)
         print(scene, {n: (v["0.10"], v["0.05"]) for n, v in times.items()}, flush=True)
-    write_json("error_vs_time", report)
+    write_json(report_name, report)
 
 
 if __name__ == "__main__":

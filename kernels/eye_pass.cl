@@ -49,6 +49,19 @@ inline float cover_share(float s) {
 // exactly (1, 1), so the image is the same bit for bit as with every disc traced.
 inline bool plane_splits(float lowest, float highest, float e) { return lowest < 2.0f * e && highest > 0.5f * e; }
 
+// Whether triangle (v0, v0 + e1, v0 + e2) may come within `reach` of x: its bounding box
+// and its plane both do (conservative). A leaf holds several triangles (worker/bvh.py
+// LEAF_SIZE), and its box reaching x says nothing of each: without this, a Cornell box's
+// ceiling points found the side walls' triangles of their leaf and cast the rays everywhere.
+inline bool triangle_may_reach(float3 v0, float3 e1, float3 e2, float3 x, float reach) {
+    float3 v1 = v0 + e1, v2 = v0 + e2;
+    float3 nearest = clamp(x, fmin(v0, fmin(v1, v2)), fmax(v0, fmax(v1, v2)));
+    if (dot(nearest - x, nearest - x) > reach * reach) return false;
+    float3 c = cross(e1, e2);
+    float d = dot(x - v0, c);
+    return d * d <= reach * reach * dot(c, c);
+}
+
 inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
     float e = ray_eps(x);
     float reach = r + e;
@@ -78,6 +91,7 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
             }
             for (int k = a; k < a + count; ++k) {
                 float3 v0 = g->tri_v0[k].xyz, e1 = g->tri_e1[k].xyz, e2 = g->tri_e2[k].xyz;
+                if (!triangle_may_reach(v0, e1, e2, x, reach + e)) continue;  // (e: slack for rounding)
                 float h0 = dot(v0 - x, n), h1 = h0 + dot(e1, n), h2 = h0 + dot(e2, n);
                 if (plane_splits(fmin(h0, fmin(h1, h2)), fmax(h0, fmax(h1, h2)), e)) return true;
             }
@@ -90,13 +104,15 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
 inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, bool smooth, Rng* rng, uint4* cut) {
     *cut = (uint4)(CUT_NONE, CUT_NONE, 0u, 0u);
     if (r <= 0.0f) return (float2)(1.0f);
+    // Drawn whether or not the rays are cast, so the pretest leaves the path's later random
+    // numbers (vcm's camera path goes on) as they were.
+    float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS);
 #if COVERAGE_PRETEST
     if (!disc_may_be_cut(g, x, n, r)) return (float2)(1.0f);
 #endif
     float3 t, b;
     onb(n, &t, &b);
     float3 o = x + n * ray_eps(x);
-    float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS);
     float2 covered = (float2)(0.0f);
     uint words[2] = {0u, 0u};
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
