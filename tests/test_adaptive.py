@@ -291,7 +291,10 @@ def test_replica_exchange_finds_both_openings_in_proportion(make_engine, tmp_pat
     v_c = sum(d.counters["visible"] for d in deltas) / sum(d.counters["draws"] for d in deltas)
     assert 0.002 < v_c < 0.05
     both, alone = shares[True], shares[False]
-    assert abs(both.mean() - 0.5) < 0.06 and both.std() < 0.13, both
+    # Per pass ~150 runs of geometric length split between the openings: a spread of about
+    # 0.06 in theory, 0.06 to 0.15 over seeds 21..32 (the chains' random numbers drawn two
+    # ways); by mutations alone it is above 0.25.
+    assert abs(both.mean() - 0.5) < 0.06 and both.std() < 0.18, both
     assert alone.std() > 0.25 and (np.minimum(alone, 1.0 - alone) < 0.05).sum() >= 2, alone
 
 
