@@ -91,9 +91,10 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
 
 
 def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str) -> list:
-    """(CPU seconds, relative RMS error) after every pass; the clock counts set-up and rendering."""
-    t0 = time.process_time()
+    """(CPU seconds, relative RMS error) after every pass; the clock counts set-up and
+    rendering (not the kernels' compilation, once a process)."""
     eng = engine(scene, res, photons, sampler=sampler)
+    t0 = time.process_time()
     state = eng.start()
     spent, points = time.process_time() - t0, []
     while spent < budget:
@@ -108,8 +109,8 @@ def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: in
     """Both samplers, `passes` passes of `photons` photon paths: error, CPU seconds, paths traced."""
     out = {}
     for sampler in ("uniform", "adaptive"):
-        t0 = time.process_time()
         eng = engine(scene, res, photons, sampler=sampler)
+        t0 = time.process_time()
         state = render(eng, passes=passes)
         c = state.counters
         out[sampler] = {"error": rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref),

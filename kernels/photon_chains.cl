@@ -182,7 +182,8 @@ __kernel void photon_chains(
             accepted += moved;
         }
         if (moved) {
-            keep(next, &proposal);
+            // Made whole only if it can be traced again: mutated, or replayed to store it.
+            if (mutating || next->sink.n > DEPOSIT_CACHE) keep(next, &proposal);
             cur = 1 - cur;
             has_state = 1;
         }
