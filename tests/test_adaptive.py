@@ -384,3 +384,25 @@ def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) ->
     assert np.all(img == 0.0)
     est = eng.integrator.estimate(state)
     assert np.all(np.isfinite(est.relative)) and est.average == 1.0
+
+
+@pytest.mark.parametrize("target", [0.234, 0.95])
+def test_chains_mutate_only_below_the_target_acceptance(make_engine, target: float) -> None:
+    """cornell-box: the camera sees most lit surfaces (V_c ~ 0.8). A chain finds a new
+    visible path per trace more often than uniform tracing only if its acceptance beats
+    V_c (worker/adaptive.py, mutates): at target 0.234 the passes after the first (which
+    has no V_c yet) trace uniform draws alone, at 0.95 they keep mutating."""
+    eng = make_engine("cornell-box", resolution=(24, 24), photons_per_pass=1 << 12, seed=3, sampler="adaptive",
+                      target_acceptance=target)
+    state = eng.start()
+    per_pass = []
+    for k in range(3):
+        delta = eng.render_batch(state, k, 1)
+        eng.integrator.merge(state, delta)
+        per_pass.append(delta.counters["mutations"])
+    assert adaptive.visible_fraction(state.counters) > 0.5
+    assert per_pass[0] > 0
+    if target < 0.5:
+        assert per_pass[1:] == [0, 0], per_pass
+    else:
+        assert min(per_pass[1:]) > 0, per_pass
