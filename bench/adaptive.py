@@ -3,13 +3,16 @@
 1. the visible fraction V_c (and the visible-photon ratio 1 / V_c, the paper's Table 1
    column), the final mutation size theta and the achieved acceptance, per bundled scene
    and per zoom level of `directional-caustic` (the camera closing in on the caustic,
-   vertical field of view 40 (the scene's), 20, 10 and 5 degrees);
+   vertical field of view 40 (the scene's), 20, 10, 5, 2.5 and 1.25 degrees);
 2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
    gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
    rendering), which a shared machine's load changes little;
 3. error at equal photon paths: both samplers the same passes of the same photons per
    pass (a chain pass traces that many paths, plus its chains' starts), with the CPU
-   seconds each took: the gain the chains' extra visible photons buy, apart from their cost.
+   seconds each took: the gain the chains' extra visible photons buy, apart from their cost;
+   and the noise alone, from a second seed (the relative RMS of the two images' difference
+   over sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
+   alike, so this ratio is the chains' gain itself.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -48,7 +52,7 @@ from worker.settings import Settings
 BUNDLED = ("cornell-box", "cornell-caustics", "directional-caustic", "furnace", "gap", "glossy", "point-plane",
            "smallppm")
 ZOOM_SCENE = "directional-caustic"
-ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0)  # degrees; 40 is the scene's own view
+ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0, 2.5, 1.25)  # degrees; 40 is the scene's own view
 CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere's centre meets the ground
 # Photons per pass, both samplers. SPPM's radius falls by pass, not by photon, so on a
 # zoomed caustic the error at a given number of traced paths is mostly the radius's bias
@@ -68,9 +72,9 @@ def zoomed(fov: float) -> Scene:
     return parsed.model_copy(update={"camera": parsed.camera.model_copy(update={"fov": fov, "look_at": CAUSTIC})})
 
 
-def engine(scene: Scene, res: tuple[int, int], photons: int, **settings: object) -> Engine:
+def engine(scene: Scene, res: tuple[int, int], photons: int, seed: int = SEED, **settings: object) -> Engine:
     _, base = load_scene_file(bundled_scene_path(ZOOM_SCENE))  # bundled scenes share one folder
-    return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=SEED, **settings))
+    return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=seed, **settings))
 
 
 def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict[str, float]:
@@ -121,11 +125,16 @@ def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: in
         eng = warmed(scene, res, photons, sampler)
         t0 = time.process_time()
         state = render(eng, passes=passes)
+        seconds = time.process_time() - t0
         c = state.counters
-        out[sampler] = {"error": rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref),
-                        "cpu_seconds": time.process_time() - t0,
+        img = eng.integrator.image(state).reshape(res[1], res[0], 3)
+        other = engine(scene, res, photons, sampler=sampler, seed=SEED + 1)
+        twin = other.integrator.image(render(other, passes=passes)).reshape(res[1], res[0], 3)
+        out[sampler] = {"error": rel_rms(img, ref), "noise": rel_rms(img, twin) / math.sqrt(2.0),
+                        "cpu_seconds": seconds,
                         "traced": c["draws"] + c["mutations"] + c["boot"] if c else passes * photons}
     out["uniform_over_adaptive"] = out["uniform"]["error"] / out["adaptive"]["error"]
+    out["noise_uniform_over_adaptive"] = out["uniform"]["noise"] / out["adaptive"]["noise"]
     return out
 
 
