@@ -13,7 +13,8 @@
 // adds 1 to the counts of its stored photons instead of being traced again (a rejected
 // proposal costs its own trace and nothing for the state) (with the
 // stochastic hash it stores them again from its cache; a state with more than
-// DEPOSIT_CACHE photons is traced and stored again).
+// DEPOSIT_CACHE photons is traced and stored again). Chains that do not mutate
+// (worker/adaptive.py, mutates) store each uniform draw's photons as it is traced.
 //
 // Each chain starts the pass from an exact sample of F: uniform draws until one is visible
 // (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their
@@ -73,11 +74,12 @@ typedef struct {
 } Tracer;
 
 // Trace a path (a copy of `path`: the proposal stays as it was made) into the state's
-// probe sink: its visibility and (cached) photons.
-inline void probe(const Tracer* t, ChainState* s, Rng path, ulong record) {
+// sink, `mode` SINK_PROBE (its visibility and cached photons) or SINK_JUDGE (its
+// visibility, its photons stored at once).
+inline void probe(const Tracer* t, ChainState* s, Rng path, ulong record, int mode) {
     s->sink.visible = 0;
     s->sink.n = 0;
-    s->sink.probe = 1;
+    s->sink.probe = mode;
     s->stored = 0;
     Rng rng = path;
     trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
@@ -113,7 +115,7 @@ inline void splat_state(const Tracer* t, ChainState* s, ulong record, int in_pla
         return;
     }
     PhotonSink writer = s->sink;
-    writer.probe = 0;
+    writer.probe = SINK_STORE;
     Rng rng = rng_sample(SAMPLE_REPLAY, s->u, 0, 0.0f, s->tail, PSS_DIM);
     trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
                  t->skip_first_hit, record, 0, &writer);
@@ -157,38 +159,41 @@ __kernel void photon_chains(
     uint boot = 0;
     while (mutating && boot < boot_cap && !has_state) {
         Rng draw = uniform_proposal(&rng);
-        probe(&tracer, &states[cur], draw, record0);
+        probe(&tracer, &states[cur], draw, record0, SINK_PROBE);
         has_state = states[cur].sink.visible;
         if (has_state) keep(&states[cur], &draw);
         ++boot;
     }
     int started = has_state;
+    // Without mutations every visible draw is splatted once, as it is traced: its photons
+    // are stored at once (an invisible draw's too, which no point gathers), no cache.
+    int judge = !mutating && exchange;
 
     for (uint i = 0; i < iters; ++i) {
         ulong record = record0 + i;
         ChainState* next = &states[1 - cur];
         // Replica exchange with the uniform sampler: a visible uniform path replaces the state.
         Rng proposal = uniform_proposal(&rng);
-        probe(&tracer, next, proposal, record);
+        probe(&tracer, next, proposal, record, judge ? SINK_JUDGE : SINK_PROBE);
         ++draws;
         visible += next->sink.visible;
         int moved = next->sink.visible && (exchange || !has_state);
         if (!moved && has_state && mutating) {
             // Otherwise mutate the state; the candidate is accepted iff visible.
             proposal = mutation_proposal(&rng, &states[cur], theta);
-            probe(&tracer, next, proposal, record);
+            probe(&tracer, next, proposal, record, SINK_PROBE);
             ++mutations;
             moved = next->sink.visible;
             accepted += moved;
         }
         if (moved) {
             // Made whole only if it can be traced again: mutated, or replayed to store it.
-            if (mutating || next->sink.n > DEPOSIT_CACHE) keep(next, &proposal);
+            if (mutating || (!judge && next->sink.n > DEPOSIT_CACHE)) keep(next, &proposal);
             cur = 1 - cur;
             has_state = 1;
         }
         if (has_state && (moved || mutating)) {  // without mutations a state is splatted once
-            splat_state(&tracer, &states[cur], record, in_place);
+            if (!judge) splat_state(&tracer, &states[cur], record, in_place);
             ++splats;
         }
     }
