@@ -3,11 +3,23 @@
 1. the visible fraction V_c (and the visible-photon ratio 1 / V_c, the paper's Table 1
    column), the final mutation size theta and the achieved acceptance, per bundled scene
    and per zoom level of `directional-caustic` (the camera closing in on the caustic,
-   vertical field of view 40 (the scene's), 20, 10 and 5 degrees);
+   vertical field of view 40 (the scene's), 20, 10, 5, 2.5 and 1.25 degrees);
 2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
-   gather), with a chart per scene.
+   gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
+   rendering), which a shared machine's load changes little;
+3. error at equal photon paths: both samplers the same passes of the same photons per
+   pass (a chain pass traces that many paths, plus its chains' starts), with the CPU
+   seconds each took: the gain the chains' extra visible photons buy, apart from their cost;
+   and the noise alone, from a second seed (the relative RMS of the two images' difference
+   over sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
+   alike, so this ratio is the chains' gain itself.
+
+Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
+plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
+again; they add no new path, so when this is not well above V_c the chains cannot win.
 
     python -m bench.adaptive [--full] [--smoke] [--visibility-only] [--reference-seconds S] [--photons-per-pass P]
+        [--equal-paths-passes N]
 
 Error: the relative RMS of bench/error_vs_time.py against its cached references
 (bench/reference/<scene>-<W>x<H>.exr); the zoom levels get their own references (two
@@ -21,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -39,7 +52,7 @@ from worker.settings import Settings
 BUNDLED = ("cornell-box", "cornell-caustics", "directional-caustic", "furnace", "gap", "glossy", "point-plane",
            "smallppm")
 ZOOM_SCENE = "directional-caustic"
-ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0)  # degrees; 40 is the scene's own view
+ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0, 2.5, 1.25)  # degrees; 40 is the scene's own view
 CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere's centre meets the ground
 # Photons per pass, both samplers. SPPM's radius falls by pass, not by photon, so on a
 # zoomed caustic the error at a given number of traced paths is mostly the radius's bias
@@ -59,9 +72,9 @@ def zoomed(fov: float) -> Scene:
     return parsed.model_copy(update={"camera": parsed.camera.model_copy(update={"fov": fov, "look_at": CAUSTIC})})
 
 
-def engine(scene: Scene, res: tuple[int, int], photons: int, **settings: object) -> Engine:
+def engine(scene: Scene, res: tuple[int, int], photons: int, seed: int = SEED, **settings: object) -> Engine:
     _, base = load_scene_file(bundled_scene_path(ZOOM_SCENE))  # bundled scenes share one folder
-    return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=SEED, **settings))
+    return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=seed, **settings))
 
 
 def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict[str, float]:
@@ -73,25 +86,56 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
     c = state.counters
     mutations = c["mutations"] - half["mutations"]
     v_c = adaptive.visible_fraction(c)
+    traced = c["draws"] + c["mutations"] + c.get("boot", 0)
     return {"visible_fraction": v_c, "visible_photon_ratio": 1.0 / v_c if v_c else None,
-            "traced_per_splat": (c["draws"] + c["mutations"] + c.get("boot", 0)) / c["splats"] if c["splats"] else None,
+            "traced_per_splat": traced / c["splats"] if c["splats"] else None,
+            "new_visible_per_traced": (c["visible"] + c["accepted"]) / traced if traced else None,
             "theta": adaptive.theta(c), "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations
             else None, "passes": passes}
 
 
-def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str) -> list:
-    """(seconds, relative RMS error) after every pass; the clock counts set-up and rendering."""
-    t0 = time.perf_counter()
+def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str) -> Engine:
+    """An engine whose kernels have run once (a pass of a state thrown away): PoCL compiles
+    a kernel at its first launch in a context (seconds, unless its disk cache has it),
+    which is no sampler's cost."""
     eng = engine(scene, res, photons, sampler=sampler)
+    render(eng, passes=1)
+    return eng
+
+
+def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str) -> list:
+    """(CPU seconds, relative RMS error) after every pass; the clock counts set-up and
+    rendering (not the kernels' compilation)."""
+    eng = warmed(scene, res, photons, sampler)
+    t0 = time.process_time()
     state = eng.start()
-    setup = time.perf_counter() - t0
-    points = []
-
-    def observe(st: object, seconds: float) -> None:
-        points.append((setup + seconds, rel_rms(eng.integrator.image(st).reshape(res[1], res[0], 3), ref)))
-
-    render(eng, seconds=max(budget - setup, 1e-3), progress=observe, state=state)
+    spent, points = time.process_time() - t0, []
+    while spent < budget:
+        t0 = time.process_time()
+        render(eng, passes=state.passes + 1, state=state)
+        spent += time.process_time() - t0  # the error below is not the sampler's time
+        points.append((spent, rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
     return points
+
+
+def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, passes: int) -> dict:
+    """Both samplers, `passes` passes of `photons` photon paths: error, CPU seconds, paths traced."""
+    out = {}
+    for sampler in ("uniform", "adaptive"):
+        eng = warmed(scene, res, photons, sampler)
+        t0 = time.process_time()
+        state = render(eng, passes=passes)
+        seconds = time.process_time() - t0
+        c = state.counters
+        img = eng.integrator.image(state).reshape(res[1], res[0], 3)
+        other = engine(scene, res, photons, sampler=sampler, seed=SEED + 1)
+        twin = other.integrator.image(render(other, passes=passes)).reshape(res[1], res[0], 3)
+        out[sampler] = {"error": rel_rms(img, ref), "noise": rel_rms(img, twin) / math.sqrt(2.0),
+                        "cpu_seconds": seconds,
+                        "traced": c["draws"] + c["mutations"] + c["boot"] if c else passes * photons}
+    out["uniform_over_adaptive"] = out["uniform"]["error"] / out["adaptive"]["error"]
+    out["noise_uniform_over_adaptive"] = out["uniform"]["noise"] / out["adaptive"]["noise"]
+    return out
 
 
 def zoom_reference(fov: float, res: tuple[int, int], photons: int, seconds: float, folder: Path) -> np.ndarray:
@@ -120,7 +164,7 @@ def chart(name: str, curves: dict[str, list], v_c: float | None, prefix: str) ->
     for sampler, points in curves.items():
         if points:
             ax.loglog(*zip(*points), "-", ms=3, label=sampler)
-    ax.set_xlabel("wall time, s")
+    ax.set_xlabel("CPU time, s")
     ax.set_ylabel("relative RMS error")
     ax.set_title(f"{name}: adaptive vs uniform photons (V_c {v_c:.3g})" if v_c else name)
     ax.legend(fontsize=8)
@@ -135,6 +179,8 @@ def main() -> None:
     parser.add_argument("--reference-seconds", type=float, default=120.0, help="per run, for the zoom references")
     parser.add_argument("--visibility-only", action="store_true", help="part 1 alone (no timing)")
     parser.add_argument("--photons-per-pass", type=int, default=PHOTONS)
+    parser.add_argument("--equal-paths-passes", type=int, default=64, help="part 3: passes per sampler")
+    parser.add_argument("--only", nargs="*", help="cases of parts 2 and 3 to run (default: all)")
     args = parser.parse_args()
     side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
     photons = args.photons_per_pass
@@ -142,8 +188,11 @@ def main() -> None:
     if args.smoke:  # outputs apart from the real ones, references thrown away
         side, budget, photons, passes, ref_seconds = 64, 1.0, 1 << 12, 4, 1.0
         references, prefix = Path(tempfile.mkdtemp(prefix="adaptive-smoke-")), "adaptive-smoke"
-    report: dict = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget,
-                    "photons_per_pass": photons, "smoke": args.smoke, "visibility": {}, "equal_time": {}}
+    if args.smoke:
+        args.equal_paths_passes = 2
+    report: dict = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_cpu_seconds": budget,
+                    "photons_per_pass": photons, "smoke": args.smoke, "visibility": {}, "equal_time": {},
+                    "equal_paths": {}}
     # 1. V_c per bundled scene and zoom level.
     for name in BUNDLED:
         parsed, _ = load_scene_file(bundled_scene_path(name))
@@ -160,6 +209,8 @@ def main() -> None:
     cases = {name: (load_scene_file(bundled_scene_path(name))[0], None) for name in SCENES}
     cases.update({f"{ZOOM_SCENE} fov {fov:g}": (zoomed(fov), fov) for fov in ZOOM_FOVS[1:]})
     for name, (scene, fov) in cases.items():
+        if args.only and name not in args.only:
+            continue
         res = resolution(ZOOM_SCENE if fov else name, side)
         if fov is None:
             path = reference_path(name, res)
@@ -178,6 +229,9 @@ def main() -> None:
                                       if len(final) == 2 else None, "curves": curves}
         chart(name.replace(" ", "-"), curves, v_c, prefix)
         print(name, final, flush=True)
+        # 3. Equal photon paths.
+        report["equal_paths"][name] = equal_paths(scene, res, ref, photons, args.equal_paths_passes)
+        print(name, "equal paths", report["equal_paths"][name], flush=True)
     write_json(prefix, report)
 
 

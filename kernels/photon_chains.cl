@@ -2,16 +2,19 @@
 // ch. 8), as many parallel Markov chains, one per work item.
 //
 // A path is a point u of the primary sample space [0,1)^PSS_DIM: every random number of
-// the path, in the order trace_photon asks for them (the ones beyond PSS_DIM come from a
-// stream seeded by a hash of u, rng.cl). The target is F(u) = V(u) / V_c, V the path's
+// the path, in the order trace_photon asks for them (the ones beyond PSS_DIM come from the
+// stream of the state's `tail` seed, rng.cl). Proposals are lazy: a path makes only the
+// dimensions it asks for, and only a kept proposal is made whole. The target is F(u) = V(u) / V_c, V the path's
 // visibility (visibility.cl). Per iteration a chain draws a uniform u_I (replica exchange
 // with the uniform sampler, acceptance V(u_I), eq. 4): if visible it replaces the state;
 // otherwise the state is mutated, u + du per dimension with du = sign(2 xi0 - 1) xi1^(1/theta
 // + 1) wrapped into [0,1) (eq. 9), and the candidate is accepted iff visible (eq. 10). Then
 // the state is splatted: a new state's photons are stored with count 1, a state kept again
-// adds 1 to the counts of its stored photons instead of being traced again (with the
+// adds 1 to the counts of its stored photons instead of being traced again (a rejected
+// proposal costs its own trace and nothing for the state) (with the
 // stochastic hash it stores them again from its cache; a state with more than
-// DEPOSIT_CACHE photons is traced and stored again).
+// DEPOSIT_CACHE photons is traced and stored again). Chains that do not mutate
+// (worker/adaptive.py, mutates) store each uniform draw's photons as it is traced.
 //
 // Each chain starts the pass from an exact sample of F: uniform draws until one is visible
 // (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their
@@ -37,25 +40,28 @@
 
 typedef struct {
     float u[PSS_DIM];
-    PhotonSink sink;     // the probe of u: visibility, and its photons
+    ulong tail;          // the seed of the path's numbers after u (rng.cl)
+    PhotonSink sink;     // the probe of the path: visibility, and its photons
     uint first;          // first stored slot (when stored and cached)
     int stored;
 } ChainState;
 
-inline void draw_uniform(Rng* rng, ChainState* s) {
-    for (int k = 0; k < PSS_DIM; ++k) s->u[k] = rng_float(rng);
+// A uniform draw, and a mutation of `from` (eq. 9 on every dimension, wrapped into [0,1)):
+// lazy proposals (rng.cl), each dimension made when the path asks for it.
+inline Rng uniform_proposal(Rng* rng) {
+    ulong fresh = rng_u64(rng);
+    return rng_sample(SAMPLE_UNIFORM, 0, fresh, 0.0f, rng_u64(rng), PSS_DIM);
 }
 
-// Eq. 9: du = sign(2 xi0 - 1) xi1^(1/theta + 1) on every dimension, wrapped into [0,1).
-inline void mutate(Rng* rng, const ChainState* from, ChainState* to, float theta) {
-    float power = 1.0f / theta + 1.0f;
-    for (int k = 0; k < PSS_DIM; ++k) {
-        float xi0 = rng_float(rng), xi1 = rng_float(rng);
-        float du = pow(xi1, power);
-        float t = from->u[k] + (2.0f * xi0 - 1.0f > 0.0f ? du : -du);
-        t -= floor(t);
-        to->u[k] = t < 1.0f ? t : 0.0f;  // t - floor(t) can round up to exactly 1
-    }
+inline Rng mutation_proposal(Rng* rng, const ChainState* from, float theta) {
+    ulong fresh = rng_u64(rng);
+    return rng_sample(SAMPLE_MUTATION, from->u, fresh, 1.0f / theta + 1.0f, rng_u64(rng), PSS_DIM);
+}
+
+// The state becomes the proposal it was probed with: its whole vector and its tail.
+inline void keep(ChainState* s, const Rng* proposal) {
+    rng_sample_fill(proposal, s->u);
+    s->tail = proposal->state;
 }
 
 typedef struct {
@@ -67,13 +73,15 @@ typedef struct {
     int n_emitters, max_bounces, skip_first_hit;
 } Tracer;
 
-// Trace u into the state's probe sink: its visibility and (cached) photons.
-inline void probe(const Tracer* t, ChainState* s, ulong record) {
+// Trace a path (a copy of `path`: the proposal stays as it was made) into the state's
+// sink, `mode` SINK_PROBE (its visibility and cached photons) or SINK_JUDGE (its
+// visibility, its photons stored at once).
+inline void probe(const Tracer* t, ChainState* s, Rng path, ulong record, int mode) {
     s->sink.visible = 0;
     s->sink.n = 0;
-    s->sink.probe = 1;
+    s->sink.probe = mode;
     s->stored = 0;
-    Rng rng = rng_from_sample(s->u, PSS_DIM);
+    Rng rng = path;
     trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
                  t->skip_first_hit, record, 0, &s->sink);
 }
@@ -107,8 +115,8 @@ inline void splat_state(const Tracer* t, ChainState* s, ulong record, int in_pla
         return;
     }
     PhotonSink writer = s->sink;
-    writer.probe = 0;
-    Rng rng = rng_from_sample(s->u, PSS_DIM);
+    writer.probe = SINK_STORE;
+    Rng rng = rng_sample(SAMPLE_REPLAY, s->u, 0, 0.0f, s->tail, PSS_DIM);
     trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
                  t->skip_first_hit, record, 0, &writer);
 }
@@ -150,36 +158,42 @@ __kernel void photon_chains(
     // Start: an exact sample of F by rejection (uniform draws until visible, capped).
     uint boot = 0;
     while (mutating && boot < boot_cap && !has_state) {
-        draw_uniform(&rng, &states[cur]);
-        probe(&tracer, &states[cur], record0);
+        Rng draw = uniform_proposal(&rng);
+        probe(&tracer, &states[cur], draw, record0, SINK_PROBE);
         has_state = states[cur].sink.visible;
+        if (has_state) keep(&states[cur], &draw);
         ++boot;
     }
     int started = has_state;
+    // Without mutations every visible draw is splatted once, as it is traced: its photons
+    // are stored at once (an invisible draw's too, which no point gathers), no cache.
+    int judge = !mutating && exchange;
 
     for (uint i = 0; i < iters; ++i) {
         ulong record = record0 + i;
         ChainState* next = &states[1 - cur];
         // Replica exchange with the uniform sampler: a visible uniform path replaces the state.
-        draw_uniform(&rng, next);
-        probe(&tracer, next, record);
+        Rng proposal = uniform_proposal(&rng);
+        probe(&tracer, next, proposal, record, judge ? SINK_JUDGE : SINK_PROBE);
         ++draws;
         visible += next->sink.visible;
         int moved = next->sink.visible && (exchange || !has_state);
         if (!moved && has_state && mutating) {
             // Otherwise mutate the state; the candidate is accepted iff visible.
-            mutate(&rng, &states[cur], next, theta);
-            probe(&tracer, next, record);
+            proposal = mutation_proposal(&rng, &states[cur], theta);
+            probe(&tracer, next, proposal, record, SINK_PROBE);
             ++mutations;
             moved = next->sink.visible;
             accepted += moved;
         }
         if (moved) {
+            // Made whole only if it can be traced again: mutated, or replayed to store it.
+            if (mutating || (!judge && next->sink.n > DEPOSIT_CACHE)) keep(next, &proposal);
             cur = 1 - cur;
             has_state = 1;
         }
         if (has_state && (moved || mutating)) {  // without mutations a state is splatted once
-            splat_state(&tracer, &states[cur], record, in_place);
+            if (!judge) splat_state(&tracer, &states[cur], record, in_place);
             ++splats;
         }
     }

@@ -54,13 +54,19 @@ inline ulong salted_key(ulong key) {
     return ((mix64(low ^ 0x5851F42D4C957F2DUL) >> 36) << 36) | low;
 }
 
-// Where trace_photon puts its photons: stored at once (probe == 0), or probed: judged
+// Where trace_photon puts its photons: stored at once (SINK_STORE); or probed: judged
 // against the measurement points (PointGrid, visibility.cl) and the first DEPOSIT_CACHE
-// kept, so an accepted chain state is stored without tracing it again.
+// kept, so an accepted chain state is stored without tracing it again (SINK_PROBE); or
+// judged and stored at once (SINK_JUDGE: chains that do not mutate splat every visible
+// uniform draw once, and an invisible one's photons are never gathered).
+#define SINK_STORE 0
+#define SINK_PROBE 1
+#define SINK_JUDGE 2
+
 typedef struct {
     PhotonStore store;
     int salted;                  // store keys as salted_key (chains, for the stochastic hash)
-    int probe;
+    int probe;                   // SINK_*
     PointGrid grid;
     int visible;                 // some photon lands in a measurement point's disc
     int n;                       // photons of the path (also those beyond the cache)
@@ -71,11 +77,11 @@ typedef struct {
 } PhotonSink;
 
 inline void sink_photon(PhotonSink* s, float3 p, float3 flux, uint2 dirs, ulong key) {
-    if (!s->probe) {
+    if (s->probe != SINK_STORE && !s->visible) s->visible = photon_visible(&s->grid, p, dirs);
+    if (s->probe != SINK_PROBE) {
         write_photon(&s->store, reserve_photons(&s->store, 1), p, 1.0f, flux, dirs, s->salted ? salted_key(key) : key);
         return;
     }
-    if (!s->visible) s->visible = photon_visible(&s->grid, p, dirs);
     if (s->n < DEPOSIT_CACHE) {
         s->c_pos[s->n] = (float4)(p, 0.0f);
         s->c_flux[s->n] = (float4)(flux, 0.0f);
@@ -164,7 +170,7 @@ __kernel void photon_pass(
     Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
     PhotonSink sink;
     sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
-    sink.probe = 0;
+    sink.probe = SINK_STORE;
     sink.salted = 0;
     trace_photon(&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, &rng, max_bounces, skip_first_hit,
                  (ulong)path, 1, &sink);

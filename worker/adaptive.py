@@ -57,17 +57,18 @@ def theta_step(pass_index: int, used: float, mutations: int, accepted: int, targ
 
 
 def mutates(counters: dict[str, int], target: float) -> bool:
-    """Whether a batch's chains mutate. Not when theta is at its upper bound and uniform
-    draws are visible more often than the target acceptance: there a mutation is an
-    independent uniform draw in all but name (E|du| = 0.496 at theta 64) and the chain
-    cannot reach the target, so a rejected one only splats the state again, which adds
-    correlation and no information (gap: 45% of the splats were repeats at V_c 0.33). The
-    pass is then uniform tracing with the same counters: every draw splatted iff visible,
-    so V_c S / splats = S / draws, the uniform estimate (the paper's "automatically uses
-    uniform random sampling", made exact). Mutations resume if the pooled V_c falls
-    below the target."""
+    """Whether a batch's chains mutate: only while the pooled V_c is below the target
+    acceptance A*. A chain iteration traces a uniform draw and, when it is invisible, a
+    mutation; it finds a new visible path with probability V_c + (1 - V_c) A, so per traced
+    path (V_c + (1 - V_c) A) / (2 - V_c), against V_c for uniform tracing: more only when
+    A > V_c, and the adaptation holds A at A*. (Its other splats count a state again: no
+    new path.) With V_c >= A* no mutation size can make the chain pay (theta climbs to its
+    bound: gap at V_c 0.33 splatted a repeat 45% of the time), so the pass is uniform
+    tracing with the same counters: every draw splatted iff visible, V_c S / splats =
+    S / draws, the uniform estimate (the paper's "automatically uses uniform random
+    sampling", made exact). Mutations resume if the pooled V_c falls below the target."""
     v_c = visible_fraction(counters)
-    return not (theta(counters) >= THETA_MAX and v_c is not None and v_c >= target)
+    return v_c is None or v_c < target
 
 
 def visible_fraction(counters: dict[str, int]) -> float | None:
