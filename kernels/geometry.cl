@@ -1,4 +1,5 @@
-// Rays, shapes and the BVH: closest-hit queries against spheres and triangles.
+// Rays, shapes and the BVH: closest-hit queries against spheres and triangles, and
+// any-hit visibility queries (occluded).
 //
 // Spheres are intersected in double precision: smallppm's walls are spheres of radius
 // 1e5, and the float32 quadratic loses every digit of the hit distance to cancellation.
@@ -160,3 +161,37 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
 }
 
 inline Hit intersect(const SceneGeom* g, float3 o, float3 d) { return intersect_within(g, o, d, INFINITY); }
+
+// Whether anything lies within distance tmax along the ray: a visibility (shadow) ray. The
+// same traversal as intersect_within, but it stops at the first hit and makes no hit record:
+// until its first hit the closest-hit query visits the same nodes with the same bound, so
+// the answer is intersect_within(...).surf != SURF_NONE bit for bit.
+inline bool occluded(const SceneGeom* g, float3 o, float3 d, float tmax) {
+    float tmin = ray_eps(o);
+    bool bounded = tmax < INFINITY;
+    for (int i = 0; i < g->n_spheres; ++i) {
+        if (bounded && sphere_beyond(g->spheres[i], o, tmax)) continue;
+        if (sphere_distance(g->spheres[i], o, d, (double)tmin, (double)tmax) < (double)tmax) return true;
+    }
+    if (g->n_nodes == 0) return false;
+    float3 inv_d = 1.0f / d;
+    int stack[64];
+    int sp = 0;
+    int node = 0;
+    while (true) {
+        float4 lo = g->node_lo[node], hi = g->node_hi[node];
+        if (box_hit(lo, hi, o, inv_d, tmax)) {
+            int a = as_int(lo.w), count = as_int(hi.w);
+            if (count == 0) {
+                stack[sp++] = a;      // right child later
+                node = node + 1;      // left child is next in pre-order
+                continue;
+            }
+            for (int k = a; k < a + count; ++k)
+                if (triangle_distance(g->tri_v0[k].xyz, g->tri_e1[k].xyz, g->tri_e2[k].xyz, o, d, tmin, tmax) < tmax)
+                    return true;
+        }
+        if (sp == 0) return false;
+        node = stack[--sp];
+    }
+}
