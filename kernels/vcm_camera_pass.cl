@@ -91,13 +91,16 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
     *half_sum = (float3)(0.0f);
     uint entries[8];
     int n_entries = ball_entries(x->p, sqrt(r2), inv_cell, mask, entries);
+    bool uncut = (cut.x & cut.y) == CUT_NONE;  // inside_cut's own first test, kept out of the loop
+    // The candidate loop calls no builtin (dot3, geometry.cl): a call spills every live
+    // vector register, and most candidates lie beyond r.
     for (int k = 0; k < n_entries; ++k) {
         uint begin = cell_start[entries[k]], end = begin + cell_count[entries[k]];
         for (uint j = begin; j < end; ++j) {
             float4 gp = grid_pos[j];
             float3 v = gp.xyz - x->p;
-            float dd = dot(v, v);
-            if (dd >= r2 || !inside_cut(cut, x->side, v, sqrt(r2))) continue;
+            float dd = dot3(v, v);
+            if (dd >= r2 || !(uncut || inside_cut(cut, x->side, v, sqrt(r2)))) continue;
             LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, as_uint(gp.w));
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
             if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)
