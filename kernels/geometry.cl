@@ -1,4 +1,5 @@
-// Rays, shapes and the BVH: closest-hit queries against spheres and triangles.
+// Rays, shapes and the BVH: closest-hit queries against spheres and triangles, and
+// any-hit visibility queries (occluded).
 //
 // Spheres are intersected in double precision: smallppm's walls are spheres of radius
 // 1e5, and the float32 quadratic loses every digit of the hit distance to cancellation.
@@ -37,19 +38,36 @@ inline double sphere_distance(float4 sph, float3 o, float3 d, double tmin, doubl
     return tmax;
 }
 
+// The ray queries' inner loops spell out dot, cross, fmin, fmax and fabs: PoCL calls its builtins
+// out of line, and these run for every triangle and box a ray meets. Each is the builtin's
+// arithmetic in the builtin's order with no contraction into fma, so the bits are the same:
+// dot ((x + y) + z), cross's three differences, and fmin / fmax returning a when b is NaN.
+inline float dot3(float3 a, float3 b) {
+#pragma OPENCL FP_CONTRACT OFF
+    return (a.x * b.x + a.y * b.y) + a.z * b.z;
+}
+
+inline float3 cross3(float3 a, float3 b) {
+#pragma OPENCL FP_CONTRACT OFF
+    return (float3)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
+}
+
+inline float min1(float a, float b) { return b != b ? a : (a < b ? a : b); }  // b != b: b is NaN
+inline float max1(float a, float b) { return b != b ? a : (a > b ? a : b); }
+
 // Moller-Trumbore; returns t or `tmax` on a miss.
 inline float triangle_distance(float3 v0, float3 e1, float3 e2, float3 o, float3 d, float tmin, float tmax) {
-    float3 p = cross(d, e2);
-    float det = dot(e1, p);
-    if (fabs(det) < 1e-20f) return tmax;
+    float3 p = cross3(d, e2);
+    float det = dot3(e1, p);
+    if (det < 1e-20f && det > -1e-20f) return tmax;  // |det| < 1e-20 (fabs is a call too)
     float inv = 1.0f / det;
     float3 s = o - v0;
-    float u = dot(s, p) * inv;
+    float u = dot3(s, p) * inv;
     if (u < 0.0f || u > 1.0f) return tmax;
-    float3 q = cross(s, e1);
-    float v = dot(d, q) * inv;
+    float3 q = cross3(s, e1);
+    float v = dot3(d, q) * inv;
     if (v < 0.0f || u + v > 1.0f) return tmax;
-    float t = dot(e2, q) * inv;
+    float t = dot3(e2, q) * inv;
     return (t > tmin && t < tmax) ? t : tmax;
 }
 
@@ -62,9 +80,8 @@ inline float2 triangle_uv(float3 v0, float3 e1, float3 e2, float3 o, float3 d) {
 
 inline bool box_hit(float4 lo, float4 hi, float3 o, float3 inv_d, float tmax) {
     float3 t0 = (lo.xyz - o) * inv_d, t1 = (hi.xyz - o) * inv_d;
-    float3 tn = fmin(t0, t1), tf = fmax(t0, t1);
-    float enter = fmax(fmax(tn.x, tn.y), fmax(tn.z, 0.0f));
-    float leave = fmin(fmin(tf.x, tf.y), fmin(tf.z, tmax));
+    float enter = max1(max1(min1(t0.x, t1.x), min1(t0.y, t1.y)), max1(min1(t0.z, t1.z), 0.0f));
+    float leave = min1(min1(max1(t0.x, t1.x), max1(t0.y, t1.y)), min1(max1(t0.z, t1.z), tmax));
     return enter <= leave;
 }
 
@@ -160,3 +177,37 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
 }
 
 inline Hit intersect(const SceneGeom* g, float3 o, float3 d) { return intersect_within(g, o, d, INFINITY); }
+
+// Whether anything lies within distance tmax along the ray: a visibility (shadow) ray. The
+// same traversal as intersect_within, but it stops at the first hit and makes no hit record:
+// until its first hit the closest-hit query visits the same nodes with the same bound, so
+// the answer is intersect_within(...).surf != SURF_NONE bit for bit.
+inline bool occluded(const SceneGeom* g, float3 o, float3 d, float tmax) {
+    float tmin = ray_eps(o);
+    bool bounded = tmax < INFINITY;
+    for (int i = 0; i < g->n_spheres; ++i) {
+        if (bounded && sphere_beyond(g->spheres[i], o, tmax)) continue;
+        if (sphere_distance(g->spheres[i], o, d, (double)tmin, (double)tmax) < (double)tmax) return true;
+    }
+    if (g->n_nodes == 0) return false;
+    float3 inv_d = 1.0f / d;
+    int stack[64];
+    int sp = 0;
+    int node = 0;
+    while (true) {
+        float4 lo = g->node_lo[node], hi = g->node_hi[node];
+        if (box_hit(lo, hi, o, inv_d, tmax)) {
+            int a = as_int(lo.w), count = as_int(hi.w);
+            if (count == 0) {
+                stack[sp++] = a;      // right child later
+                node = node + 1;      // left child is next in pre-order
+                continue;
+            }
+            for (int k = a; k < a + count; ++k)
+                if (triangle_distance(g->tri_v0[k].xyz, g->tri_e1[k].xyz, g->tri_e2[k].xyz, o, d, tmin, tmax) < tmax)
+                    return true;
+        }
+        if (sp == 0) return false;
+        node = stack[--sp];
+    }
+}

@@ -40,7 +40,7 @@ inline float3 next_event(const SceneGeom* g, __global const float4* emitters, __
     if (!sample_direct(emitters, cdf, n_emitters, x->p, rng, &ls)) return (float3)(0.0f);
     BsdfEval e = camera_bsdf(x, ls.wi);
     if (e.pdf_fwd <= 0.0f) return (float3)(0.0f);
-    if (intersect_within(g, x->p + x->side * ray_eps(x->p), ls.wi, ls.dist).surf != SURF_NONE) return (float3)(0.0f);
+    if (occluded(g, x->p + x->side * ray_eps(x->p), ls.wi, ls.dist)) return (float3)(0.0f);
     float w_light = ls.delta ? 0.0f : e.pdf_fwd / (ls.pick * ls.direct_pdf);
     float w_cam = ls.emission_pdf * fabs(dot(ls.wi, x->ng)) / (ls.direct_pdf * ls.cos_light)
                 * (eta.vm + s->dVCM + s->dVC * e.pdf_rev);
@@ -66,8 +66,7 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
         float4 ya = surf_a[y.surf];
         BsdfEval ey = bsdf_eval(as_int(ya.w), surf_b[y.surf].w, ya.xyz, y.ng, y.ns, y.wo, -dir);
         if (ey.pdf_fwd <= 0.0f) continue;
-        if (intersect_within(g, x->p + x->side * ray_eps(x->p), dir, dist - 2.0f * ray_eps(y.pos)).surf != SURF_NONE)
-            continue;
+        if (occluded(g, x->p + x->side * ray_eps(x->p), dir, dist - 2.0f * ray_eps(y.pos))) continue;
         float cos_x = fabs(dot(dir, x->ng)), cos_y = fabs(dot(dir, y.ng));
         float w_light = ex.pdf_fwd * cos_y / d2 * (eta.vm + y.dVCM + y.dVC * ey.pdf_rev);
         float w_cam = ey.pdf_fwd * cos_x / d2 * (eta.vm + s->dVCM + s->dVC * ex.pdf_rev);
@@ -92,13 +91,16 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
     *half_sum = (float3)(0.0f);
     uint entries[8];
     int n_entries = ball_entries(x->p, sqrt(r2), inv_cell, mask, entries);
+    bool uncut = (cut.x & cut.y) == CUT_NONE;  // inside_cut's own first test, kept out of the loop
+    // The candidate loop calls no builtin (dot3, geometry.cl): a call spills every live
+    // vector register, and most candidates lie beyond r.
     for (int k = 0; k < n_entries; ++k) {
         uint begin = cell_start[entries[k]], end = begin + cell_count[entries[k]];
         for (uint j = begin; j < end; ++j) {
             float4 gp = grid_pos[j];
             float3 v = gp.xyz - x->p;
-            float dd = dot(v, v);
-            if (dd >= r2 || !inside_cut(cut, x->side, v, sqrt(r2))) continue;
+            float dd = dot3(v, v);
+            if (dd >= r2 || !(uncut || inside_cut(cut, x->side, v, sqrt(r2)))) continue;
             LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, as_uint(gp.w));
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
             if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)

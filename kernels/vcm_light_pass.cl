@@ -95,7 +95,7 @@ __kernel void vcm_light_pass(
                 BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -s.d, pr.to_camera);
                 float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
                 if (e.pdf_fwd > 0.0f
-                    && intersect_within(&g, p + side * ray_eps(p), pr.to_camera, pr.visible).surf == SURF_NONE) {
+                    && !occluded(&g, p + side * ray_eps(p), pr.to_camera, pr.visible)) {
                     // Radiance f * arriving toward the camera, over the solid angle cos_y / d^2
                     // of the surface, times the pixel's importance: p_cam itself.
                     float p_cam = pr.importance * fabs(dot(pr.to_camera, h.ng)) / (pr.dist * pr.dist);
