@@ -41,6 +41,10 @@ MAX_INFLIGHT_PER_JOB = 8
 # FOLD_STALE_SECONDS more (the API is down or behind).
 FOLD_LEASE_SECONDS = LEASE_SECONDS
 FOLD_SECONDS = 2.0
+# A round costs about the same however many batches it folds (it reads, merges, estimates
+# and writes the whole state; the state node appends what is written to its append-only
+# file): at most this share of the time goes to a job's rounds, as far as the refresh allows.
+FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 FOLD_STALE_SECONDS = 5.0
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
@@ -75,10 +79,10 @@ def passes_left(settings: Settings, passes: int) -> int | None:
 
 def fold_interval(fold_seconds: float) -> float:
     """Seconds from one fold round's end to the next one's start, given how long the last
-    round took: FOLD_SECONDS for a small state; for a large one twice a round (a state node
-    writes the state at most a third of the time), but short enough that a round starts
-    and ends within REFRESH_SECONDS of the last one's end."""
-    return max(FOLD_SECONDS, min(2.0 * fold_seconds, REFRESH_SECONDS - fold_seconds))
+    round took: FOLD_SECONDS for a small state; for a large one long enough that rounds
+    take at most FOLD_SHARE of the time (more batches folded per round), but short enough
+    that a round starts and ends within REFRESH_SECONDS of the last one's end."""
+    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, REFRESH_SECONDS - fold_seconds))
 
 
 def seconds_left(settings: Settings, elapsed: float) -> float | None:
