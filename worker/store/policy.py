@@ -54,14 +54,22 @@ ALIVE_SECONDS = 3 * LEASE_SECONDS
 RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 * 86_400)))
 
 
-def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None) -> int:
+def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
+                 fold_seconds: float = 0.0, workers: int = 1) -> int:
     """Passes for the next batch: about BATCH_TARGET_SECONDS of rendering, and long enough
     that a merge costs at most MERGE_SHARE of a worker's time, but not past the job's time
     budget (`seconds_left`), so a job ends within its budget plus one pass. One until a
-    pass was timed."""
+    pass was timed.
+
+    A batch also costs the fold round that takes it in (`fold_seconds`, the job's last
+    round: the folder and the state node read, merge and write the whole state), one round
+    a batch while batches land less often than the fold interval. So a batch is also long
+    enough for its merge and a round to stay within MERGE_SHARE, as far as the refresh
+    allows: the job's `workers` together still deliver a batch every REFRESH_SECONDS."""
     if pass_seconds <= 0.0:
         return 1
-    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE)
+    with_fold = min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, max(1, workers) * REFRESH_SECONDS)
+    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE, with_fold)
     if seconds_left is not None:
         target = min(target, seconds_left)
     return max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))

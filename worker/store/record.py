@@ -259,8 +259,9 @@ class Jobs:
         return self.tiles.inputs(record.id, self.tiling(record), record.integrator)
 
     # ------------------------------------------------------------------ batches
-    def allocate(self, job_id: str, pass_seconds: float | None = None) -> Batch | None:
-        """Reserve the next range of passes, or None if the job takes no more batches."""
+    def allocate(self, job_id: str, pass_seconds: float | None = None, workers: int = 1) -> Batch | None:
+        """Reserve the next range of passes, or None if the job takes no more batches
+        (`workers`: how many render the job's batches at once, see policy.batch_passes)."""
         key = keys.job(job_id)
         while True:
             try:
@@ -272,7 +273,8 @@ class Jobs:
                             policy.out_of_time(record.settings, elapsed):
                         return None
                     n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds,
-                                            policy.seconds_left(record.settings, elapsed))
+                                            policy.seconds_left(record.settings, elapsed), record.fold_seconds,
+                                            workers)
                     left = policy.passes_left(record.settings, record.next_pass)
                     n = n if left is None else min(n, left)
                     if n <= 0:
