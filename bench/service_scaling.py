@@ -202,7 +202,7 @@ class PinnedCase:
 
 
 PINNED_SCENE = "furnace"
-PINNED = (PinnedCase((256, 256), 40.0, 0.25), PinnedCase((1920, 1080), 120.0, 0.4))
+PINNED = (PinnedCase((256, 256), 40.0, 0.12), PinnedCase((1920, 1080), 120.0, 0.2))
 PINNED_SMOKE = (PinnedCase((128, 128), 10.0, 0.5), PinnedCase((320, 180), 12.0, 0.5))
 SAMPLE_SECONDS = 0.25  # how often the job record's photon count is read during a job
 
@@ -217,7 +217,7 @@ def time_to_error(history: list[dict], threshold: float) -> float | None:
                 return h["seconds"]
             e0, e1 = np.log(before["error"]), np.log(h["error"])
             f = (e0 - np.log(threshold)) / (e0 - e1) if e0 > e1 else 1.0
-            return before["seconds"] + f * (h["seconds"] - before["seconds"])
+            return float(before["seconds"] + f * (h["seconds"] - before["seconds"]))
         if h["error"] is not None:
             before = h
     return None
