@@ -1,10 +1,12 @@
 """The adaptive sampler's counters (V_c, theta) go through the job store in a real Redis:
 merged in any order, they sum exactly, and the store's state gives the image and the next
-batch's inputs that an in-memory merge gives."""
+batch's inputs that an in-memory merge of the deltas as sent (float32 sums,
+worker/store/tiles.py) gives."""
 
 from __future__ import annotations
 
 import random
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
+from worker.store.tiles import DELTA_DTYPE
 
 
 def test_counters_merge_through_the_store(tmp_path: Path) -> None:
@@ -32,7 +35,8 @@ def test_counters_merge_through_the_store(tmp_path: Path) -> None:
         deltas = [engine.run_batch(inputs, 2 * i, 2) for i in range(4)]
         memory = engine.integrator.start({"R0": start.R0})
         for d in deltas:
-            engine.integrator.merge(memory, d)
+            engine.integrator.merge(memory, replace(d, sums={name: a.astype(DELTA_DTYPE).astype(np.float64)
+                                                             for name, a in d.sums.items()}))
         store = Jobs(redis.Redis.from_url(server.url))
         job_id = store.create(inline_meshes(parsed, base), settings, w, h, "gap")
         store.init_setup(store.get(job_id), {"R0": start.R0})

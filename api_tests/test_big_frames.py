@@ -61,5 +61,7 @@ def test_a_time_budget_holds_at_1920x1080(tmp_path: Path) -> None:
         one_batch = record.longest_batch_seconds + record.mean_merge_seconds + 2.0 * record.fold_seconds
         assert done["elapsed_seconds"] <= budget + one_batch, (done["elapsed_seconds"], one_batch)
         assert done["photons"] == done["passes"] * P
+        # The workers' CPU seconds the record keeps (bench/service_scaling.py --pinned splits them).
+        assert 0.0 < record.merge_cpu_seconds < record.render_cpu_seconds, record
     finally:
         c.close()

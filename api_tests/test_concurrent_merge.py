@@ -1,6 +1,7 @@
 """The same batches merged by several concurrent worker processes, each in its own
 shuffled order, against a real Redis: every batch counts exactly once and the state is
-the same whatever the order (S, D, Ld and E are sums; N only schedules future radii)."""
+the same whatever the order (S, D, Ld and E are sums; N only schedules future radii): the
+sum of the deltas as sent (float32, worker/store/tiles.py)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
+from worker.store.tiles import DELTA_DTYPE
 
 BATCHES = 12
 PROCESSES = 4
@@ -67,7 +69,7 @@ def test_concurrent_shuffled_merges_give_one_state(tmp_path: Path) -> None:
             states.append(store.state(record))
         a, b = states
         for name in engine.integrator.sums.names:  # rounding of a reordered sum scales with its largest term
-            expected = sum(getattr(d, name) for d in deltas)
+            expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in deltas)
             atol = 1e-12 * np.abs(expected).max()
             np.testing.assert_allclose(getattr(a, name), expected, rtol=1e-12, atol=atol)
             np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, atol=atol)

@@ -2,7 +2,7 @@
 and queues on the main one): shuffled concurrent merges with folds racing the pushes, a
 worker SIGKILLed while pushing, a folder SIGKILLed mid-round. Every batch counts once in
 the record and folds once into every tile; the folded state equals the sum of the
-deltas. (The fault tests over HTTP run on sharded state too: api_tests/test_faults.py.)"""
+deltas as sent (float32, worker/store/tiles.py). (The fault tests over HTTP run on sharded state too: api_tests/test_faults.py.)"""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store import state as state_module
 from worker.store.state import TiledState
+from worker.store.tiles import DELTA_DTYPE
 
 SHARDS = 3
 TILE = 512  # pixels a tile: the 64 x 48 frame has 6 tiles, two on each node
@@ -98,7 +99,7 @@ def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
         for other in store.tiles.nodes:  # each tile on its own node only
             assert bool(other.exists(keys.tile(job_id, k, "state"))) == (other is node)
     for name in store.get(job_id).integrator.sums.names:
-        expected = sum(getattr(d, name) for d in made)
+        expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in made)
         np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
+import psutil
 
 from worker.engine import Engine
 from worker.scene import bundled_scene_path, load_scene_file
@@ -60,6 +61,16 @@ def bench_engine(scene: str, resolution: tuple[int, int] | None = None, **settin
     """An Engine for a bundled scene with the given settings fields (the rest default)."""
     parsed, base = load_scene_file(bundled_scene_path(scene))
     return Engine(parsed, base, Settings(resolution=resolution, **settings))
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """User and system CPU seconds of these processes so far, with their children that
+    ended (e.g. redis-server's append-only-file rewrite, a forked child)."""
+    total = 0.0
+    for pid in pids:
+        t = psutil.Process(pid).cpu_times()
+        total += t.user + t.system + t.children_user + t.children_system
+    return total
 
 
 def write_json(name: str, report: object) -> Path:

@@ -3,8 +3,9 @@
 Processes stand in for N workers of one job. Each simulated worker renders a batch for as
 long as a real worker of the given speed would (it waits), then pushes a real-sized delta
 to the job's tiles and has it accepted, as worker/tasks.py does (Jobs.merge without the
-encoding: every simulated worker pushes the same pre-encoded delta, random float64 in
-every sum of the default SPPM layout, so nothing compresses; the encoding's CPU time is
+encoding: every simulated worker pushes the same pre-encoded delta, random numbers in
+every sum of the default SPPM layout, sent as float32 as every delta is (worker/store/tiles.py),
+so nothing compresses; the encoding's CPU time is
 measured once and added to each merge). One folder process folds every FOLD_POLL_SECONDS, as
 the API's folder thread does. Against one Redis and against 3 state nodes, all redis-servers of
 the embedded default (service/redis_server.py: append-only file, fsync always).

@@ -27,10 +27,9 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-import psutil
 
 from api_tests.cluster import Cluster, finished
-from bench.common import save_figure, write_json
+from bench.common import cpu_seconds, save_figure, write_json
 from service.models import JobSettings
 
 SCENE = "cornell-caustics"
@@ -43,14 +42,6 @@ ROUTES = ("job", "image_png", "metrics")
 def _percentiles(samples: list[float]) -> dict:
     arr = np.array(samples or [float("nan")]) * 1000.0
     return {"n": len(samples), "p50_ms": float(np.percentile(arr, 50)), "p99_ms": float(np.percentile(arr, 99))}
-
-
-def _cpu_seconds(pids: list[int]) -> float:
-    total = 0.0
-    for pid in pids:
-        t = psutil.Process(pid).cpu_times()
-        total += t.user + t.system
-    return total
 
 
 def _throughput(history: list[dict], t0: float, t1: float) -> tuple[float, int]:
@@ -70,7 +61,7 @@ def run(c: Cluster, seconds: float, pollers: int, interval: float, seed: int) ->
     start = c.wait(job["id"], lambda j: j["passes"] >= 1, timeout=600)
     parts = {"api": [c.api.pid], "workers": [w.pid for w in c.workers], "redis": [c.redis.proc.pid],
              "pollers": [os.getpid()]}
-    cpu0, wall0 = {k: _cpu_seconds(v) for k, v in parts.items()}, time.perf_counter()
+    cpu0, wall0 = {k: cpu_seconds(v) for k, v in parts.items()}, time.perf_counter()
     latencies: dict[str, list[float]] = {route: [] for route in ROUTES}
     stop = threading.Event()
     urls = {"job": job["links"]["self"], "image_png": job["links"]["image_png"], "metrics": "/metrics"}
@@ -92,7 +83,7 @@ def run(c: Cluster, seconds: float, pollers: int, interval: float, seed: int) ->
     for t in threads:
         t.join()
     wall = time.perf_counter() - wall0
-    cpu = {k: _cpu_seconds(v) - cpu0[k] for k, v in parts.items()}
+    cpu = {k: cpu_seconds(v) - cpu0[k] for k, v in parts.items()}
     end = c.job(job["id"])
     c.http.delete(job["links"]["self"]).raise_for_status()
     c.wait(job["id"], finished, timeout=600)

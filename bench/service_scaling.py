@@ -1,36 +1,63 @@
 """Service scaling: one job's photons per second with 1, 2 and 4 workers against the
 in-process engine, the merge overhead, HTTP polling latency while jobs render, and the
-cost of one merge against image size (where a single Redis stops scaling).
+cost of one merge against image size (where a single Redis stops scaling); with
+`--pinned`, issue 14's scaling measurement.
 
     python -m bench.service_scaling [--full]
+    python -m bench.service_scaling --pinned [--smoke]
 
 Every configuration renders the same job (scene, resolution, photons per pass, seed) for
 the same wall time, in this one run. Workers split the machine's cores between them with
 POCL_MAX_PTHREAD_COUNT, as `photonfarm serve` does. Each cluster first renders a short
 warm-up job so that kernel compilation is not timed. Writes bench/out/service_scaling.json
 and bench/out/service_scaling.png.
+
+`--pinned` (issue 14): a real cluster with 1, then 2 workers, each with one PoCL thread
+and pinned to its own core (taskset), renders one furnace job at 256x256 and one at
+1920x1080 (the service's default photons per pass, error estimation on). Furnace because
+its estimated error falls from the first passes at any frame size: on cornell-caustics
+and cornell-box a pixel that has had measurement points but never a photon holds the
+image average at 1.0 (the estimator takes the larger of the lit and the never-lit
+pixels' means), through the first 14 passes at 256x256 and past 17 at 1920x1080 here,
+so no threshold would be reached in a short run. It reports photons per
+second (between the job's first and last accepted batch, and over the whole job) and
+the time the job's estimated error (its history: one entry per fold round) took to
+reach a fixed threshold, and the 2-worker / 1-worker ratios. The API (with its folder
+thread) and redis-server are not pinned: this machine has no third core, so wherever
+they ran they would take from a worker; unpinned, the kernel puts them on whichever
+core is idle at the moment (a one-worker job leaves a core free for them, as a real
+deployment with one worker per core does not). Every process's CPU seconds over the
+job (psutil; Redis with its append-only-file rewrites) are split per accepted batch:
+the workers' rendering and merging (push and accept, from the job record), the API
+(the folder's rounds) and Redis. CPU seconds move far less with the shared machine's
+load than wall time, and say what keeps the ratio below 2x. `--smoke` runs small frames
+for a few seconds (a check that it runs). Writes bench/out/service_scaling_pinned.json
+and .png (`_smoke` for the smoke run).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import redis
 
 from api_tests.cluster import Cluster, finished
-from bench.common import bench_engine, save_figure, write_json
+from bench.common import bench_engine, cpu_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.render_loop import render
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
+from worker.store.policy import FINAL
 
 SCENE = "cornell-caustics"
 CORES = os.cpu_count() or 1
@@ -162,10 +189,203 @@ def chart(result: dict) -> None:
     save_figure(fig, "service_scaling")
 
 
+# ------------------------------------------------------ issue 14: pinned one-thread workers
+@dataclass(frozen=True)
+class PinnedCase:
+    """One frame size of the pinned measurement: how long each job renders and the
+    estimated error (the image average of the job's history) its time is measured to,
+    one that a one-worker job reaches in about half its run."""
+
+    resolution: tuple[int, int]
+    seconds: float
+    threshold: float
+
+
+PINNED_SCENE = "furnace"
+PINNED = (PinnedCase((256, 256), 40.0, 0.12), PinnedCase((1920, 1080), 120.0, 0.2))
+PINNED_SMOKE = (PinnedCase((128, 128), 10.0, 0.5), PinnedCase((320, 180), 12.0, 0.5))
+SAMPLE_SECONDS = 0.25  # how often the job record's photon count is read during a job
+
+
+def time_to_error(history: list[dict], threshold: float) -> float | None:
+    """Job seconds at which the estimated error first reached `threshold`: between the two
+    fold rounds that bracket it, linear in log error (rounds are seconds apart at big frames)."""
+    before = None
+    for h in history:
+        if h["error"] is not None and h["error"] <= threshold:
+            if before is None:
+                return h["seconds"]
+            e0, e1 = np.log(before["error"]), np.log(h["error"])
+            f = (e0 - np.log(threshold)) / (e0 - e1) if e0 > e1 else 1.0
+            return float(before["seconds"] + f * (h["seconds"] - before["seconds"]))
+        if h["error"] is not None:
+            before = h
+    return None
+
+
+def _window_rate(samples: list[tuple[float, int]]) -> float:
+    """Photons per second between the job's first accepted batch and its last (the job's
+    start-up, engine build and the first batch's set-up pass, left out)."""
+    first = next(((t, e) for t, e in samples if e > 0), None)
+    last = next(((t, e) for t, e in samples if e == samples[-1][1]), None)
+    if first is None or last[0] <= first[0]:
+        return float("nan")
+    return (last[1] - first[1]) / (last[0] - first[0])
+
+
+def _pinned_job(c: Cluster, case: PinnedCase, workers: int) -> dict:
+    """One job on the running cluster, its rate, time to the error and every process's CPU."""
+    jobs = Jobs(c.redis_client)
+    parts = {"workers": [w.pid for w in c.workers], "api": [c.api.pid], "redis": [c.redis.proc.pid]}
+    load = os.getloadavg()[0]
+    cpu0, wall0 = {k: cpu_seconds(v) for k, v in parts.items()}, time.perf_counter()
+    job_id = c.submit(scene_name=PINNED_SCENE, settings={"max_seconds": case.seconds,
+                                                         "resolution": list(case.resolution),
+                                                  "seed": 1})["id"]
+    samples: list[tuple[float, int]] = []
+    while True:
+        record = jobs.get(job_id)
+        samples.append((time.perf_counter(), record.emitted))
+        if record.status in FINAL:  # final only once every accepted batch is folded
+            break
+        time.sleep(SAMPLE_SECONDS)
+    wall = time.perf_counter() - wall0
+    cpu = {k: cpu_seconds(v) - cpu0[k] for k, v in parts.items()}
+    history = jobs.history(job_id)
+    batches, rounds = max(1, record.merges), max(1, len(history))
+    split = {"worker render": record.render_cpu_seconds, "worker merge": record.merge_cpu_seconds,
+             "worker other": cpu["workers"] - record.render_cpu_seconds - record.merge_cpu_seconds,
+             "api": cpu["api"], "redis": cpu["redis"]}
+    return {"resolution": list(case.resolution), "workers": workers, "status": record.status.value,
+            "seconds": case.seconds, "wall_seconds": wall, "elapsed_seconds": record.elapsed_seconds(),
+            "passes": record.passes, "batches": record.merges, "fold_rounds": len(history),
+            "photons": record.emitted, "photons_per_second": _window_rate(samples),
+            "photons_per_second_whole_job": record.photons_per_second,
+            "error_threshold": case.threshold, "time_to_error": time_to_error(history, case.threshold),
+            "final_error": history[-1]["error"] if history else None,
+            "render_seconds_per_pass": record.render_seconds / max(1, record.passes),
+            "cpu_seconds": split, "cpu_seconds_per_batch": {k: v / batches for k, v in split.items()},
+            "api_cpu_seconds_per_fold_round": cpu["api"] / rounds,
+            "load_average_before": load, "load_average_after": os.getloadavg()[0],
+            "history": history}
+
+
+def pinned(workers: int, cases: tuple[PinnedCase, ...]) -> list[dict]:
+    """Every case on one cluster of `workers` one-thread workers, worker i pinned to core i."""
+    with tempfile.TemporaryDirectory() as tmp:
+        c = Cluster(Path(tmp), workers=0, threads_per_worker=1, redis_maxmemory="4gb")
+        try:
+            for core in range(workers):
+                c.start_worker(prefix=["taskset", "-c", str(core % CORES)])
+            warm = c.submit(scene_name=PINNED_SCENE, settings={"max_passes": 2 * workers,
+                                                                "photons_per_pass": 1 << 12, "resolution": [64, 64]})
+            c.wait(warm["id"], finished, timeout=600)  # kernels built in every worker before anything is timed
+            out = []
+            for case in cases:
+                run = _pinned_job(c, case, workers)
+                out.append(run)
+                tte = run["time_to_error"]
+                print(f"{workers} worker(s) {case.resolution[0]}x{case.resolution[1]}: "
+                      f"{run['photons_per_second'] / 1e6:.3f} M photons/s "
+                      f"(whole job {run['photons_per_second_whole_job'] / 1e6:.3f}), "
+                      f"error {case.threshold} at {'-' if tte is None else f'{tte:.1f}'} s, "
+                      f"{run['batches']} batches, {run['fold_rounds']} folds, load {run['load_average_before']:.1f}; "
+                      "CPU s per batch: " + ", ".join(f"{k} {v:.2f}" for k, v in run["cpu_seconds_per_batch"].items()),
+                      flush=True)
+            return out
+        finally:
+            c.close()
+
+
+def _ratios(runs: list[dict]) -> list[dict]:
+    """Per frame size, 2 workers against 1: photons per second, and time to the error (1w / 2w)."""
+    out = []
+    for one in (r for r in runs if r["workers"] == 1):
+        two = next(r for r in runs if r["workers"] == 2 and r["resolution"] == one["resolution"])
+        t1, t2 = one["time_to_error"], two["time_to_error"]
+        out.append({"resolution": one["resolution"],
+                    "photons_per_second": two["photons_per_second"] / one["photons_per_second"],
+                    "photons_per_second_whole_job": two["photons_per_second_whole_job"]
+                    / one["photons_per_second_whole_job"],
+                    "time_to_error": t1 / t2 if t1 and t2 else None})
+    return out
+
+
+def pinned_chart(result: dict, name: str) -> None:
+    import matplotlib.pyplot as plt
+
+    runs, ratios = result["runs"], result["ratios"]
+    sizes = [r["resolution"] for r in ratios]
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
+    x = np.arange(len(sizes))
+    top = 0.0
+    for k, workers in enumerate((1, 2)):
+        rates = [next(r for r in runs if r["workers"] == workers and r["resolution"] == s)["photons_per_second"] / 1e6
+                 for s in sizes]
+        axes[0].bar(x + 0.4 * k, rates, 0.38, label=f"{workers} worker{'s' * (workers > 1)}")
+        top = max(top, *rates)
+    for i, q in enumerate(ratios):
+        tte = "-" if q["time_to_error"] is None else f"{q['time_to_error']:.2f}x"
+        axes[0].text(i + 0.2, top * 1.02, f"2w/1w: {q['photons_per_second']:.2f}x photons/s,\n{tte} time to error",
+                     ha="center", va="bottom", fontsize=8)
+    axes[0].set_ylim(0, top * 1.25)
+    axes[0].set_xticks(x + 0.2, [f"{w}x{h}" for w, h in sizes])
+    axes[0].set_ylabel("M photon paths / s")
+    axes[0].set_title(f"{PINNED_SCENE}, one-thread workers pinned to a core each ({CORES} cores, shared host)",
+                      fontsize=9)
+    axes[0].legend(fontsize=8)
+    for r in runs:
+        h = [e for e in r["history"] if e["error"] is not None]
+        axes[1].semilogy([e["seconds"] for e in h], [e["error"] for e in h],
+                         "-" if r["workers"] == 1 else "--", label=f"{r['resolution'][0]}x{r['resolution'][1]}, "
+                         f"{r['workers']}w")
+    for threshold in sorted({r["error_threshold"] for r in runs}):
+        axes[1].axhline(threshold, color="grey", lw=0.8)
+    axes[1].set_xlabel("job seconds")
+    axes[1].set_ylabel("estimated error (image average)")
+    axes[1].set_title("the job's error history; grey: the thresholds", fontsize=9)
+    axes[1].legend(fontsize=7)
+    big = [r for r in runs if r["resolution"] == sizes[-1]]
+    bottom = np.zeros(len(big))
+    for part, colour in zip(big[0]["cpu_seconds_per_batch"], ("#4477aa", "#66ccee", "#bbbbbb", "#cc6677", "#228833")):
+        v = np.array([r["cpu_seconds_per_batch"][part] for r in big])
+        axes[2].bar(np.arange(len(big)), v, bottom=bottom, color=colour, label=part)
+        bottom += v
+    axes[2].set_xticks(np.arange(len(big)), [f"{r['workers']} worker{'s' * (r['workers'] > 1)}\n"
+                                             f"{r['passes'] / max(1, r['batches']):.1f} passes a batch" for r in big])
+    axes[2].set_ylabel("CPU seconds per accepted batch")
+    axes[2].set_title(f"where the CPU went at {sizes[-1][0]}x{sizes[-1][1]}", fontsize=9)
+    axes[2].set_ylim(0, bottom.max() * 1.45)
+    axes[2].legend(fontsize=8, ncol=3, loc="upper center")
+    fig.tight_layout()
+    save_figure(fig, name)
+
+
+def pinned_main(smoke: bool) -> None:
+    cases = PINNED_SMOKE if smoke else PINNED
+    runs = pinned(1, cases) + pinned(2, cases)
+    result = {"scene": PINNED_SCENE, "cores": CORES, "cases": [dataclasses.asdict(c) for c in cases], "runs": runs,
+              "ratios": _ratios(runs)}
+    name = "service_scaling_pinned" + ("_smoke" if smoke else "")
+    write_json(name, result)
+    pinned_chart(result, name)
+    for q in result["ratios"]:
+        tte = "-" if q["time_to_error"] is None else f"{q['time_to_error']:.2f}x"
+        print(f"{q['resolution'][0]}x{q['resolution'][1]}: 2 workers / 1: {q['photons_per_second']:.2f}x photons/s "
+              f"(whole job {q['photons_per_second_whole_job']:.2f}x), {tte} time to error")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="512x512 and 40 s per configuration")
+    parser.add_argument("--pinned", action="store_true",
+                        help="issue 14: 1 and 2 one-thread workers, each pinned to a core, at 256x256 and 1920x1080")
+    parser.add_argument("--smoke", action="store_true", help="with --pinned: small frames, a few seconds each")
     args = parser.parse_args()
+    if args.smoke and not args.pinned:
+        parser.error("--smoke needs --pinned")
+    if args.pinned:
+        return pinned_main(args.smoke)
     resolution = (512, 512) if args.full else (256, 256)
     seconds = 60.0 if args.full else 30.0
     photons = 1 << 18

@@ -65,7 +65,7 @@ def feed(jobs: Jobs, job_id: str, pass_seconds: float | None = None) -> int:
     issued = 0
     target = target_inflight(jobs)
     while jobs.leases.inflight(job_id) < target:
-        batch = jobs.allocate(job_id, pass_seconds)
+        batch = jobs.allocate(job_id, pass_seconds, workers=target)
         if batch is None:
             break
         enqueue(jobs, batch, record.settings.priority)

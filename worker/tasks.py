@@ -64,7 +64,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         log.error("job failed: cannot render its scene", extra=context)
         return "failed"
     # Render: the job's first batch fixes its setup arrays (e.g. R0, from pass 0).
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     try:
         with holding(batch):
             if not jobs.has_setup(record):
@@ -80,9 +80,9 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         if jobs.record_failure(batch, f"batch {batch.id} failed: {exc!r}"):
             jobs.drop(batch)
         raise
-    seconds = time.perf_counter() - start
+    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu
     # Merge, then ask for the next batch.
-    outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken)
+    outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken, cpu_seconds=cpu_seconds)
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
         feed(jobs, job_id, pass_seconds=seconds / n)

@@ -41,6 +41,10 @@ MAX_INFLIGHT_PER_JOB = 8
 # FOLD_STALE_SECONDS more (the API is down or behind).
 FOLD_LEASE_SECONDS = LEASE_SECONDS
 FOLD_SECONDS = 2.0
+# A round costs about the same however many batches it folds (it reads, merges, estimates
+# and writes the whole state; the state node appends what is written to its append-only
+# file): at most this share of the time goes to a job's rounds, as far as the refresh allows.
+FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 FOLD_STALE_SECONDS = 5.0
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
@@ -50,14 +54,22 @@ ALIVE_SECONDS = 3 * LEASE_SECONDS
 RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 * 86_400)))
 
 
-def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None) -> int:
+def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
+                 fold_seconds: float = 0.0, workers: int = 1) -> int:
     """Passes for the next batch: about BATCH_TARGET_SECONDS of rendering, and long enough
     that a merge costs at most MERGE_SHARE of a worker's time, but not past the job's time
     budget (`seconds_left`), so a job ends within its budget plus one pass. One until a
-    pass was timed."""
+    pass was timed.
+
+    A batch also costs the fold round that takes it in (`fold_seconds`, the job's last
+    round: the folder and the state node read, merge and write the whole state), one round
+    a batch while batches land less often than the fold interval. So a batch is also long
+    enough for its merge and a round to stay within MERGE_SHARE, as far as the refresh
+    allows: the job's `workers` together still deliver a batch every REFRESH_SECONDS."""
     if pass_seconds <= 0.0:
         return 1
-    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE)
+    with_fold = min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, max(1, workers) * REFRESH_SECONDS)
+    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE, with_fold)
     if seconds_left is not None:
         target = min(target, seconds_left)
     return max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
@@ -75,10 +87,10 @@ def passes_left(settings: Settings, passes: int) -> int | None:
 
 def fold_interval(fold_seconds: float) -> float:
     """Seconds from one fold round's end to the next one's start, given how long the last
-    round took: FOLD_SECONDS for a small state; for a large one twice a round (a state node
-    writes the state at most a third of the time), but short enough that a round starts
-    and ends within REFRESH_SECONDS of the last one's end."""
-    return max(FOLD_SECONDS, min(2.0 * fold_seconds, REFRESH_SECONDS - fold_seconds))
+    round took: FOLD_SECONDS for a small state; for a large one long enough that rounds
+    take at most FOLD_SHARE of the time (more batches folded per round), but short enough
+    that a round starts and ends within REFRESH_SECONDS of the last one's end."""
+    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, REFRESH_SECONDS - fold_seconds))
 
 
 def seconds_left(settings: Settings, elapsed: float) -> float | None:

@@ -71,9 +71,11 @@ class JobRecord:
     next_pass: int  # first pass index not yet allocated
     pass_seconds: float  # smoothed render seconds per pass
     render_seconds: float
+    render_cpu_seconds: float  # CPU time of the workers' processes while rendering (all their threads)
     longest_batch_seconds: float  # a batch's wall time from its lease to its push (engine build included)
     merges: int
     merge_seconds: float
+    merge_cpu_seconds: float  # CPU time of the workers' processes while pushing and accepting
     failure: str | None
     counters: dict[str, int]  # the integrator's summed scalars (Delta.counters), hash fields "counter:NAME"
 
@@ -95,8 +97,10 @@ class JobRecord:
                    shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
                    next_pass=int(f["next_pass"]),
                    pass_seconds=float(f["pass_seconds"]), render_seconds=float(f.get("render_seconds", 0.0)),
+                   render_cpu_seconds=float(f.get("render_cpu_seconds", 0.0)),
                    longest_batch_seconds=float(f.get("longest_batch_seconds", 0.0)),
                    merges=int(f.get("merges", 0)), merge_seconds=float(f.get("merge_seconds", 0.0)),
+                   merge_cpu_seconds=float(f.get("merge_cpu_seconds", 0.0)),
                    failure=f.get("error") or None,
                    counters={k[len(COUNTER):]: int(v) for k, v in f.items() if k.startswith(COUNTER)})
 
@@ -255,8 +259,9 @@ class Jobs:
         return self.tiles.inputs(record.id, self.tiling(record), record.integrator)
 
     # ------------------------------------------------------------------ batches
-    def allocate(self, job_id: str, pass_seconds: float | None = None) -> Batch | None:
-        """Reserve the next range of passes, or None if the job takes no more batches."""
+    def allocate(self, job_id: str, pass_seconds: float | None = None, workers: int = 1) -> Batch | None:
+        """Reserve the next range of passes, or None if the job takes no more batches
+        (`workers`: how many render the job's batches at once, see policy.batch_passes)."""
         key = keys.job(job_id)
         while True:
             try:
@@ -268,7 +273,8 @@ class Jobs:
                             policy.out_of_time(record.settings, elapsed):
                         return None
                     n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds,
-                                            policy.seconds_left(record.settings, elapsed))
+                                            policy.seconds_left(record.settings, elapsed), record.fold_seconds,
+                                            workers)
                     left = policy.passes_left(record.settings, record.next_pass)
                     n = n if left is None else min(n, left)
                     if n <= 0:
@@ -403,12 +409,14 @@ class Jobs:
         return self.status(job_id)
 
     # -------------------------------------------------------------------- merge
-    def merge(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float | None = None) -> str:
+    def merge(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float | None = None,
+              cpu_seconds: float = 0.0) -> str:
         """Push a batch's delta to the job's tiles, then accept it exactly once. Returns
         'merged', 'duplicate' or 'inactive'. The batch that ends the job folds everything
-        accepted before the job takes its final status."""
+        accepted before the job takes its final status. `seconds` and `cpu_seconds` are
+        the render's wall and process CPU time, `wall_seconds` the batch's from its lease."""
         key = keys.job(batch.job_id)
-        merge_start = time.perf_counter()
+        merge_start, merge_cpu = time.perf_counter(), time.process_time()
         record = self.get(batch.job_id)
         if record is None or record.status not in policy.MERGING or \
                 self.r.sismember(keys.merged(batch.job_id), batch.id):
@@ -419,17 +427,22 @@ class Jobs:
         tiling = self.tiling(record)
         self.tiles.push(batch.job_id, tiling, batch.id, delta)
         # Accept.
-        outcome, final = self.accept(batch, delta, seconds, seconds if wall_seconds is None else wall_seconds)
+        outcome, final = self.accept(batch, delta, seconds, seconds if wall_seconds is None else wall_seconds,
+                                     cpu_seconds)
         if outcome != "merged":
             self.tiles.discard(batch.job_id, tiling, batch.id, folded_only=outcome == "duplicate")
             self.drop(batch)
             return outcome
-        self.r.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)  # push and accept
+        pipe = self.r.pipeline(transaction=False)  # push and accept
+        pipe.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)
+        pipe.hincrbyfloat(key, "merge_cpu_seconds", time.process_time() - merge_cpu)
+        pipe.execute()
         if final is not None:
             self._end(batch.job_id, policy.MERGING, final)
         return outcome
 
-    def accept(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float) -> tuple[str, Status | None]:
+    def accept(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float,
+               cpu_seconds: float = 0.0) -> tuple[str, Status | None]:
         """Count a batch whose delta every tile holds, once: read the record, decide the job's status, write. One
         transaction. Returns the outcome and the final status the batch decided, if any."""
         key = keys.job(batch.job_id)
@@ -453,7 +466,8 @@ class Jobs:
                         "passes": passes, "emitted": emitted,
                         "pass_seconds": per_pass if record.pass_seconds == 0 else
                         0.7 * record.pass_seconds + 0.3 * per_pass,
-                        "render_seconds": record.render_seconds + seconds, "merges": record.merges + 1,
+                        "render_seconds": record.render_seconds + seconds,
+                        "render_cpu_seconds": record.render_cpu_seconds + cpu_seconds, "merges": record.merges + 1,
                         "longest_batch_seconds": max(record.longest_batch_seconds, wall_seconds)}
                     counters = delta.counters
                     # Write.
