@@ -14,15 +14,13 @@ and bench/out/service_scaling.png.
 
 `--pinned` (issue 14): a real cluster with 1, then 2 workers, each with one PoCL thread
 and pinned to its own core (taskset), renders one furnace job at 256x256 and one at
-1920x1080 (the service's default photons per pass, error estimation on). Furnace because
-its estimated error falls from the first passes at any frame size: on cornell-caustics
-and cornell-box a pixel that has had measurement points but never a photon holds the
-image average at 1.0 (the estimator takes the larger of the lit and the never-lit
-pixels' means), through the first 14 passes at 256x256 and past 17 at 1920x1080 here,
-so no threshold would be reached in a short run. It reports photons per
-second (between the job's first and last accepted batch, and over the whole job) and
-the time the job's estimated error (its history: one entry per fold round) took to
-reach a fixed threshold, and the 2-worker / 1-worker ratios. The API (with its folder
+1920x1080 (the service's default photons per pass, error estimation on). Both jobs of a frame size render the
+same fixed passes (same seed), so they end with the same image and the same error: the
+time to that error is the job's wall time from submission to its final status (start-up
+included, as a user waits for it), and the photons per second are measured between the
+job's first and last accepted batch. Equal work matters: an SPPM pass gets cheaper as
+its radius shrinks, so a job that got further in a fixed time would look faster than it
+is. The 2-worker / 1-worker ratios of both. The API (with its folder
 thread) and redis-server are not pinned: this machine has no third core, so wherever
 they ran they would take from a worker; unpinned, the kernel puts them on whichever
 core is idle at the moment (a one-worker job leaves a core free for them, as a real
@@ -192,35 +190,17 @@ def chart(result: dict) -> None:
 # ------------------------------------------------------ issue 14: pinned one-thread workers
 @dataclass(frozen=True)
 class PinnedCase:
-    """One frame size of the pinned measurement: how long each job renders and the
-    estimated error (the image average of the job's history) its time is measured to,
-    one that a one-worker job reaches in about half its run."""
+    """One frame size of the pinned measurement: the passes each job renders (about 40 s
+    and 100 s for one worker on this machine)."""
 
     resolution: tuple[int, int]
-    seconds: float
-    threshold: float
+    passes: int
 
 
 PINNED_SCENE = "furnace"
-PINNED = (PinnedCase((256, 256), 40.0, 0.12), PinnedCase((1920, 1080), 120.0, 0.2))
-PINNED_SMOKE = (PinnedCase((128, 128), 10.0, 0.5), PinnedCase((320, 180), 12.0, 0.5))
+PINNED = (PinnedCase((256, 256), 100), PinnedCase((1920, 1080), 80))
+PINNED_SMOKE = (PinnedCase((128, 128), 12), PinnedCase((320, 180), 8))
 SAMPLE_SECONDS = 0.25  # how often the job record's photon count is read during a job
-
-
-def time_to_error(history: list[dict], threshold: float) -> float | None:
-    """Job seconds at which the estimated error first reached `threshold`: between the two
-    fold rounds that bracket it, linear in log error (rounds are seconds apart at big frames)."""
-    before = None
-    for h in history:
-        if h["error"] is not None and h["error"] <= threshold:
-            if before is None:
-                return h["seconds"]
-            e0, e1 = np.log(before["error"]), np.log(h["error"])
-            f = (e0 - np.log(threshold)) / (e0 - e1) if e0 > e1 else 1.0
-            return float(before["seconds"] + f * (h["seconds"] - before["seconds"]))
-        if h["error"] is not None:
-            before = h
-    return None
 
 
 def _window_rate(samples: list[tuple[float, int]]) -> float:
@@ -239,7 +219,7 @@ def _pinned_job(c: Cluster, case: PinnedCase, workers: int) -> dict:
     parts = {"workers": [w.pid for w in c.workers], "api": [c.api.pid], "redis": [c.redis.proc.pid]}
     load = os.getloadavg()[0]
     cpu0, wall0 = {k: cpu_seconds(v) for k, v in parts.items()}, time.perf_counter()
-    job_id = c.submit(scene_name=PINNED_SCENE, settings={"max_seconds": case.seconds,
+    job_id = c.submit(scene_name=PINNED_SCENE, settings={"max_passes": case.passes,
                                                          "resolution": list(case.resolution),
                                                   "seed": 1})["id"]
     samples: list[tuple[float, int]] = []
@@ -257,12 +237,11 @@ def _pinned_job(c: Cluster, case: PinnedCase, workers: int) -> dict:
              "worker other": cpu["workers"] - record.render_cpu_seconds - record.merge_cpu_seconds,
              "api": cpu["api"], "redis": cpu["redis"]}
     return {"resolution": list(case.resolution), "workers": workers, "status": record.status.value,
-            "seconds": case.seconds, "wall_seconds": wall, "elapsed_seconds": record.elapsed_seconds(),
+            "wall_seconds": wall, "elapsed_seconds": record.elapsed_seconds(),
             "passes": record.passes, "batches": record.merges, "fold_rounds": len(history),
             "photons": record.emitted, "photons_per_second": _window_rate(samples),
             "photons_per_second_whole_job": record.photons_per_second,
-            "error_threshold": case.threshold, "time_to_error": time_to_error(history, case.threshold),
-            "final_error": history[-1]["error"] if history else None,
+            "time_to_error": wall, "final_error": history[-1]["error"] if history else None,
             "render_seconds_per_pass": record.render_seconds / max(1, record.passes),
             "cpu_seconds": split, "cpu_seconds_per_batch": {k: v / batches for k, v in split.items()},
             "api_cpu_seconds_per_fold_round": cpu["api"] / rounds,
@@ -288,7 +267,7 @@ def pinned(workers: int, cases: tuple[PinnedCase, ...]) -> list[dict]:
                 print(f"{workers} worker(s) {case.resolution[0]}x{case.resolution[1]}: "
                       f"{run['photons_per_second'] / 1e6:.3f} M photons/s "
                       f"(whole job {run['photons_per_second_whole_job'] / 1e6:.3f}), "
-                      f"error {case.threshold} at {'-' if tte is None else f'{tte:.1f}'} s, "
+                      f"error {run['final_error']:.4f} after {tte:.1f} s, "
                       f"{run['batches']} batches, {run['fold_rounds']} folds, load {run['load_average_before']:.1f}; "
                       "CPU s per batch: " + ", ".join(f"{k} {v:.2f}" for k, v in run["cpu_seconds_per_batch"].items()),
                       flush=True)
@@ -339,11 +318,9 @@ def pinned_chart(result: dict, name: str) -> None:
         axes[1].semilogy([e["seconds"] for e in h], [e["error"] for e in h],
                          "-" if r["workers"] == 1 else "--", label=f"{r['resolution'][0]}x{r['resolution'][1]}, "
                          f"{r['workers']}w")
-    for threshold in sorted({r["error_threshold"] for r in runs}):
-        axes[1].axhline(threshold, color="grey", lw=0.8)
     axes[1].set_xlabel("job seconds")
     axes[1].set_ylabel("estimated error (image average)")
-    axes[1].set_title("the job's error history; grey: the thresholds", fontsize=9)
+    axes[1].set_title("the job's error history (both end at the same passes)", fontsize=9)
     axes[1].legend(fontsize=7)
     big = [r for r in runs if r["resolution"] == sizes[-1]]
     bottom = np.zeros(len(big))
