@@ -27,6 +27,7 @@ keeps up).
 
     python -m bench.merge_capacity --smoke   # a few minutes: small frames, N up to 2
     python -m bench.merge_capacity           # the real run: 1920x1080 and 3840x2160, N to 100
+    python -m bench.merge_capacity --sizes 1920x1080   # one frame size of it
 """
 
 from __future__ import annotations
@@ -220,8 +221,14 @@ def main() -> None:
                         help="a pass's per-pixel cost (eye, gather, readback, host) per megapixel")
     parser.add_argument("--trace-seconds", type=float, default=0.127, help="a pass's photon tracing")
     parser.add_argument("--processes", type=int, default=8, help="pusher processes the simulated workers share")
+    parser.add_argument("--sizes", help="comma-separated frame sizes WxH instead of the plan's (e.g. 1920x1080)")
     args = parser.parse_args()
     plan = SMOKE if args.smoke else FULL
+    if args.sizes:
+        try:
+            plan = {**plan, "sizes": [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]}
+        except ValueError:
+            parser.error(f"--sizes: expected WxH[,WxH...], got {args.sizes!r}")
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for n_nodes in (1, 3):
