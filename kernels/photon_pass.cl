@@ -156,7 +156,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __gl
 
 __kernel void photon_pass(
     SCENE_PARAMS,
-    ulong seed, uint pass, int max_bounces, uint capacity,
+    ulong seed, uint pass, uint n_paths, int max_bounces, uint capacity,
     int skip_first_hit,          // 1: store nothing at a photon's first hit (direct light is NEE's)
     __global float4* ph_pos,     // xyz position, w: count (1)
     __global float4* ph_flux,    // rgb flux (w: 0)
@@ -165,7 +165,7 @@ __kernel void photon_pass(
     __global volatile uint* ph_count)
 {
     uint path = (uint)get_global_id(0);
-    if (n_emitters == 0) return;
+    if (path >= n_paths || n_emitters == 0) return;
     SceneGeom g = SCENE_GEOM;
     Rng rng = rng_make(seed, pass, path, DOMAIN_PHOTON);
     PhotonSink sink;

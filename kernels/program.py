@@ -18,6 +18,7 @@ import pyopencl as cl  # noqa: E402
 from kernels.contract import SumLayout, build_options  # noqa: E402
 
 KERNEL_DIR = Path(__file__).resolve().parent
+WORK_GROUP = 64  # work items a work group (Program.launch)
 # Order matters: later files use what earlier ones define.
 SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "spatial_hash.cl", "visibility.cl",
            "photon_pass.cl", "photon_chains.cl")
@@ -57,10 +58,16 @@ class Program:
         self.kernels = {name: getattr(program, name) for name in kernel_names}
 
     def launch(self, queue: cl.CommandQueue, name: str, n: int, *args: object, one_per_group: bool = False) -> cl.Event:
-        """Run kernel `name` over n work items (kernels bound-check their id); with
-        `one_per_group`, each its own work group (few long work items, e.g. Markov chains,
-        then spread over every core)."""
-        return self.kernels[name](queue, (max(int(n), 1),), (1,) if one_per_group else None, *args)
+        """Run kernel `name` over n work items in work groups of WORK_GROUP items, the last
+        one padded (kernels bound-check their id); with `one_per_group`, each its own work
+        group (few long work items, e.g. Markov chains, then spread over every core).
+
+        The work-group size is fixed because PoCL compiles a kernel anew for every local size
+        it is launched with, and left to choose it picks one that divides the global size:
+        counts that change from pass to pass (stored photons, hash entries) then compiled
+        during rendering, seconds each, on every worker (bench/RESULTS.md, error against time)."""
+        local = 1 if one_per_group else WORK_GROUP
+        return self.kernels[name](queue, (-(-max(int(n), 1) // local) * local,), (local,), *args)
 
 
 _programs: dict[tuple[int, SumLayout, str], Program] = {}

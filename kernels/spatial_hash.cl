@@ -60,6 +60,7 @@ __kernel void grid_count(uint n, __global const float4* ph_pos, float inv_cell, 
 // A single work item: the scan is memory-bound and tiny next to tracing.
 __kernel void grid_scan(uint entries, __global const uint* cell_count, __global uint* cell_start,
                         __global uint* cell_fill) {
+    if (get_global_id(0) != 0) return;  // one work item scans (launched in a whole work group)
     uint sum = 0;
     for (uint h = 0; h < entries; ++h) {
         cell_start[h] = sum;

@@ -107,8 +107,8 @@ class PhotonMappingPasses:
             events = [dev.fill(self.ph_count, np.uint32(0), 1)]
             events.append(dev.program.launch(
                 dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
-                u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces), u32(self.capacity),
-                skip_first, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count))
+                u64(self.settings.seed), u32(pass_index), u32(self.settings.photons_per_pass),
+                i32(self.settings.max_bounces), u32(self.capacity), skip_first, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.ph_count)
             dev.times.add("trace", events)
