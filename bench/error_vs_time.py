@@ -16,7 +16,8 @@ loading not counted). References (bench/reference/<scene>-<W>x<H>.exr, with a JS
 a long Mitsuba path-tracing run where path tracing converges (an area light reaches every
 path), otherwise a long SPPM run with the exact grid, marked `sppm` (point, spot and
 directional lights through glass: paths no unbiased tracer from the camera can sample).
-Writes bench/out/error_vs_time.json and one PNG per scene.
+Writes bench/out/error_vs_time.json and one PNG per scene (error_vs_time_full* with --full,
+*_methods for a subset of the methods).
 """
 
 from __future__ import annotations
@@ -158,7 +159,9 @@ def main() -> None:
     unknown = sorted(set(methods) - {*OURS, *PEERS})
     if unknown:
         parser.error(f"unknown method(s) {', '.join(unknown)}; choose from {', '.join((*OURS, *PEERS))}")
-    report_name = "error_vs_time_methods" if args.methods else "error_vs_time"  # a subset keeps the full run's files
+    # --full and the reduced size keep their own files, and a subset of methods does not
+    # overwrite the run of all of them
+    report_name = "error_vs_time" + ("_full" if args.full else "") + ("_methods" if args.methods else "")
     report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget, "photons_per_pass": PHOTONS,
               "scenes": {}}
     for scene, ref_method in scenes.items():
