@@ -102,7 +102,7 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
 @pytest.mark.parametrize("method", ["sppm", "ppm"])
 def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None:
     """The camera sees part of the furnace (V_c ~ 0.2): the chains' photons crowd into its
-    view, and V_c / splats scales them back to the analytic radiance."""
+    view, and each pass's V_k / splats scales them back to the analytic radiance."""
     eng = make_engine("furnace", photons_per_pass=1 << 15, seed=3, sampler="adaptive", method=method)
     state = render(eng, 24)
     assert 0.05 < adaptive.visible_fraction(state.counters) < 0.5
@@ -146,8 +146,8 @@ def test_point_plane_matches_analytic_radiance(make_engine) -> None:
 
 @pytest.mark.parametrize("scene", ["furnace", "point-plane"])
 def test_error_bounds_cover_within_five_points_of_nominal(make_engine, scene: str) -> None:
-    """The error estimate with the adaptive sampler (per-pass samples scaled by the pass's
-    own V_c, E the uniform equivalent splats / V_c): the share of pixels whose bound holds
+    """The error estimate with the adaptive sampler (every pass's sums in uniform photons,
+    scaled by the pass's own V_k / splats): the share of pixels whose bound holds
     the actual error, at 50% and 90%, after 8, 24 and 64 passes (as tests/test_error_estimation.py)."""
     eng = make_engine(scene, photons_per_pass=1 << 15, seed=31, sampler="adaptive")
     truth = FURNACE_L if scene == "furnace" else point_plane(eng)[0]
@@ -250,6 +250,39 @@ def test_visible_fraction_matches_an_independent_count(make_engine) -> None:
     pooled = (visible + independent) / (2 * n)
     z = (v1 - v2) / math.sqrt(pooled * (1 - pooled) * 2 / n)
     assert abs(z) < 3.3, (v1, v2)  # 99.9% two-sided
+
+
+@pytest.mark.parametrize("gather", ["exact", "stochastic"])
+def test_a_chain_pass_brings_a_uniform_pass_worth_whatever_its_iterations(make_engine, tmp_path, gather: str) -> None:
+    """SPPM's radius rule takes a pixel's count scale from its first photons and shrinks by
+    (N + alpha M) / (N + M) after, so every pass must bring the same expected photon count
+    M, and the image the same expected flux, whichever sampler and pass size. A patch seen
+    through 12 degrees (V_c ~ 0.03), same points and radius: per pass, the total count
+    (sum of D pi r^2) and flux of uniform passes and of chain passes of a full and a quarter
+    pass of iterations agree within 4 standard errors (passes are independent). Scaled by
+    the pooled V_c at display time instead, the chains' counts were 10-35x a uniform
+    pass's, and a job's first pass (all iterations, no counters yet) twice its later ones."""
+    photons, passes, r0 = 1 << 12, 32, 0.05
+    common = {"photons_per_pass": photons, "seed": 5, "initial_radius": r0, "gather": gather}
+    path = _scene_file(tmp_path, _patch_scene(12.0))
+    uni, ada = make_engine(path, **common), make_engine(path, sampler="adaptive", **common)
+    r = np.full(uni.arrays.n_pixels, r0)
+
+    def per_pass(eng, inputs: GatherInputs) -> np.ndarray:
+        out = []
+        for k in range(passes):
+            d = eng.run_batch(inputs, k, 1)
+            out.append((float((d.sums["D"] * math.pi * r * r).sum()), float(d.sums["S"].sum())))
+            if inputs.chains is not None:
+                assert d.counters["mutations"] > 0 and d.counters["visible"] < 0.1 * d.counters["draws"]
+        return np.array(out)
+
+    base = per_pass(uni, GatherInputs(r))
+    for iterations in (photons, photons // 4):
+        chains = per_pass(ada, GatherInputs(r, None, ChainInputs(theta=0.1, chains=16, iterations=iterations)))
+        se = np.sqrt(base.var(axis=0, ddof=1) / passes + chains.var(axis=0, ddof=1) / passes)
+        assert np.all(np.abs(chains.mean(axis=0) - base.mean(axis=0)) < 4.0 * se), (iterations, base.mean(axis=0),
+                                                                                    chains.mean(axis=0), se)
 
 
 @pytest.mark.parametrize("target", [0.05, 0.234, 0.5])
