@@ -6,7 +6,12 @@
    vertical field of view 40 (the scene's), 20, 10, 5, 2.5 and 1.25 degrees);
 2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
    gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
-   rendering), which a shared machine's load changes little;
+   rendering), which a shared machine's load changes little. Two seeds per sampler, paired
+   (a seed's initial radius comes from its own uniform probe pass, the same for both
+   samplers; on the zoom levels it moves the radius, and so the error, up to 2x from seed
+   to seed, so one seed's ratio says little): the error is the two runs' mean, split into
+   noise (the relative RMS of their difference over sqrt 2, one image's) and bias (what
+   the mean image's error keeps beyond its noise, sqrt(e_mean^2 - noise^2 / 2));
 3. error at equal photon paths: both samplers the same passes of the same photons per
    pass (a chain pass traces that many paths, plus its chains' starts), with the CPU
    seconds each took: the gain the chains' extra visible photons buy, apart from their cost;
@@ -94,19 +99,20 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
             else None, "passes": passes}
 
 
-def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str) -> Engine:
+def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str, seed: int = SEED) -> Engine:
     """An engine whose kernels have run once (a pass of a state thrown away): PoCL compiles
     a kernel at its first launch in a context (seconds, unless its disk cache has it),
     which is no sampler's cost."""
-    eng = engine(scene, res, photons, sampler=sampler)
+    eng = engine(scene, res, photons, seed=seed, sampler=sampler)
     render(eng, passes=1)
     return eng
 
 
-def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str) -> list:
-    """(CPU seconds, relative RMS error) after every pass; the clock counts set-up and
-    rendering (not the kernels' compilation)."""
-    eng = warmed(scene, res, photons, sampler)
+def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str,
+          seed: int = SEED) -> tuple[list, np.ndarray, int]:
+    """(CPU seconds, relative RMS error) after every pass, the final image and its passes;
+    the clock counts set-up and rendering (not the kernels' compilation)."""
+    eng = warmed(scene, res, photons, sampler, seed)
     t0 = time.process_time()
     state = eng.start()
     spent, points = time.process_time() - t0, []
@@ -115,7 +121,15 @@ def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, bud
         render(eng, passes=state.passes + 1, state=state)
         spent += time.process_time() - t0  # the error below is not the sampler's time
         points.append((spent, rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
-    return points
+    return points, eng.integrator.image(state).reshape(res[1], res[0], 3), state.passes
+
+
+def split(a: np.ndarray, b: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    """Two seeds' images: their mean error, one image's noise and the bias (module docstring)."""
+    noise = rel_rms(a, b) / math.sqrt(2.0)
+    mean_error = rel_rms(0.5 * (a + b), ref)
+    return {"error": 0.5 * (rel_rms(a, ref) + rel_rms(b, ref)), "noise": noise,
+            "bias": math.sqrt(max(mean_error ** 2 - noise ** 2 / 2.0, 0.0))}
 
 
 def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, passes: int) -> dict:
@@ -221,14 +235,18 @@ def main() -> None:
             ref = read_image(path)[..., :3].astype(np.float64)
         else:
             ref = zoom_reference(fov, res, photons, ref_seconds, references)
-        curves = {sampler: curve(scene, res, ref, photons, budget, sampler) for sampler in ("uniform", "adaptive")}
-        final = {sampler: points[-1][1] for sampler, points in curves.items() if points}
+        runs = {(sampler, seed): curve(scene, res, ref, photons, budget, sampler, seed)
+                for sampler in ("uniform", "adaptive") for seed in (SEED, SEED + 1)}
+        curves = {sampler: runs[(sampler, SEED)][0] for sampler in ("uniform", "adaptive")}
+        splits = {sampler: {**split(runs[(sampler, SEED)][1], runs[(sampler, SEED + 1)][1], ref),
+                            "passes": [runs[(sampler, seed)][2] for seed in (SEED, SEED + 1)]}
+                  for sampler in ("uniform", "adaptive")}
         v_c = report["visibility"].get(name, {}).get("visible_fraction")
-        report["equal_time"][name] = {"resolution": list(res), "final_error": final,
-                                      "uniform_over_adaptive": final["uniform"] / final["adaptive"]
-                                      if len(final) == 2 else None, "curves": curves}
+        report["equal_time"][name] = {"resolution": list(res), "seeds": [SEED, SEED + 1], "split": splits,
+                                      "uniform_over_adaptive": splits["uniform"]["error"] / splits["adaptive"]["error"],
+                                      "curves": curves}
         chart(name.replace(" ", "-"), curves, v_c, prefix)
-        print(name, final, flush=True)
+        print(name, splits, flush=True)
         # 3. Equal photon paths.
         report["equal_paths"][name] = equal_paths(scene, res, ref, photons, args.equal_paths_passes)
         print(name, "equal paths", report["equal_paths"][name], flush=True)
