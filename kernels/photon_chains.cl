@@ -14,7 +14,9 @@
 // proposal costs its own trace and nothing for the state) (with the
 // stochastic hash it stores them again from its cache; a state with more than
 // DEPOSIT_CACHE photons is traced and stored again). Chains that do not mutate
-// (worker/adaptive.py, mutates) store each uniform draw's photons as it is traced.
+// (worker/adaptive.py, mutates) store each uniform draw's photons as it is traced; they
+// are a sample of draws judged for V_c, and the host then traces the pass's photons with
+// the uniform kernel over them.
 //
 // Each chain starts the pass from an exact sample of F: uniform draws until one is visible
 // (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their

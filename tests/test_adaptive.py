@@ -85,7 +85,9 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     sa, su = render(ada, 24), render(uni, 24)
     c = sa.counters
     assert c["mutations"] == 0 and c["accepted"] == 0
-    assert c["visible"] == c["draws"] == c["splats"] == 24 * (1 << 13)
+    # Pass 0 (no V_c yet) runs chains; V_c = 1 then makes every later pass the uniform
+    # photon pass, with a sample of its draws judged for V_c.
+    assert c["visible"] == c["draws"] == c["splats"] == (1 << 13) + 23 * adaptive.sample_iterations(1 << 13)
     assert adaptive.theta(c) == 1.0  # nothing to adapt
     # The same estimator with other photon random numbers: per pixel within the noise of
     # both (the two share their measurement points, the same seed's eye passes, so the
@@ -417,6 +419,23 @@ def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) ->
     assert np.all(img == 0.0)
     est = eng.integrator.estimate(state)
     assert np.all(np.isfinite(est.relative)) and est.average == 1.0
+
+
+def test_a_pass_that_does_not_mutate_is_the_uniform_pass(make_engine) -> None:
+    """cornell-box (V_c ~ 0.8 above the target 0.234): after pass 0 the chains do not mutate,
+    and the pass's sums are the uniform sampler's bit for bit, its counters a sample of
+    photons / VISIBILITY_SAMPLE judged draws."""
+    common = {"resolution": (24, 24), "photons_per_pass": 1 << 12, "seed": 3}
+    ada, uni = make_engine("cornell-box", sampler="adaptive", **common), make_engine("cornell-box", **common)
+    state = ada.start()
+    ada.integrator.merge(state, ada.render_batch(state, 0, 1))
+    inputs = ada.integrator.batch_inputs(state)
+    assert not inputs.chains.mutate
+    a, u = ada.run_batch(inputs, 1, 2), uni.run_batch(GatherInputs(inputs.radius, inputs.bias), 1, 2)
+    for name in u.sums:
+        np.testing.assert_array_equal(a.sums[name], u.sums[name])
+    assert a.counters["draws"] == 2 * adaptive.sample_iterations(1 << 12) and a.counters["mutations"] == 0
+    assert 0.5 < a.counters["visible"] / a.counters["draws"] < 1.0
 
 
 @pytest.mark.parametrize("target", [0.234, 0.95])

@@ -278,7 +278,10 @@ class PhotonMappingPasses:
                 self._build_and_gather(self.photons_stored, float(r32.max()))
             else:
                 self.photons_stored, counts = self._chain_pass(k, inputs.chains, float(r32.max()))
-                self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.photons_per_pass))
+                if inputs.chains.mutate:
+                    self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.photons_per_pass))
+                else:  # the chains judged a sample of draws for V_c; the photons are a uniform pass's
+                    self.photons_stored = self._photon_pass(k)
                 self._build_and_gather(self.photons_stored, float(r32.max()))
                 counts[adaptive.THETA_STEPS] = adaptive.theta_step(k, inputs.chains.theta, counts["mutations"],
                                                                    counts["accepted"],
