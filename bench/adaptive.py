@@ -6,18 +6,18 @@
    vertical field of view 40 (the scene's), 20, 10, 5, 2.5 and 1.25 degrees);
 2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
    gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
-   rendering), which a shared machine's load changes little. Two seeds per sampler, paired
+   rendering), the runs taking turns pass by pass. Two seeds per sampler, paired
    (a seed's initial radius comes from its own uniform probe pass, the same for both
    samplers; on the zoom levels it moves the radius, and so the error, up to 2x from seed
    to seed, so one seed's ratio says little): the error is the two runs' mean, split into
    noise (the relative RMS of their difference over sqrt 2, one image's) and bias (what
    the mean image's error keeps beyond its noise, sqrt(e_mean^2 - noise^2 / 2));
-3. error at equal photon paths: both samplers the same passes of the same photons per
-   pass (a chain pass traces that many paths, plus its chains' starts), with the CPU
-   seconds each took: the gain the chains' extra visible photons buy, apart from their cost;
-   and the noise alone, from a second seed (the relative RMS of the two images' difference
-   over sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
-   alike, so this ratio is the chains' gain itself.
+3. error at equal passes: both samplers the same passes of the same photons per pass (a
+   chain pass brings the new visible paths a uniform pass is expected to, adaptive.iterations;
+   `traced` counts its paths, starts included), with the CPU seconds each took; and the
+   noise alone, from a second seed (the relative RMS of the two images' difference over
+   sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
+   alike (a chain pass's sums are in uniform photons), so this ratio is the chains' gain itself.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
@@ -108,20 +108,29 @@ def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str, seed:
     return eng
 
 
-def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str,
-          seed: int = SEED) -> tuple[list, np.ndarray, int]:
-    """(CPU seconds, relative RMS error) after every pass, the final image and its passes;
-    the clock counts set-up and rendering (not the kernels' compilation)."""
-    eng = warmed(scene, res, photons, sampler, seed)
-    t0 = time.process_time()
-    state = eng.start()
-    spent, points = time.process_time() - t0, []
-    while spent < budget:
+def curves(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
+           keys: list[tuple[str, int]]) -> dict[tuple[str, int], tuple[list, np.ndarray, int]]:
+    """Per (sampler, seed): (CPU seconds, relative RMS error) after every pass, the final
+    image and its passes. The runs take turns pass by pass, each on its own clock (set-up
+    and rendering, not the kernels' compilation), so that a shared machine's load, which
+    moved a pass's CPU time by up to 1.5x between runs made one after the other, falls on
+    all of them alike."""
+    runs = {}
+    for key in keys:
+        eng = warmed(scene, res, photons, key[0], key[1])
         t0 = time.process_time()
-        render(eng, passes=state.passes + 1, state=state)
-        spent += time.process_time() - t0  # the error below is not the sampler's time
-        points.append((spent, rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
-    return points, eng.integrator.image(state).reshape(res[1], res[0], 3), state.passes
+        runs[key] = {"engine": eng, "state": eng.start(), "spent": time.process_time() - t0, "points": []}
+    while any(run["spent"] < budget for run in runs.values()):
+        for run in runs.values():
+            if run["spent"] >= budget:
+                continue
+            eng, state = run["engine"], run["state"]
+            t0 = time.process_time()
+            render(eng, passes=state.passes + 1, state=state)
+            run["spent"] += time.process_time() - t0  # the error below is not the sampler's time
+            run["points"].append((run["spent"], rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
+    return {key: (run["points"], run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3),
+                  run["state"].passes) for key, run in runs.items()}
 
 
 def split(a: np.ndarray, b: np.ndarray, ref: np.ndarray) -> dict[str, float]:
@@ -235,17 +244,17 @@ def main() -> None:
             ref = read_image(path)[..., :3].astype(np.float64)
         else:
             ref = zoom_reference(fov, res, photons, ref_seconds, references)
-        runs = {(sampler, seed): curve(scene, res, ref, photons, budget, sampler, seed)
-                for sampler in ("uniform", "adaptive") for seed in (SEED, SEED + 1)}
-        curves = {sampler: runs[(sampler, SEED)][0] for sampler in ("uniform", "adaptive")}
+        runs = curves(scene, res, ref, photons, budget,
+                      [(sampler, seed) for sampler in ("uniform", "adaptive") for seed in (SEED, SEED + 1)])
+        series = {sampler: runs[(sampler, SEED)][0] for sampler in ("uniform", "adaptive")}
         splits = {sampler: {**split(runs[(sampler, SEED)][1], runs[(sampler, SEED + 1)][1], ref),
                             "passes": [runs[(sampler, seed)][2] for seed in (SEED, SEED + 1)]}
                   for sampler in ("uniform", "adaptive")}
         v_c = report["visibility"].get(name, {}).get("visible_fraction")
         report["equal_time"][name] = {"resolution": list(res), "seeds": [SEED, SEED + 1], "split": splits,
                                       "uniform_over_adaptive": splits["uniform"]["error"] / splits["adaptive"]["error"],
-                                      "curves": curves}
-        chart(name.replace(" ", "-"), curves, v_c, prefix)
+                                      "curves": series}
+        chart(name.replace(" ", "-"), series, v_c, prefix)
         print(name, splits, flush=True)
         # 3. Equal photon paths.
         report["equal_paths"][name] = equal_paths(scene, res, ref, photons, args.equal_paths_passes)
