@@ -6,13 +6,18 @@
    vertical field of view 40 (the scene's), 20, 10, 5, 2.5 and 1.25 degrees);
 2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
    gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
-   rendering), which a shared machine's load changes little;
-3. error at equal photon paths: both samplers the same passes of the same photons per
-   pass (a chain pass traces that many paths, plus its chains' starts), with the CPU
-   seconds each took: the gain the chains' extra visible photons buy, apart from their cost;
-   and the noise alone, from a second seed (the relative RMS of the two images' difference
-   over sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
-   alike, so this ratio is the chains' gain itself.
+   rendering), the runs taking turns pass by pass. Two seeds per sampler, paired
+   (a seed's initial radius comes from its own uniform probe pass, the same for both
+   samplers; on the zoom levels it moves the radius, and so the error, up to 2x from seed
+   to seed, so one seed's ratio says little): the error is the two runs' mean, split into
+   noise (the relative RMS of their difference over sqrt 2, one image's) and bias (what
+   the mean image's error keeps beyond its noise, sqrt(e_mean^2 - noise^2 / 2));
+3. error at equal passes: both samplers the same passes of the same photons per pass (a
+   chain pass brings the new visible paths a uniform pass is expected to, adaptive.iterations;
+   `traced` counts its paths, starts included), with the CPU seconds each took; and the
+   noise alone, from a second seed (the relative RMS of the two images' difference over
+   sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
+   alike (a chain pass's sums are in uniform photons), so this ratio is the chains' gain itself.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
@@ -94,28 +99,46 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
             else None, "passes": passes}
 
 
-def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str) -> Engine:
+def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str, seed: int = SEED) -> Engine:
     """An engine whose kernels have run once (a pass of a state thrown away): PoCL compiles
     a kernel at its first launch in a context (seconds, unless its disk cache has it),
     which is no sampler's cost."""
-    eng = engine(scene, res, photons, sampler=sampler)
+    eng = engine(scene, res, photons, seed=seed, sampler=sampler)
     render(eng, passes=1)
     return eng
 
 
-def curve(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float, sampler: str) -> list:
-    """(CPU seconds, relative RMS error) after every pass; the clock counts set-up and
-    rendering (not the kernels' compilation)."""
-    eng = warmed(scene, res, photons, sampler)
-    t0 = time.process_time()
-    state = eng.start()
-    spent, points = time.process_time() - t0, []
-    while spent < budget:
+def curves(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
+           keys: list[tuple[str, int]]) -> dict[tuple[str, int], tuple[list, np.ndarray, int]]:
+    """Per (sampler, seed): (CPU seconds, relative RMS error) after every pass, the final
+    image and its passes. The runs take turns pass by pass, each on its own clock (set-up
+    and rendering, not the kernels' compilation), so that a shared machine's load, which
+    moved a pass's CPU time by up to 1.5x between runs made one after the other, falls on
+    all of them alike."""
+    runs = {}
+    for key in keys:
+        eng = warmed(scene, res, photons, key[0], key[1])
         t0 = time.process_time()
-        render(eng, passes=state.passes + 1, state=state)
-        spent += time.process_time() - t0  # the error below is not the sampler's time
-        points.append((spent, rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
-    return points
+        runs[key] = {"engine": eng, "state": eng.start(), "spent": time.process_time() - t0, "points": []}
+    while any(run["spent"] < budget for run in runs.values()):
+        for run in runs.values():
+            if run["spent"] >= budget:
+                continue
+            eng, state = run["engine"], run["state"]
+            t0 = time.process_time()
+            render(eng, passes=state.passes + 1, state=state)
+            run["spent"] += time.process_time() - t0  # the error below is not the sampler's time
+            run["points"].append((run["spent"], rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
+    return {key: (run["points"], run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3),
+                  run["state"].passes) for key, run in runs.items()}
+
+
+def split(a: np.ndarray, b: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    """Two seeds' images: their mean error, one image's noise and the bias (module docstring)."""
+    noise = rel_rms(a, b) / math.sqrt(2.0)
+    mean_error = rel_rms(0.5 * (a + b), ref)
+    return {"error": 0.5 * (rel_rms(a, ref) + rel_rms(b, ref)), "noise": noise,
+            "bias": math.sqrt(max(mean_error ** 2 - noise ** 2 / 2.0, 0.0))}
 
 
 def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, passes: int) -> dict:
@@ -221,14 +244,18 @@ def main() -> None:
             ref = read_image(path)[..., :3].astype(np.float64)
         else:
             ref = zoom_reference(fov, res, photons, ref_seconds, references)
-        curves = {sampler: curve(scene, res, ref, photons, budget, sampler) for sampler in ("uniform", "adaptive")}
-        final = {sampler: points[-1][1] for sampler, points in curves.items() if points}
+        runs = curves(scene, res, ref, photons, budget,
+                      [(sampler, seed) for sampler in ("uniform", "adaptive") for seed in (SEED, SEED + 1)])
+        series = {sampler: runs[(sampler, SEED)][0] for sampler in ("uniform", "adaptive")}
+        splits = {sampler: {**split(runs[(sampler, SEED)][1], runs[(sampler, SEED + 1)][1], ref),
+                            "passes": [runs[(sampler, seed)][2] for seed in (SEED, SEED + 1)]}
+                  for sampler in ("uniform", "adaptive")}
         v_c = report["visibility"].get(name, {}).get("visible_fraction")
-        report["equal_time"][name] = {"resolution": list(res), "final_error": final,
-                                      "uniform_over_adaptive": final["uniform"] / final["adaptive"]
-                                      if len(final) == 2 else None, "curves": curves}
-        chart(name.replace(" ", "-"), curves, v_c, prefix)
-        print(name, final, flush=True)
+        report["equal_time"][name] = {"resolution": list(res), "seeds": [SEED, SEED + 1], "split": splits,
+                                      "uniform_over_adaptive": splits["uniform"]["error"] / splits["adaptive"]["error"],
+                                      "curves": series}
+        chart(name.replace(" ", "-"), series, v_c, prefix)
+        print(name, splits, flush=True)
         # 3. Equal photon paths.
         report["equal_paths"][name] = equal_paths(scene, res, ref, photons, args.equal_paths_passes)
         print(name, "equal paths", report["equal_paths"][name], flush=True)

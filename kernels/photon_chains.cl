@@ -14,15 +14,18 @@
 // proposal costs its own trace and nothing for the state) (with the
 // stochastic hash it stores them again from its cache; a state with more than
 // DEPOSIT_CACHE photons is traced and stored again). Chains that do not mutate
-// (worker/adaptive.py, mutates) store each uniform draw's photons as it is traced.
+// (worker/adaptive.py, mutates) store each uniform draw's photons as it is traced; they
+// are a sample of draws judged for V_c, and the host then traces the pass's photons with
+// the uniform kernel over them.
 //
 // Each chain starts the pass from an exact sample of F: uniform draws until one is visible
 // (rejection sampling), at most `boot_cap` (these draws are not counted toward V_c: their
 // number depends on what they found). A chain that finds none has no state: until one of
 // its main loop's uniform draws is visible it splats nothing (its draws still count toward
 // V_c), which keeps every splat an exact sample of F; with nothing visible at all the pass
-// is uniform tracing that found nothing. The image is V_c * (sum of splats) / (splats), with V_c = visible uniform
-// draws / uniform draws pooled over the job (worker/stats.py): the counters below.
+// is uniform tracing that found nothing. After the pass, scale_pass multiplies its photons'
+// counts by photons per pass * V_k / splats (V_k = visible / draws of the pass: the counters
+// below), so that its sums are in uniform photons (worker/adaptive.py, pass_scale).
 // theta is frozen for the pass (adapted between passes on the host, worker/adaptive.py).
 // Stored photons' keys are (record << 12) | bounce, record = chain * (iterations / chains
 // + 1) + the iteration that stored them: unique in the pass, so the exact gather's sort
@@ -204,4 +207,12 @@ __kernel void photon_chains(
     atomic_add(&counters[CTR_ACCEPTED], accepted);
     atomic_add(&counters[CTR_STARTED], (uint)started);
     atomic_add(&counters[CTR_BOOT], boot);
+}
+
+// A chain pass's photons in uniform photons: every stored photon's count (ph_pos.w, which
+// both gathers weigh its flux and the radius rule's count by) times `scale` = photons per
+// pass * V_k / splats of the pass (worker/adaptive.py, pass_scale).
+__kernel void scale_pass(uint n, float scale, __global float4* ph_pos) {
+    uint i = (uint)get_global_id(0);
+    if (i < n) ph_pos[i].w *= scale;
 }

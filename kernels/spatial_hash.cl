@@ -283,7 +283,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
         uint2 dirs = tab_dirs[h];
         if (photon_near(q.x, q.r2, pp.xyz) && photon_matches(q.n, unpack_dir(dirs.x), unpack_dir(dirs.y))
             && inside_cut(q.cut, q.n, pp.xyz - q.x, q.r))
-            add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
+            add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count * pp.w);  // w: 1, or a chain pass's scale
     }
     accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }

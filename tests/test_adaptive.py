@@ -85,7 +85,9 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     sa, su = render(ada, 24), render(uni, 24)
     c = sa.counters
     assert c["mutations"] == 0 and c["accepted"] == 0
-    assert c["visible"] == c["draws"] == c["splats"] == 24 * (1 << 13)
+    # Pass 0 (no V_c yet) runs chains; V_c = 1 then makes every later pass the uniform
+    # photon pass, with a sample of its draws judged for V_c.
+    assert c["visible"] == c["draws"] == c["splats"] == (1 << 13) + 23 * adaptive.sample_iterations(1 << 13)
     assert adaptive.theta(c) == 1.0  # nothing to adapt
     # The same estimator with other photon random numbers: per pixel within the noise of
     # both (the two share their measurement points, the same seed's eye passes, so the
@@ -102,7 +104,7 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
 @pytest.mark.parametrize("method", ["sppm", "ppm"])
 def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None:
     """The camera sees part of the furnace (V_c ~ 0.2): the chains' photons crowd into its
-    view, and V_c / splats scales them back to the analytic radiance."""
+    view, and each pass's V_k / splats scales them back to the analytic radiance."""
     eng = make_engine("furnace", photons_per_pass=1 << 15, seed=3, sampler="adaptive", method=method)
     state = render(eng, 24)
     assert 0.05 < adaptive.visible_fraction(state.counters) < 0.5
@@ -146,8 +148,8 @@ def test_point_plane_matches_analytic_radiance(make_engine) -> None:
 
 @pytest.mark.parametrize("scene", ["furnace", "point-plane"])
 def test_error_bounds_cover_within_five_points_of_nominal(make_engine, scene: str) -> None:
-    """The error estimate with the adaptive sampler (per-pass samples scaled by the pass's
-    own V_c, E the uniform equivalent splats / V_c): the share of pixels whose bound holds
+    """The error estimate with the adaptive sampler (every pass's sums in uniform photons,
+    scaled by the pass's own V_k / splats): the share of pixels whose bound holds
     the actual error, at 50% and 90%, after 8, 24 and 64 passes (as tests/test_error_estimation.py)."""
     eng = make_engine(scene, photons_per_pass=1 << 15, seed=31, sampler="adaptive")
     truth = FURNACE_L if scene == "furnace" else point_plane(eng)[0]
@@ -252,18 +254,54 @@ def test_visible_fraction_matches_an_independent_count(make_engine) -> None:
     assert abs(z) < 3.3, (v1, v2)  # 99.9% two-sided
 
 
+@pytest.mark.parametrize("gather", ["exact", "stochastic"])
+def test_a_chain_pass_brings_a_uniform_pass_worth_whatever_its_iterations(make_engine, tmp_path, gather: str) -> None:
+    """SPPM's radius rule takes a pixel's count scale from its first photons and shrinks by
+    (N + alpha M) / (N + M) after, so every pass must bring the same expected photon count
+    M, and the image the same expected flux, whichever sampler and pass size. A patch seen
+    through 12 degrees (V_c ~ 0.03), same points and radius: per pass, the total count
+    (sum of D pi r^2) and flux of uniform passes and of chain passes of a full and a quarter
+    pass of iterations agree within 4 standard errors (passes are independent). Scaled by
+    the pooled V_c at display time instead, the chains' counts were 10-35x a uniform
+    pass's, and a job's first pass (all iterations, no counters yet) twice its later ones."""
+    photons, passes, r0 = 1 << 12, 32, 0.05
+    common = {"photons_per_pass": photons, "seed": 5, "initial_radius": r0, "gather": gather}
+    path = _scene_file(tmp_path, _patch_scene(12.0))
+    uni, ada = make_engine(path, **common), make_engine(path, sampler="adaptive", **common)
+    r = np.full(uni.arrays.n_pixels, r0)
+
+    def per_pass(eng, inputs: GatherInputs) -> np.ndarray:
+        out = []
+        for k in range(passes):
+            d = eng.run_batch(inputs, k, 1)
+            out.append((float((d.sums["D"] * math.pi * r * r).sum()), float(d.sums["S"].sum())))
+            if inputs.chains is not None:
+                assert d.counters["mutations"] > 0 and d.counters["visible"] < 0.1 * d.counters["draws"]
+        return np.array(out)
+
+    base = per_pass(uni, GatherInputs(r))
+    for iterations in (photons, photons // 4):
+        chains = per_pass(ada, GatherInputs(r, None, ChainInputs(theta=0.1, chains=16, iterations=iterations)))
+        se = np.sqrt(base.var(axis=0, ddof=1) / passes + chains.var(axis=0, ddof=1) / passes)
+        assert np.all(np.abs(chains.mean(axis=0) - base.mean(axis=0)) < 4.0 * se), (iterations, base.mean(axis=0),
+                                                                                    chains.mean(axis=0), se)
+
+
 @pytest.mark.parametrize("target", [0.05, 0.234, 0.5])
 def test_acceptance_reaches_the_target(make_engine, tmp_path, target: float) -> None:
     """A patch seen through a 6 degree view of a point-lit plane: V_c ~ 0.008, so the
-    acceptance runs from V_c (huge mutations) to 1 (tiny ones) and every target is reachable."""
-    eng = make_engine(_scene_file(tmp_path, _patch_scene(6.0)), photons_per_pass=1 << 13, seed=3,
+    acceptance runs from V_c (huge mutations) to 1 (tiny ones) and every target is reachable.
+    A pass runs about V_c photons / (V_c + A) iterations (adaptive.iterations): 2^15 photons
+    and the last 24 of 64 passes give at least 5,000 mutations (the acceptance's standard
+    error below 0.007)."""
+    eng = make_engine(_scene_file(tmp_path, _patch_scene(6.0)), photons_per_pass=1 << 15, seed=3,
                       sampler="adaptive", target_acceptance=target)
     state = render(eng, 40)
     before = dict(state.counters)
-    render_passes(eng, passes=52, state=state)  # the last 12 passes measure the acceptance
+    render_passes(eng, passes=64, state=state)  # the last 24 passes measure the acceptance
     mutations = state.counters["mutations"] - before["mutations"]
     accepted = state.counters["accepted"] - before["accepted"]
-    assert mutations > 10_000
+    assert mutations > 5_000
     assert abs(accepted / mutations - target) < 0.02, (accepted / mutations, adaptive.theta(state.counters))
     v_c = adaptive.visible_fraction(state.counters)
     assert v_c < 0.02
@@ -384,6 +422,23 @@ def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) ->
     assert np.all(img == 0.0)
     est = eng.integrator.estimate(state)
     assert np.all(np.isfinite(est.relative)) and est.average == 1.0
+
+
+def test_a_pass_that_does_not_mutate_is_the_uniform_pass(make_engine) -> None:
+    """cornell-box (V_c ~ 0.8 above the target 0.234): after pass 0 the chains do not mutate,
+    and the pass's sums are the uniform sampler's bit for bit, its counters a sample of
+    photons / VISIBILITY_SAMPLE judged draws."""
+    common = {"resolution": (24, 24), "photons_per_pass": 1 << 12, "seed": 3}
+    ada, uni = make_engine("cornell-box", sampler="adaptive", **common), make_engine("cornell-box", **common)
+    state = ada.start()
+    ada.integrator.merge(state, ada.render_batch(state, 0, 1))
+    inputs = ada.integrator.batch_inputs(state)
+    assert not inputs.chains.mutate
+    a, u = ada.run_batch(inputs, 1, 2), uni.run_batch(GatherInputs(inputs.radius, inputs.bias), 1, 2)
+    for name in u.sums:
+        np.testing.assert_array_equal(a.sums[name], u.sums[name])
+    assert a.counters["draws"] == 2 * adaptive.sample_iterations(1 << 12) and a.counters["mutations"] == 0
+    assert 0.5 < a.counters["visible"] / a.counters["draws"] < 1.0
 
 
 @pytest.mark.parametrize("target", [0.234, 0.95])

@@ -1,8 +1,8 @@
 """Progressive error estimation (dissertation chapter 6; digest section 4).
 
 Per pixel, a stochastic bound on the error of the photon-density estimate (luminance),
-from the additive sums of worker/stats.py after i passes with E photons emitted (with the
-adaptive sampler, E is the uniform equivalent splats / V_c: Accumulators.effective_emitted):
+from the additive sums of worker/stats.py after i passes with E photons emitted (the
+adaptive sampler's sums are in uniform photons too, worker/adaptive.py):
 
     L      = Y(S) / E                          the estimate (smooth kernel, eq. 6.34)
     lap L  = G / E                             its Laplacian, from the kernel's (tangent plane)
@@ -138,13 +138,13 @@ def unlit_bound(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confi
     """Per pixel, the zero-count bound q (-ln(1 - c)) / (pi R^2 E) (module docstring); inf
     where nothing is known yet (no photon found anywhere, or none emitted)."""
     n = len(lum)
-    if state.effective_emitted == 0 or not known.any():
+    if state.emitted == 0 or not known.any():
         return np.full(n, np.inf)
     r2 = state.radius() ** 2
-    per_photon = np.where(known, lum * state.effective_emitted / np.where(known, state.D, 1.0), 0.0)  # Y(S) / D
+    per_photon = np.where(known, lum * state.emitted / np.where(known, state.D, 1.0), 0.0)  # Y(S) / D
     counted = known & (state.D * math.pi * r2 >= UNLIT_MIN_PHOTONS)
     q = float(per_photon[counted].max() if counted.any() else per_photon[known].max())
-    exposed = state.effective_emitted * state.H / state.passes  # photons emitted while the pixel had a point
+    exposed = state.emitted * state.H / state.passes  # photons emitted while the pixel had a point
     with np.errstate(divide="ignore"):
         return q * -math.log1p(-confidence) / (math.pi * r2 * exposed)
 
@@ -176,14 +176,14 @@ def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
     nee = "Ld2" in state.sums  # direct light by NEE: its per-pass samples are part of the estimate
     direct = state.Ld @ LUMINANCE / max(i, 1) if nee else np.zeros_like(lum)
     r2 = state.radius() ** 2
-    bias = bias_estimate(np.sqrt(r2), state.G, state.effective_emitted, constant)
+    bias = bias_estimate(np.sqrt(r2), state.G, state.emitted, constant)
     if i >= 2:
         t = student_t(confidence, i - 1)
         direct_var = np.maximum(state.Ld2 - i * direct ** 2, 0.0) / (i - 1) if nee else 0.0
         var = np.maximum(state.X2 - state.X1 ** 2 / i, 0.0) / (i - 1) + direct_var
         noise = t * np.sqrt(var / i)
         direct_noise = t * np.sqrt(direct_var / i)
-        emitted = state.effective_emitted  # 0 while an adaptive job has found nothing visible
+        emitted = state.emitted
         lap_sum = state.G / (emitted / i) if emitted > 0 else np.zeros_like(lum)  # sum of each pass's lap L
         lap_var = np.maximum(state.L2 - lap_sum ** 2 / i, 0.0) / (i - 1)
         bias_se = 0.5 * r2 * BIAS_CONSTANTS[constant] * np.sqrt(lap_var / i)

@@ -10,7 +10,7 @@ section 11.2 (iii), which turns the dissertation's sequential update (eqs. 6.5-6
     N += alpha * pi * R^2 * dD         R = the radius at merge time
     R^2 = N / (pi D)  (R0^2 while D = 0)
     L = S / E + (directly seen emission) / passes
-    (adaptive photon tracing: S / E becomes V_c S / splats, from summed counters, worker/adaptive.py)
+    (adaptive photon tracing: each pass's sums are already in uniform photons, worker/adaptive.py)
 
 S uses the smooth kernel K of eq. 6.34 (normalised by k1 r^2, so L estimates the same
 radiance as with PPM's disc); D stays count based (pi r^2), as the radius rule derives
@@ -37,7 +37,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kernels.contract import SumLayout
-from worker import adaptive
 
 if TYPE_CHECKING:
     from worker.integrators.base import Delta, State
@@ -82,19 +81,18 @@ class Accumulators:
     emitted: int = 0
     passes: int = 0
     counters: dict[str, int] = field(default_factory=dict)  # summed scalars (Delta.counters)
-    adaptive: bool = False  # photons from the adaptive sampler's chains: the image scale is V_c / splats
     # radius() as of the last merge: a batch's inputs, its merge and the error estimate all
     # ask for it, and at a megapixel each computation costs as much as the merge's sums.
     _radius: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout, adaptive: bool = False) -> "Accumulators":
+    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout) -> "Accumulators":
         """Empty state: no pass merged, every radius at its initial value."""
         if not 0.0 < alpha <= 1.0:
             raise ValueError("alpha must lie in (0, 1]")
         n = len(R0)
         return cls(alpha=alpha, R0=np.asarray(R0, np.float64), N=np.zeros(n),
-                   sums={name: layout.zeros(n, name) for name in layout.names}, adaptive=adaptive)
+                   sums={name: layout.zeros(n, name) for name in layout.names})
 
     def __getattr__(self, name: str) -> np.ndarray:
         sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
@@ -121,19 +119,8 @@ class Accumulators:
         add_delta(self, delta)
         self._radius = None
 
-    @property
-    def effective_emitted(self) -> float:
-        """The photons a uniform sampler would have emitted for the same estimate (the E of
-        the error estimate's formulas): E, or splats / V_c; 0 before any photon counted."""
-        if not self.adaptive:
-            return self.emitted
-        scale = adaptive.photon_scale(self.counters)
-        return 1.0 / scale if scale > 0.0 else 0.0
-
     def photon_radiance(self) -> np.ndarray:
-        """The density estimate S/E alone, (pixels, 3); adaptive photons: V_c S / splats."""
-        if self.adaptive:
-            return self.S * adaptive.photon_scale(self.counters)
+        """The density estimate S/E alone, (pixels, 3)."""
         return self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
 
     def radiance(self) -> np.ndarray:

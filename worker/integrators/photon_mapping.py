@@ -82,15 +82,14 @@ class PhotonMapping(Integrator):
         return self.settings.sampler == "adaptive"
 
     def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
-        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums, adaptive=self.adaptive)
+        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums)
 
     def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
                 counters: dict[str, int] | None = None) -> Accumulators:
         n = len(arrays["R0"])
         sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name) for name in self.sums.names}
         return Accumulators(alpha=self.settings.alpha, R0=arrays["R0"], N=arrays.get("N", np.zeros(n)),
-                            sums=sums, emitted=emitted, passes=passes, counters=dict(counters or {}),
-                            adaptive=self.adaptive)
+                            sums=sums, emitted=emitted, passes=passes, counters=dict(counters or {}))
 
     def batch_inputs(self, state: Accumulators) -> GatherInputs:
         r = state.radius()
@@ -98,10 +97,10 @@ class PhotonMapping(Integrator):
         if self.adaptive:
             photons, mutate = self.settings.photons_per_pass, adaptive.mutates(state.counters,
                                                                                self.settings.target_acceptance)
-            iterations = adaptive.iterations(state.counters, photons) if mutate else photons  # one trace each
+            iterations = adaptive.iterations(state.counters, photons) if mutate else adaptive.sample_iterations(photons)
             chains = ChainInputs(adaptive.theta(state.counters), adaptive.chains(state.counters, iterations),
                                  iterations, mutate)
-        bias = bias_estimate(r, state.G, state.effective_emitted, self.settings.bias_constant) \
+        bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains)
 

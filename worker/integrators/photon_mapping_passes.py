@@ -157,6 +157,14 @@ class PhotonMappingPasses:
                 return int(stored[0]), dict(zip(adaptive.COUNTERS, (int(c) for c in counts)))
             self._reserve_photons(int(stored[0] * 1.25))  # same seeds: the re-run is identical
 
+    def _scale_pass(self, n_stored: int, scale: float) -> None:
+        """A chain pass's photons in uniform photons: their counts times adaptive.pass_scale."""
+        if scale == 1.0 or n_stored == 0:
+            return
+        dev = self.dev
+        ev = dev.program.launch(dev.queue, "scale_pass", n_stored, u32(n_stored), f32(scale), self.ph_pos)
+        dev.times.add("trace", [ev])
+
     def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None,
                           photons: float | None = None) -> None:
         """Build the photon lookup and gather; `photons` is what a pass's own estimates
@@ -270,7 +278,11 @@ class PhotonMappingPasses:
                 self._build_and_gather(self.photons_stored, float(r32.max()))
             else:
                 self.photons_stored, counts = self._chain_pass(k, inputs.chains, float(r32.max()))
-                self._build_and_gather(self.photons_stored, float(r32.max()), photons=_pass_photons(counts))
+                if inputs.chains.mutate:
+                    self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.photons_per_pass))
+                else:  # the chains judged a sample of draws for V_c; the photons are a uniform pass's
+                    self.photons_stored = self._photon_pass(k)
+                self._build_and_gather(self.photons_stored, float(r32.max()))
                 counts[adaptive.THETA_STEPS] = adaptive.theta_step(k, inputs.chains.theta, counts["mutations"],
                                                                    counts["accepted"],
                                                                    self.settings.target_acceptance)
@@ -318,14 +330,6 @@ class PhotonMappingPasses:
         dev.zero_sums()
         self._build_and_gather(m, float(np.max(radius)))
         return dev.read_sums()
-
-
-def _pass_photons(counts: dict[str, int]) -> float:
-    """The uniform photons equivalent to a chain pass's splats, splats / V_c with the pass's
-    own V_c: its per-pass estimates (the error estimator's samples) are then ratio estimates
-    whose spread includes the noise of V_c. With no visible uniform draw in the pass, V_c is
-    taken as 1 / draws."""
-    return max(counts["splats"], 1) * max(counts["draws"], 1) / max(counts["visible"], 1)
 
 
 def _pack_dir(d: np.ndarray) -> int:
