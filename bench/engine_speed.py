@@ -12,7 +12,7 @@ then the merge). Measured over that loop:
   readback is the host time of handing the batch sums to the host (Device.read_sums:
   a map of the device buffer, no copy on PoCL's CPU device) and merge the host time of
   the integrator's merge, which reads them (Engine.times); other is the rest of the wall
-  time (radius computation, uploads, queue synchronisation, Python);
+  time (radius computation, uploads, buffer fills, queue synchronisation, Python);
 - wall_ms_per_pass.
 
 The hybrid methods (vcm, bpt) on cornell-box, gap and cornell-caustics at the size of

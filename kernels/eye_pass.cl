@@ -10,8 +10,6 @@
 // too (lights.cl) and added to SUM_LD, from its own random stream keyed by the real pass
 // index (so PPM's fixed points still get a new light sample every pass); SUM_LD2, where
 // the layout has it, adds the square of the pass's Ld luminance for the error estimate.
-// These are the sums the eye pass writes on a batch's first pass (add_to, sums.cl); the
-// gather (spatial_hash.cl) writes the rest.
 
 // Surfaces match when their normals lie within 45 degrees: the gather counts only photons
 // on a surface matching the measurement point's (spatial_hash.cl), and the disc is only
@@ -174,7 +172,6 @@ __kernel void eye_pass(
     __global const CameraDesc* cam, int width, int height,
     ulong seed, uint pass, int max_bounces,
     int nee,                       // 1: estimate direct light at the point (lights.cl)
-    int first,                     // 1: the batch's first pass (add_to, sums.cl)
     uint light_pass,               // the real pass index: seeds the light samples
     __global const float* radius,  // the radius this pass gathers at (0: no coverage)
     __global float4* mp_pos,       // xyz; w: 1 if the pixel has a measurement point
@@ -245,11 +242,11 @@ __kernel void eye_pass(
     mp_dist[gid] = pos.w > 0.0f ? travelled : 0.0f;
     mp_cut[gid] = cut;
     __global double* ld = sum_at(batch_sums, width * height, gid, SUM_LD, 3);
-    add_to(ld, direct.x, first);
-    add_to(ld + 1, direct.y, first);
-    add_to(ld + 2, direct.z, first);
+    ld[0] += direct.x;
+    ld[1] += direct.y;
+    ld[2] += direct.z;
 #ifdef SUM_LD2
     double lum = LUM_R * (double)direct.x + LUM_G * (double)direct.y + LUM_B * (double)direct.z;
-    add_to(sum_at(batch_sums, width * height, gid, SUM_LD2, 1), lum * lum, first);
+    *sum_at(batch_sums, width * height, gid, SUM_LD2, 1) += lum * lum;
 #endif
 }

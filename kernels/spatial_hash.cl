@@ -185,18 +185,17 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
 #endif
 }
 
-// Add one pass's gather to pixel gid's sums (sums.cl; on a batch's first pass, store it:
-// add_to). The gather writes every sum of the layout but the eye pass's (SUM_LD, SUM_LD2).
-#define ADD_SUM(name, value) add_to(sum_at(batch_sums, n_pixels, gid, name, 1), (value), first)
+// Add one pass's gather to pixel gid's sums (sums.cl).
+#define ADD_SUM(name, value) (*sum_at(batch_sums, n_pixels, gid, name, 1) += (value))
 
 inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float3 wgt, float2 coverage,
-                       PassSums s, float photons, float bias, int first) {
+                       PassSums s, float photons, float bias) {
     double kr2 = K1 * (double)r * (double)r * (double)coverage.x;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
     __global double* rgb = sum_at(batch_sums, n_pixels, gid, SUM_S, 3);
-    add_to(rgb, flux.x, first);
-    add_to(rgb + 1, flux.y, first);
-    add_to(rgb + 2, flux.z, first);
+    rgb[0] += flux.x;
+    rgb[1] += flux.y;
+    rgb[2] += flux.z;
     ADD_SUM(SUM_D, (double)s.m / (M_PI * (double)r * (double)r));
     ADD_SUM(SUM_H, 1.0);
 #ifdef SUM_G
@@ -212,24 +211,6 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
                                    / (double)photons;
     ADD_SUM(SUM_DH, dh);
     ADD_SUM(SUM_DH2, dh * dh);
-#endif
-}
-
-// A pixel with no measurement point this pass adds nothing; on a batch's first pass its
-// sums start at zero.
-inline void no_point(__global double* batch_sums, int n_pixels, int gid, int first) {
-    if (!first) return;
-    __global double* rgb = sum_at(batch_sums, n_pixels, gid, SUM_S, 3);
-    rgb[0] = rgb[1] = rgb[2] = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_D, 1) = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_H, 1) = 0.0;
-#ifdef SUM_G
-    *sum_at(batch_sums, n_pixels, gid, SUM_G, 1) = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_L2, 1) = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_X1, 1) = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_X2, 1) = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_DH, 1) = 0.0;
-    *sum_at(batch_sums, n_pixels, gid, SUM_DH2, 1) = 0.0;
 #endif
 }
 
@@ -288,14 +269,10 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
                                 __global const uint2* tab_dirs,
-                                __global double* batch_sums, int first) {
+                                __global double* batch_sums) {
     int gid = get_global_id(0);
-    if (gid >= n_pixels) return;
     Query q;
-    if (!start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) {
-        no_point(batch_sums, n_pixels, gid, first);
-        return;
-    }
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     for (int k = 0; k < q.n_entries; ++k) {
         uint h = q.entries[k];
@@ -307,7 +284,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
             && inside_cut(q.cut, q.n, pp.xyz - q.x, q.r))
             add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count);
     }
-    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid], first);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }
 
 // Add the photons near[0 .. n) of the exact grid that match the query's surface and lie in
@@ -328,14 +305,10 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const float4* grid_pos,
                            __global const float4* grid_flux, __global const float4* grid_in,
-                           __global const float4* grid_nrm, __global double* batch_sums, int first) {
+                           __global const float4* grid_nrm, __global double* batch_sums) {
     int gid = get_global_id(0);
-    if (gid >= n_pixels) return;
     Query q;
-    if (!start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) {
-        no_point(batch_sums, n_pixels, gid, first);
-        return;
-    }
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     // The distance test runs without a branch, collecting the photons it keeps (about one in
     // five visited) to be tested and added a batch at a time: a branch per visited photon
@@ -355,5 +328,5 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
         }
     }
     add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
-    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid], first);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
 }

@@ -88,15 +88,13 @@ class PhotonMappingPasses:
         self.cell_fill = self.dev.buffer(4 * entries)
 
     # ------------------------------------------------------------------- passes
-    def _eye_pass(self, pass_index: int, first: bool) -> None:
-        """The pass's measurement points; `first`: the batch's first pass, whose kernels
-        store their sums rather than add to them (add_to, kernels/sums.cl)."""
+    def _eye_pass(self, pass_index: int) -> None:
         dev, a = self.dev, self.dev.arrays
         eye_index = 0 if self.integrator.fixed_points else pass_index
         ev = dev.program.launch(dev.queue, "eye_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
                                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(eye_index),
-                                i32(self.settings.max_bounces), i32(self.nee), i32(first), u32(pass_index),
-                                self.radius, self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.mp_cut,
+                                i32(self.settings.max_bounces), i32(self.nee), u32(pass_index), self.radius,
+                                self.mp_pos, self.mp_nrm, self.mp_wgt, self.mp_dist, self.mp_cut,
                                 dev.batch_sums)
         dev.times.add("eye", [ev])
 
@@ -159,11 +157,10 @@ class PhotonMappingPasses:
                 return int(stored[0]), dict(zip(adaptive.COUNTERS, (int(c) for c in counts)))
             self._reserve_photons(int(stored[0] * 1.25))  # same seeds: the re-run is identical
 
-    def _build_and_gather(self, n_stored: int, max_radius: float, first: bool, gather: str | None = None,
+    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None,
                           photons: float | None = None) -> None:
-        """Build the photon lookup and gather (`first`: as _eye_pass); `photons` is what a
-        pass's own estimates (the error estimator's per-pass samples) divide the flux by
-        (default: photons per pass)."""
+        """Build the photon lookup and gather; `photons` is what a pass's own estimates
+        (the error estimator's per-pass samples) divide the flux by (default: photons per pass)."""
         dev, a, p = self.dev, self.dev.arrays, self.dev.program
         photons = f32(self.settings.photons_per_pass if photons is None else photons)
         inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
@@ -180,8 +177,7 @@ class PhotonMappingPasses:
                               self.tab_dirs)]
             gather_ev = p.launch(dev.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
                                  self.mp_nrm, self.mp_wgt, self.mp_cut, self.radius, self.bias, photons, inv_cell, mask,
-                                 self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums,
-                                 i32(first))
+                                 self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums)
         else:
             entries = _next_pow2(n_stored)
             self._reserve_table(entries)
@@ -200,7 +196,7 @@ class PhotonMappingPasses:
             gather_ev = p.launch(dev.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
                                  self.mp_wgt, self.mp_cut, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
                                  self.tab_count, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm,
-                                 dev.batch_sums, i32(first))
+                                 dev.batch_sums)
         gather_ev.wait()
         dev.times.add("build", build)
         dev.times.add("gather", [gather_ev])
@@ -211,7 +207,7 @@ class PhotonMappingPasses:
         dev, a = self.dev, self.dev.arrays
         n = a.n_pixels
         cl.enqueue_copy(dev.queue, self.radius, np.zeros(n, np.float32))  # radius 0: no disc coverage rays
-        self._eye_pass(0, first=True)
+        self._eye_pass(0)
         dist = np.empty(n, np.float32)
         cl.enqueue_copy(dev.queue, dist, self.mp_dist)
         hit = dist > 0.0
@@ -238,12 +234,13 @@ class PhotonMappingPasses:
         footprint = self.pixel_footprint()
         # Density: an exact gather of pass 0's photons at the probe radius.
         probe = PROBE_FOOTPRINTS * footprint
+        dev.zero_sums()
         cl.enqueue_copy(dev.queue, self.radius, np.full(n, probe, np.float32))
         cl.enqueue_copy(dev.queue, self.bias, np.zeros(n, np.float32))
         # Every photon counted, first hits too: with nee the radius is the one photons alone
         # would get (sized by the density of the photons that are stored, mostly bounced
         # light, it is up to 5x larger and blurs the caustics that only photons carry).
-        self._build_and_gather(self._photon_pass(0, first_hits=True), probe, first=True, gather="exact")
+        self._build_and_gather(self._photon_pass(0, first_hits=True), probe, gather="exact")
         density = dev.read_sums()["D"]  # M / (pi probe^2): photons per unit area per pass
         dev.times.seconds.clear()  # set-up, not rendering
         lit = density > 0.0
@@ -264,18 +261,16 @@ class PhotonMappingPasses:
         b32 = np.zeros(n, np.float32) if inputs.bias is None else np.ascontiguousarray(inputs.bias, np.float32)
         cl.enqueue_copy(dev.queue, self.radius, r32)
         cl.enqueue_copy(dev.queue, self.bias, b32)
-        if n_passes == 0:  # (every pass's kernels write the sums, the first without reading them)
-            dev.zero_sums()
+        dev.zero_sums()
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
-            first = k == first_pass
-            self._eye_pass(k, first)
+            self._eye_pass(k)
             if inputs.chains is None:
                 self.photons_stored = self._photon_pass(k)
-                self._build_and_gather(self.photons_stored, float(r32.max()), first)
+                self._build_and_gather(self.photons_stored, float(r32.max()))
             else:
                 self.photons_stored, counts = self._chain_pass(k, inputs.chains, float(r32.max()))
-                self._build_and_gather(self.photons_stored, float(r32.max()), first, photons=_pass_photons(counts))
+                self._build_and_gather(self.photons_stored, float(r32.max()), photons=_pass_photons(counts))
                 counts[adaptive.THETA_STEPS] = adaptive.theta_step(k, inputs.chains.theta, counts["mutations"],
                                                                    counts["accepted"],
                                                                    self.settings.target_acceptance)
@@ -320,8 +315,8 @@ class PhotonMappingPasses:
                           (self.mp_cut, np.tile(np.array([0xFFFFFFFF, 0xFFFFFFFF, 0, 0], np.uint32), (n, 1)))):
             cl.enqueue_copy(dev.queue, buf, host)
         cl.enqueue_copy(dev.queue, self.ph_key, np.arange(m, dtype=np.uint64))
-        dev.zero_sums()  # no eye pass: its sums stay zero
-        self._build_and_gather(m, float(np.max(radius)), first=False)
+        dev.zero_sums()
+        self._build_and_gather(m, float(np.max(radius)))
         return dev.read_sums()
 
 
