@@ -9,9 +9,10 @@ then the merge). Measured over that loop:
 - paths_per_second: passes * photons_per_pass / wall-clock seconds of the loop;
 - ms_per_pass by stage: eye, trace, build (hash or grid build), gather are device
   seconds from OpenCL profiling events (Engine.times, differenced around the loop);
-  readback is the host time of copying the batch sums back and merge the host time of
-  the integrator's merge (Engine.times); other is the rest of the wall time (radius
-  computation, buffer fills, queue synchronisation, Python);
+  readback is the host time of handing the batch sums to the host (Device.read_sums:
+  a map of the device buffer, no copy on PoCL's CPU device) and merge the host time of
+  the integrator's merge, which reads them (Engine.times); other is the rest of the wall
+  time (radius computation, uploads, buffer fills, queue synchronisation, Python);
 - wall_ms_per_pass.
 
 The hybrid methods (vcm, bpt) on cornell-box, gap and cornell-caustics at the size of

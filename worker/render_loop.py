@@ -36,6 +36,7 @@ def render(engine: Engine, passes: int | None = None, seconds: float | None = No
         t0 = time.perf_counter()
         engine.integrator.merge(state, delta)
         engine.times.add_seconds("merge", time.perf_counter() - t0)
+        del delta  # its sums view the engine's buffer: let the next batch sum into it again (Device.batch_sums)
         if progress is not None:
             t0 = time.perf_counter()
             stop = progress(state, t0 - start - observing)
