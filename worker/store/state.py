@@ -68,10 +68,25 @@ class FoldContended(Exception):
 
 @dataclass(frozen=True)
 class Folded:
-    """What a fold round made of the job: its state, and the image's error after it."""
+    """What a fold round made of the job: its state, the image's error after it, and this
+    process's CPU seconds per stage of the round (logged; bench/fold_round.py)."""
 
     state: State
     error: float | None
+    stages: dict[str, float]
+
+
+class Stages:
+    """CPU seconds of this process per stage, each stage from the last `lap` to the next."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._at = time.process_time()
+
+    def lap(self, name: str) -> None:
+        now = time.process_time()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._at
+        self._at = now
 
 
 class TiledState:
@@ -214,6 +229,7 @@ class TiledState:
         another folder got to a tile first (this round's other tiles stay valid)."""
         batch_ids = sorted(accepted)
         widths = integrator.state_widths
+        stages = Stages()
         # Read: versions, which tiles already hold which batch, the state.
         got = self._each_node(tiling, lambda pipe, k: (
             pipe.hget(keys.tile(job_id, k, "meta"), "version"),
@@ -223,6 +239,7 @@ class TiledState:
         todo = {k: ids for k, ids in todo.items() if ids}
         state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, versions)),
                                    emitted, passes, counters)
+        stages.lap("read state")
         # The round's delta: each tile's batches it has not folded yet, read a tile at a time.
         sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
 
@@ -238,6 +255,7 @@ class TiledState:
             return {}
 
         self._per_node(tiling, add)
+        stages.lap("read deltas")
         added: dict[str, int] = {}
         for header in accepted.values():
             for name, value in header["c"].items():
@@ -246,8 +264,11 @@ class TiledState:
                       emitted=sum(h["e"] for h in accepted.values()), sums=sums, counters=added)
         # Merge, then what the next batches read and the error.
         integrator.merge(state, delta)
+        stages.lap("merge")
         inputs = integrator.batch_inputs(state)
+        stages.lap("inputs")
         estimate = integrator.estimate(state)
+        stages.lap("estimate")
         arrays = state.arrays()
         # Write each tile in a transaction on its version (the nodes at once).
         def write(node: int, tiles: list[int]) -> dict[int, None]:
@@ -274,7 +295,8 @@ class TiledState:
             return {}
 
         self._per_node(tiling, write)
-        return Folded(state, estimate.average if estimate is not None else None)
+        stages.lap("write")
+        return Folded(state, estimate.average if estimate is not None else None, stages.seconds)
 
     def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
         """Count folded batches in the record (once each), log the error after the round and
