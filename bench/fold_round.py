@@ -33,7 +33,7 @@ import numpy as np
 
 from bench.common import cpu_seconds, write_json
 from service.redis_server import EmbeddedRedis
-from worker.error_estimate import bias_estimate, discontinuity_bias, unlit_bound
+from worker.error_estimate import bias_estimate, blocks, discontinuity_bias, edge_quantiles, unlit_bound, unlit_scale
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.stats import radius
@@ -112,10 +112,13 @@ def run(w: int, h: int, rounds: int, batches: int, data_dir: Path) -> dict:
             state.radius()
             b_est, bias_cpu = _cpu(bias_estimate, r_now, state.G, state.effective_emitted, settings.bias_constant)
             bias_se = np.abs(b_est) * 0.1  # any standard error: the cost does not depend on it
-            _, edge_cpu = _cpu(discontinuity_bias, state, b_est, bias_se)
+            _, edge_cpu = _cpu(lambda: discontinuity_bias(state.Dh, state.Dh2, state.passes, b_est, bias_se,
+                                                          *edge_quantiles(state.passes)))
             lum = state.photon_radiance() @ np.array([0.2126, 0.7152, 0.0722])
             known = (state.H > 0) & (state.D > 0)
-            _, unlit_cpu = _cpu(unlit_bound, state, lum, known, settings.confidence)
+            dark = (state.H > 0) & ~known
+            _, unlit_cpu = _cpu(lambda: [unlit_bound(state, unlit_scale(state, lum, known, settings.confidence), blk)
+                                         for blk in blocks(len(lum)) if dark[blk].any()])
             _, estimate_cpu = _cpu(record.integrator.estimate, state)
             per_round.append({
                 "round": r, "batches": batches, "fold_cpu_seconds": fold_cpu, "redis_cpu_seconds": redis_cpu,
