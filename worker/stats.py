@@ -130,11 +130,13 @@ class Accumulators:
         scale = adaptive.photon_scale(self.counters)
         return 1.0 / scale if scale > 0.0 else 0.0
 
-    def photon_radiance(self) -> np.ndarray:
-        """The density estimate S/E alone, (pixels, 3); adaptive photons: V_c S / splats."""
+    def photon_radiance(self, pixels: slice = slice(None)) -> np.ndarray:
+        """The density estimate S/E alone, (pixels, 3), of all pixels or a run of them;
+        adaptive photons: V_c S / splats."""
+        S = self.S[pixels]
         if self.adaptive:
-            return self.S * adaptive.photon_scale(self.counters)
-        return self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
+            return S * adaptive.photon_scale(self.counters)
+        return S / self.emitted if self.emitted > 0 else np.zeros_like(S)
 
     def radiance(self) -> np.ndarray:
         """Current estimate L = S/E + Ld/passes, (pixels, 3) float64."""
