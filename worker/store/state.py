@@ -28,7 +28,7 @@ import redis
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
-from worker.store.tiles import (CACHE, DeltaFormatError, Tiling, decode_delta, decode_inputs, decode_state,
+from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, decode_delta, decode_inputs, decode_state,
                                 encode_delta, encode_inputs, encode_state, state_nodes)
 
 # Applies a folded round to the job record once per batch, however many folders try.
@@ -46,6 +46,27 @@ for i = 1, #ARGV do
   end
 end
 return 1
+"""
+# A tile's state fields. A state the previous version wrote as one string (every array in
+# the state's order, or only the setup arrays before the tile's first fold) becomes the hash
+# first, with the same numbers (ARGV: the number of setup arrays, then each array's name and
+# bytes over the tile, in the state's order).
+READ_STATE = """
+if redis.call('TYPE', KEYS[1]).ok == 'string' then
+  local blob = redis.call('GET', KEYS[1])
+  local setup, at, fields, setup_bytes = tonumber(ARGV[1]), 1, {}, 0
+  for i = 1, setup do setup_bytes = setup_bytes + tonumber(ARGV[2 * i + 1]) end
+  local count = (#blob == setup_bytes) and setup or (#ARGV - 1) / 2
+  for i = 1, count do
+    local size = tonumber(ARGV[2 * i + 1])
+    table.insert(fields, ARGV[2 * i])
+    table.insert(fields, string.sub(blob, at, at + size - 1))
+    at = at + size
+  end
+  redis.call('DEL', KEYS[1])
+  redis.call('HSET', KEYS[1], unpack(fields))
+end
+return redis.call('HGETALL', KEYS[1])
 """
 # Drops a tile's pending entry of a batch the tile has already folded (a late duplicate).
 DISCARD_FOLDED = """
@@ -102,6 +123,7 @@ class TiledState:
         self.nodes = nodes if nodes is not None else state_nodes(main)
         self._account = main.register_script(ACCOUNT)
         self._discard = [node.register_script(DISCARD_FOLDED) for node in self.nodes]
+        self._read_state = [node.register_script(READ_STATE) for node in self.nodes]
 
     def tiling(self, n_pixels: int, shards: int, tile_pixels: int) -> Tiling:
         if shards != len(self.nodes):
@@ -186,21 +208,30 @@ class TiledState:
         got = self._each_node(tiling, lambda pipe, k: pipe.hget(keys.tile(job_id, k, "meta"), "version"))
         return {k: int(v[0] or 0) for k, v in got.items()}
 
-    def _blobs(self, job_id: str, tiling: Tiling, versions: dict[int, int]) -> dict[int, dict[str, Any]]:
+    def _blobs(self, job_id: str, tiling: Tiling, integrator: Integrator,
+               versions: dict[int, int]) -> dict[int, dict[str, Any]]:
         """Each tile's state fields at the version given: from the cache, else read (and checked)."""
         out = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
         missing = [k for k, blob in out.items() if blob is None]
         if missing:
             want = set(missing)
+
+            def layout(k: int) -> list[Any]:  # READ_STATE's ARGV
+                size = tiling.span(k).stop - tiling.span(k).start
+                return [len(integrator.setup_arrays), *(v for name, w in integrator.state_widths.items()
+                                                        for v in (name, STATE_DTYPE.itemsize * size * w))]
+
             read = self._each_node(tiling, lambda pipe, k: (
-                pipe.hget(keys.tile(job_id, k, "meta"), "version"), pipe.hgetall(keys.tile(job_id, k, "state")))
+                pipe.hget(keys.tile(job_id, k, "meta"), "version"),
+                self._read_state[tiling.node(k)](keys=[keys.tile(job_id, k, "state")], args=layout(k), client=pipe))
                 if k in want else None)
             for k in missing:
-                version, blob = read[k]
+                version, flat = read[k]
                 if int(version or 0) != versions[k]:
                     raise FoldContended(f"tile {k} changed while read")
-                CACHE.put(job_id, k, versions[k], blob)
-                out[k] = blob
+                fields = dict(zip(flat[::2], flat[1::2]))
+                CACHE.put(job_id, k, versions[k], fields)
+                out[k] = fields
         return out
 
     @staticmethod
@@ -220,7 +251,7 @@ class TiledState:
         """The folded state (a tile a folder writes meanwhile is read again)."""
         while True:
             try:
-                blobs = self._blobs(job_id, tiling, self._versions(job_id, tiling))
+                blobs = self._blobs(job_id, tiling, integrator, self._versions(job_id, tiling))
                 break
             except FoldContended:
                 continue
@@ -242,7 +273,7 @@ class TiledState:
         versions = {k: int(g[0] or 0) for k, g in got.items()}
         todo = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items()}
         todo = {k: ids for k, ids in todo.items() if ids}
-        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, versions)),
+        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
                                    emitted, passes, counters)
         stages.lap("read state")
         # The round's delta: each tile's batches it has not folded yet, read a tile at a time
