@@ -35,7 +35,7 @@ def _state_bytes_per_pixel(c: Cluster, job_id: str) -> tuple[float, float]:
     for key in r.scan_iter(f"pf:job:{job_id}:t*:state"):
         fields = {f.decode() for f in r.hkeys(key)}
         assert {"R0", "N", "S", "D", "H"} <= fields, fields
-        used += r.memory_usage(key)
+        used += r.memory_usage(key, samples=0)  # every field (the default samples 5)
         held += 8 * (r.hstrlen(key, "R0") // 8) * sum(widths[f] for f in fields)
     return used / (W * H), held / (W * H)
 
