@@ -2,7 +2,8 @@
 and queues on the main one): shuffled concurrent merges with folds racing the pushes, a
 worker SIGKILLed while pushing, a folder SIGKILLed mid-round. Every batch counts once in
 the record and folds once into every tile; the folded state equals the sum of the
-deltas as sent (float32, worker/store/tiles.py). (The fault tests over HTTP run on sharded state too: api_tests/test_faults.py.)"""
+deltas as sent (float32, worker/store/tiles.py), and each tile stores only the arrays its
+deltas carried (with N and R0). (The fault tests over HTTP run on sharded state too: api_tests/test_faults.py.)"""
 
 from __future__ import annotations
 
@@ -98,6 +99,14 @@ def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
         assert not node.exists(keys.tile(job_id, k, "pending"))
         for other in store.tiles.nodes:  # each tile on its own node only
             assert bool(other.exists(keys.tile(job_id, k, "state"))) == (other is node)
+        # A tile stores the arrays its deltas carried (and N, derived from them, and R0): an
+        # array no delta carried there (e.g. directly seen emission away from the light) is absent.
+        span = tiling.span(k)
+        carried = {name for d in made for name, a in d.sums.items() if a[span].any()}
+        stored = {f.decode() for f in node.hkeys(keys.tile(job_id, k, "state"))}
+        assert stored == {"R0", "N"} | carried, (k, stored, carried)
+    assert any("Ld" not in {n for d in made for n, a in d.sums.items() if a[tiling.span(k)].any()}
+               for k in range(tiling.count))  # the check above sees a missing array somewhere
     for name in store.get(job_id).integrator.sums.names:
         expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in made)
         np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())

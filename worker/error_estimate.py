@@ -107,6 +107,7 @@ EDGE_SIGNIFICANCE = 2.0  # standard errors by which the change between radii mus
 EDGE_FACTOR = 2.0  # bias at r per unit of the change from r/2 to r where the density is not smooth
 EDGE_MARGIN = 2.5  # standard errors of that change left out of the bias bound (soft thresholding)
 UNLIT_MIN_PHOTONS = 16  # photons a pixel must have found to set the per-photon luminance q
+BLOCK_PIXELS = 1 << 14  # pixels the estimate works on at a time: its temporaries stay in the CPU's cache
 
 
 @dataclass(frozen=True)
@@ -123,10 +124,16 @@ class ErrorEstimate:
 
 
 def bias_estimate(radius: np.ndarray, G: np.ndarray, emitted: float, constant: str) -> np.ndarray:
-    """B = 0.5 R^2 c lap L per pixel, lap L = G / E (zero before any photon was emitted)."""
+    """B = 0.5 R^2 c lap L per pixel, lap L = G / E (zero before any photon was emitted);
+    computed in one array (a frame's temporaries cost more than the arithmetic)."""
     if emitted == 0:
         return np.zeros(len(radius))
-    return 0.5 * radius ** 2 * BIAS_CONSTANTS[constant] * G / emitted
+    bias = np.square(radius)
+    bias *= 0.5  # the order of 0.5 R^2 c G / E, left to right
+    bias *= BIAS_CONSTANTS[constant]
+    bias *= G
+    bias /= emitted
+    return bias
 
 
 def student_t(confidence: float, dof: int) -> float:
@@ -134,82 +141,158 @@ def student_t(confidence: float, dof: int) -> float:
     return float(scipy_stats.t.ppf(0.5 + 0.5 * confidence, dof))
 
 
-def unlit_bound(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confidence: float) -> np.ndarray:
-    """Per pixel, the zero-count bound q (-ln(1 - c)) / (pi R^2 E) (module docstring); inf
-    where nothing is known yet (no photon found anywhere, or none emitted)."""
-    n = len(lum)
-    if state.emitted == 0 or not known.any():
-        return np.full(n, np.inf)
-    r2 = state.radius() ** 2
-    per_photon = np.where(known, lum * state.emitted / np.where(known, state.D, 1.0), 0.0)  # Y(S) / D
-    counted = known & (state.D * math.pi * r2 >= UNLIT_MIN_PHOTONS)
-    q = float(per_photon[counted].max() if counted.any() else per_photon[known].max())
-    exposed = state.emitted * state.H / state.passes  # photons emitted while the pixel had a point
+def unlit_scale(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confidence: float) -> float:
+    """q (-ln(1 - c)) of the zero-count bound q (-ln(1 - c)) / (pi R^2 E) (module docstring):
+    q from the pixels that found photons, a block at a time; inf where nothing is known yet
+    (no photon found anywhere, or none emitted)."""
+    emitted = state.emitted
+    if emitted == 0 or not known.any():
+        return math.inf
+    r = state.radius()
+    q_counted = q_known = -math.inf
+    for blk in blocks(len(lum)):
+        k = known[blk]
+        if not k.any():
+            continue
+        D = state.D[blk][k]
+        per_photon = lum[blk][k] * emitted / D  # Y(S) / D
+        counted = D * math.pi * r[blk][k] ** 2 >= UNLIT_MIN_PHOTONS
+        q_known = max(q_known, float(per_photon.max()))
+        if counted.any():
+            q_counted = max(q_counted, float(per_photon[counted].max()))
+    q = q_counted if q_counted > -math.inf else q_known
+    return q * -math.log1p(-confidence)
+
+
+def unlit_bound(state: "Accumulators", scale: float, blk: slice) -> np.ndarray:
+    """Per pixel of a block, the zero-count bound `scale` / (pi R^2 E), E counting the photons
+    emitted while the pixel had a measurement point (`scale` from `unlit_scale`)."""
+    if math.isinf(scale):
+        return np.full(blk.stop - blk.start, np.inf)
+    r2 = state.radius()[blk] ** 2
+    exposed = state.emitted * state.H[blk] / state.passes
     with np.errstate(divide="ignore"):
-        return q * -math.log1p(-confidence) / (math.pi * r2 * exposed)
+        return scale / (math.pi * r2 * exposed)
 
 
-def discontinuity_bias(state: "Accumulators", bias: np.ndarray,
-                       bias_se: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def discontinuity_bias(Dh: np.ndarray, Dh2: np.ndarray, i: int, bias: np.ndarray, bias_se: np.ndarray,
+                       z_rough: float, z_margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the density is not smooth within the disc (module docstring): the mask of
-    pixels whose mean change dh of the per-pass estimate from radius r/2 to r contradicts
-    the smooth prediction 3/4 B, the bias estimate EDGE_FACTOR dh there, and its part
-    beyond EDGE_SIGNIFICANCE standard errors (the bound's B_e; zero elsewhere)."""
-    i = state.passes
-    dh = state.Dh / i
-    dh_se = np.sqrt(np.maximum(state.Dh2 - state.Dh ** 2 / i, 0.0) / (i - 1) / i)
-    # Standard errors from i samples: the normal z's as Student t quantiles with i - 1 dof.
-    z_rough, z_margin = (student_t(math.erf(z / math.sqrt(2.0)), i - 1) for z in (EDGE_SIGNIFICANCE, EDGE_MARGIN))
+    pixels whose mean change dh of the per-pass estimate from radius r/2 to r (sums Dh, Dh2
+    over i passes) contradicts the smooth prediction 3/4 B, the bias estimate EDGE_FACTOR dh
+    there, and its part beyond EDGE_SIGNIFICANCE standard errors (the bound's B_e; zero
+    elsewhere). `z_rough` and `z_margin` are EDGE_SIGNIFICANCE and EDGE_MARGIN as Student t
+    quantiles (`edge_quantiles`)."""
+    dh = Dh / i
+    dh_se = np.sqrt(np.maximum(Dh2 - Dh ** 2 / i, 0.0) / (i - 1) / i)
     rough = np.abs(dh - 0.75 * bias) > z_rough * np.sqrt(dh_se ** 2 + (0.75 * bias_se) ** 2)
     significant = np.where(rough, EDGE_FACTOR * np.maximum(np.abs(dh) - z_margin * dh_se, 0.0), 0.0)
     return rough, EDGE_FACTOR * dh, significant
 
 
+def edge_quantiles(i: int) -> tuple[float, float]:
+    """EDGE_SIGNIFICANCE and EDGE_MARGIN standard errors from i samples: the normal z's as
+    Student t quantiles with i - 1 degrees of freedom."""
+    z_rough, z_margin = (student_t(math.erf(z / math.sqrt(2.0)), i - 1) for z in (EDGE_SIGNIFICANCE, EDGE_MARGIN))
+    return z_rough, z_margin
+
+
+def blocks(n: int) -> list[slice]:
+    """The pixels a block at a time (BLOCK_PIXELS)."""
+    return [slice(at, min(n, at + BLOCK_PIXELS)) for at in range(0, n, BLOCK_PIXELS)]
+
+
+@dataclass(frozen=True)
+class _Round:
+    """What every block of one estimate shares: the state, the settings and the quantiles."""
+
+    state: "Accumulators"
+    constant: str
+    significance: float
+    discontinuities: bool
+    t: float
+    z_rough: float
+    z_margin: float
+    unlit_scale: float
+
+
+def _block(run: _Round, blk: slice, direct: np.ndarray | None, dark: np.ndarray,
+           out: dict[str, np.ndarray]) -> None:
+    """Bias, noise and bound of one block of pixels (module docstring), into `out`."""
+    state, i = run.state, run.state.passes
+    r = state.radius()[blk]
+    r2 = r ** 2
+    G = state.G[blk]
+    bias = bias_estimate(r, G, state.emitted, run.constant)
+    n = len(r)
+    if i >= 2:
+        # Noise: the per-pass samples' variance (and with NEE its direct light's).
+        direct_var = np.maximum(state.Ld2[blk] - i * direct ** 2, 0.0) / (i - 1) if direct is not None else 0.0
+        var = np.maximum(state.X2[blk] - state.X1[blk] ** 2 / i, 0.0) / (i - 1) + direct_var
+        noise = run.t * np.sqrt(var / i)
+        direct_noise = run.t * np.sqrt(direct_var / i)
+        # The bias estimate's standard error, from the per-pass Laplacians.
+        emitted = state.emitted
+        lap_sum = G / (emitted / i) if emitted > 0 else np.zeros(n)  # sum of each pass's lap L
+        lap_var = np.maximum(state.L2[blk] - lap_sum ** 2 / i, 0.0) / (i - 1)
+        bias_se = 0.5 * r2 * BIAS_CONSTANTS[run.constant] * np.sqrt(lap_var / i)
+        bias_noise = run.significance * bias_se
+        # The discontinuity bias.
+        rough, edge_estimate, edge_bias = discontinuity_bias(state.Dh[blk], state.Dh2[blk], i, bias, bias_se,
+                                                             run.z_rough, run.z_margin)
+        if run.discontinuities:  # report the bias the bound uses: eq. 6.20, or B_e where the density is rough
+            bias = np.where(rough & (edge_bias > np.maximum(np.abs(bias) - bias_noise, 0.0)), edge_estimate, bias)
+        else:
+            edge_bias = np.zeros(n)
+    else:
+        noise = bias_noise = direct_noise = np.full(n, np.inf)
+        edge_bias = np.zeros(n)
+    # Never-lit pixels: the zero-count bound.
+    if dark.any():
+        noise = np.where(dark, unlit_bound(state, run.unlit_scale, blk) + direct_noise, noise)
+    significant_bias = np.maximum(np.maximum(np.abs(bias) - bias_noise, 0.0), edge_bias)
+    out["bias"][blk] = bias
+    out["noise"][blk] = noise
+    np.add(noise, significant_bias, out=out["bound"][blk])
+
+
 def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
              significance: float = BIAS_SIGNIFICANCE, discontinuities: bool = True) -> ErrorEstimate:
     """The error bound per pixel and its image average; `significance` is z above;
-    `discontinuities=False` leaves out the discontinuity bias B_e (for comparison)."""
+    `discontinuities=False` leaves out the discontinuity bias B_e (for comparison).
+    Per-pixel work goes a block of pixels at a time (BLOCK_PIXELS): a whole frame's
+    temporaries would cost more in memory traffic and page faults than the arithmetic."""
     if not 0.0 < confidence < 1.0:
         raise ValueError("confidence must lie in (0, 1)")
     i = state.passes
-    lum = state.photon_radiance() @ LUMINANCE
+    lum = np.empty(len(state.H))
+    for blk in blocks(len(lum)):
+        lum[blk] = state.photon_radiance(blk) @ LUMINANCE
     nee = "Ld2" in state.sums  # direct light by NEE: its per-pass samples are part of the estimate
-    direct = state.Ld @ LUMINANCE / max(i, 1) if nee else np.zeros_like(lum)
-    r2 = state.radius() ** 2
-    bias = bias_estimate(np.sqrt(r2), state.G, state.emitted, constant)
-    if i >= 2:
-        t = student_t(confidence, i - 1)
-        direct_var = np.maximum(state.Ld2 - i * direct ** 2, 0.0) / (i - 1) if nee else 0.0
-        var = np.maximum(state.X2 - state.X1 ** 2 / i, 0.0) / (i - 1) + direct_var
-        noise = t * np.sqrt(var / i)
-        direct_noise = t * np.sqrt(direct_var / i)
-        emitted = state.emitted
-        lap_sum = state.G / (emitted / i) if emitted > 0 else np.zeros_like(lum)  # sum of each pass's lap L
-        lap_var = np.maximum(state.L2 - lap_sum ** 2 / i, 0.0) / (i - 1)
-        bias_se = 0.5 * r2 * BIAS_CONSTANTS[constant] * np.sqrt(lap_var / i)
-        bias_noise = significance * bias_se
-        rough, edge_estimate, edge_bias = discontinuity_bias(state, bias, bias_se)
-        if discontinuities:  # report the bias the bound uses: eq. 6.20, or B_e where the density is rough
-            bias = np.where(rough & (edge_bias > np.maximum(np.abs(bias) - bias_noise, 0.0)), edge_estimate, bias)
-        else:
-            edge_bias = np.zeros_like(lum)
-    else:
-        noise = bias_noise = direct_noise = np.full_like(lum, np.inf)
-        edge_bias = np.zeros_like(lum)
+    direct = state.Ld @ LUMINANCE / max(i, 1) if nee else None
     measured = state.H > 0
     known = measured & (state.D > 0.0)
     dark = measured & ~known
-    noise = np.where(dark, unlit_bound(state, lum, known, confidence) + direct_noise, noise)
-    significant_bias = np.maximum(np.maximum(np.abs(bias) - bias_noise, 0.0), edge_bias)
-    bound = noise + significant_bias
-    lum = lum + direct
+    t = student_t(confidence, i - 1) if i >= 2 else math.inf
+    z_rough, z_margin = edge_quantiles(i) if i >= 2 else (math.inf, math.inf)
+    run = _Round(state, constant, significance, discontinuities, t, z_rough, z_margin,
+                 unlit_scale(state, lum, known, confidence))
+    out = {name: np.empty(len(lum)) for name in ("bias", "noise", "bound")}
+    for blk in blocks(len(lum)):
+        _block(run, blk, direct[blk] if nee else None, dark[blk], out)
+    if nee:
+        lum += direct
+    # Relative errors against a floor, and the image average.
     lit = measured & (lum > 0.0)
     floor = FLOOR_FRACTION * float(lum[lit].mean()) if lit.any() else 1.0
+    bound, relative = out["bound"], np.empty(len(lum))
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where(measured & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
+        for blk in blocks(len(lum)):
+            relative[blk] = np.where(measured[blk] & np.isfinite(bound[blk]),
+                                     bound[blk] / np.maximum(lum[blk], floor), 1.0)
     relative[dark] = np.minimum(relative[dark], 1.0)  # an estimate of 0 is off by at most 100%
     average = image_average(relative, known, dark) if i >= 2 else 1.0
-    return ErrorEstimate(luminance=lum, bias=bias, noise=noise, bound=bound, relative=relative,
+    return ErrorEstimate(luminance=lum, bias=out["bias"], noise=out["noise"], bound=bound, relative=relative,
                          measured=measured, known=known, average=average, confidence=confidence)
 
 

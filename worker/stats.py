@@ -63,11 +63,13 @@ def radius(R0: np.ndarray, N: np.ndarray, D: np.ndarray) -> np.ndarray:
     """
     lit = D > 0.0
     r2 = R0 ** 2
-    if lit.any():
-        lit_r2 = N[lit] / (math.pi * D[lit])
-        r2 = np.minimum(r2, lit_r2.max())
-        r2[lit] = lit_r2
-    return np.sqrt(r2)
+    if lit.any():  # in place: a frame's temporaries cost more than the arithmetic
+        lit_r2 = math.pi * D
+        with np.errstate(divide="ignore", invalid="ignore"):  # unlit pixels' quotients are not used
+            np.divide(N, lit_r2, out=lit_r2)
+        np.minimum(r2, np.max(lit_r2, where=lit, initial=-np.inf), out=r2)
+        np.copyto(r2, lit_r2, where=lit)
+    return np.sqrt(r2, out=r2)
 
 
 @dataclass
@@ -119,9 +121,10 @@ class Accumulators:
         add_delta(self, delta)
         self._radius = None
 
-    def photon_radiance(self) -> np.ndarray:
-        """The density estimate S/E alone, (pixels, 3)."""
-        return self.S / self.emitted if self.emitted > 0 else np.zeros_like(self.S)
+    def photon_radiance(self, pixels: slice = slice(None)) -> np.ndarray:
+        """The density estimate S/E alone, (pixels, 3), of all pixels or a run of them."""
+        S = self.S[pixels]
+        return S / self.emitted if self.emitted > 0 else np.zeros_like(S)
 
     def radiance(self) -> np.ndarray:
         """Current estimate L = S/E + Ld/passes, (pixels, 3) float64."""

@@ -17,7 +17,7 @@
 
 On the state nodes (worker/store/tiles.py: tile k of a job on node k mod nodes):
 
-    pf:job:{id}:t{k}:state         string  the folded state of tile k (every state array, float64)
+    pf:job:{id}:t{k}:state         hash    the folded state of tile k: state array name -> float64 bytes (absent: zero)
     pf:job:{id}:t{k}:inputs        string  what a batch reads for tile k (e.g. radius, bias; float32)
     pf:job:{id}:t{k}:pending       hash    batch id -> the batch's delta for tile k, pushed and not yet folded
     pf:job:{id}:t{k}:folded        set     batch ids folded into tile k (exactly once per tile)

@@ -34,7 +34,7 @@ from worker.store import keys, policy
 from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
-from worker.store.state import Folded, FoldContended, TiledState
+from worker.store.state import Folded, FoldContended, TiledState, UnreadableDelta
 from worker.store.tiles import TILE_PIXELS, Tiling
 
 
@@ -502,6 +502,10 @@ class Jobs:
                                                record.folded_emitted, record.folded_passes, record.counters, accepted)
             except FoldContended:
                 return None  # another folder holds the tiles now; its round counts
+            except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
+                self.r.hdel(keys.tofold(job_id), exc.batch_id)
+                self.fail(job_id, f"cannot fold {exc}")
+                return None
             self.tiles.account(job_id, list(accepted), {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},

@@ -28,8 +28,8 @@ import redis
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
-from worker.store.tiles import (CACHE, Tiling, decode_delta, decode_inputs, decode_state, encode_delta,
-                                encode_inputs, encode_state, state_nodes)
+from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, decode_delta, decode_inputs, decode_state,
+                                encode_delta, encode_inputs, encode_state, state_nodes)
 
 # Applies a folded round to the job record once per batch, however many folders try.
 ACCOUNT = """
@@ -47,15 +47,32 @@ for i = 1, #ARGV do
 end
 return 1
 """
+# A tile's state fields. A state the previous version wrote as one string (every array in
+# the state's order, or only the setup arrays before the tile's first fold) becomes the hash
+# first, with the same numbers (ARGV: the number of setup arrays, then each array's name and
+# bytes over the tile, in the state's order).
+READ_STATE = """
+if redis.call('TYPE', KEYS[1]).ok == 'string' then
+  local blob = redis.call('GET', KEYS[1])
+  local setup, at, fields, setup_bytes = tonumber(ARGV[1]), 1, {}, 0
+  for i = 1, setup do setup_bytes = setup_bytes + tonumber(ARGV[2 * i + 1]) end
+  local count = (#blob == setup_bytes) and setup or (#ARGV - 1) / 2
+  for i = 1, count do
+    local size = tonumber(ARGV[2 * i + 1])
+    table.insert(fields, ARGV[2 * i])
+    table.insert(fields, string.sub(blob, at, at + size - 1))
+    at = at + size
+  end
+  redis.call('DEL', KEYS[1])
+  redis.call('HSET', KEYS[1], unpack(fields))
+end
+return redis.call('HGETALL', KEYS[1])
+"""
 # Drops a tile's pending entry of a batch the tile has already folded (a late duplicate).
 DISCARD_FOLDED = """
 if redis.call('SISMEMBER', KEYS[1], ARGV[1]) == 1 then redis.call('HDEL', KEYS[2], ARGV[1]) end
 return 1
 """
-
-
-def _setup_widths(integrator: Integrator) -> dict[str, int]:
-    return {name: integrator.state_widths[name] for name in integrator.setup_arrays}
 
 
 # Tiles per round trip to a node: 4 tiles of state are 34 MB at 128 bytes a pixel.
@@ -66,12 +83,36 @@ class FoldContended(Exception):
     """Another folder changed a tile during this round: it has the lease now."""
 
 
+class UnreadableDelta(Exception):
+    """An accepted batch's delta this folder cannot read (tiles.DeltaFormatError); the round
+    wrote nothing."""
+
+    def __init__(self, batch_id: str, message: str) -> None:
+        super().__init__(message)
+        self.batch_id = batch_id
+
+
 @dataclass(frozen=True)
 class Folded:
-    """What a fold round made of the job: its state, and the image's error after it."""
+    """What a fold round made of the job: its state, the image's error after it, and this
+    process's CPU seconds per stage of the round (logged; bench/fold_round.py)."""
 
     state: State
     error: float | None
+    stages: dict[str, float]
+
+
+class Stages:
+    """CPU seconds of this process per stage, each stage from the last `lap` to the next."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._at = time.process_time()
+
+    def lap(self, name: str) -> None:
+        now = time.process_time()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._at
+        self._at = now
 
 
 class TiledState:
@@ -82,6 +123,7 @@ class TiledState:
         self.nodes = nodes if nodes is not None else state_nodes(main)
         self._account = main.register_script(ACCOUNT)
         self._discard = [node.register_script(DISCARD_FOLDED) for node in self.nodes]
+        self._read_state = [node.register_script(READ_STATE) for node in self.nodes]
 
     def tiling(self, n_pixels: int, shards: int, tile_pixels: int) -> Tiling:
         if shards != len(self.nodes):
@@ -124,12 +166,14 @@ class TiledState:
 
     # ------------------------------------------------------------------ setup
     def init(self, job_id: str, tiling: Tiling, integrator: Integrator, setup: dict[str, np.ndarray]) -> None:
-        """Write the setup arrays and the first inputs of every tile (the first writer wins).
-        A tile's state holds only its setup arrays until its first fold (the sums are zero)."""
+        """Write the setup arrays and the first inputs of every tile (the first writer wins,
+        per field). A tile's state holds only its setup arrays until its first fold (the sums
+        are zero), and they are never written again."""
         state = integrator.start(setup)
-        arrays, inputs, widths = state.arrays(), integrator.batch_inputs(state), _setup_widths(integrator)
+        arrays, inputs = state.arrays(), integrator.batch_inputs(state)
         self._each_node(tiling, lambda pipe, k: (
-            pipe.set(keys.tile(job_id, k, "state"), encode_state(arrays, widths, tiling.span(k)), nx=True),
+            [pipe.hsetnx(keys.tile(job_id, k, "state"), name, blob)
+             for name, blob in encode_state(arrays, list(integrator.setup_arrays), tiling.span(k)).items()],
             pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)), nx=True)))
 
     def inputs(self, job_id: str, tiling: Tiling, integrator: Integrator) -> Any:
@@ -164,34 +208,41 @@ class TiledState:
         got = self._each_node(tiling, lambda pipe, k: pipe.hget(keys.tile(job_id, k, "meta"), "version"))
         return {k: int(v[0] or 0) for k, v in got.items()}
 
-    def _blobs(self, job_id: str, tiling: Tiling, versions: dict[int, int]) -> dict[int, bytes]:
-        """Each tile's state at the version given: from the cache, else read (and checked)."""
+    def _blobs(self, job_id: str, tiling: Tiling, integrator: Integrator,
+               versions: dict[int, int]) -> dict[int, dict[str, Any]]:
+        """Each tile's state fields at the version given: from the cache, else read (and checked)."""
         out = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
         missing = [k for k, blob in out.items() if blob is None]
         if missing:
             want = set(missing)
+
+            def layout(k: int) -> list[Any]:  # READ_STATE's ARGV
+                size = tiling.span(k).stop - tiling.span(k).start
+                return [len(integrator.setup_arrays), *(v for name, w in integrator.state_widths.items()
+                                                        for v in (name, STATE_DTYPE.itemsize * size * w))]
+
             read = self._each_node(tiling, lambda pipe, k: (
-                pipe.hget(keys.tile(job_id, k, "meta"), "version"), pipe.get(keys.tile(job_id, k, "state")))
+                pipe.hget(keys.tile(job_id, k, "meta"), "version"),
+                self._read_state[tiling.node(k)](keys=[keys.tile(job_id, k, "state")], args=layout(k), client=pipe))
                 if k in want else None)
             for k in missing:
-                version, blob = read[k]
+                version, flat = read[k]
                 if int(version or 0) != versions[k]:
                     raise FoldContended(f"tile {k} changed while read")
-                CACHE.put(job_id, k, versions[k], blob)
-                out[k] = blob
+                fields = dict(zip(flat[::2], flat[1::2]))
+                CACHE.put(job_id, k, versions[k], fields)
+                out[k] = fields
         return out
 
     @staticmethod
-    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, bytes]) -> dict[str, np.ndarray]:
-        """The whole frame's state arrays from its tiles' (a tile not yet folded holds only
-        its setup arrays: the rest are zero there)."""
-        n, widths, setup = tiling.n_pixels, integrator.state_widths, _setup_widths(integrator)
+    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, dict[str, Any]]) -> dict[str, np.ndarray]:
+        """The whole frame's state arrays from its tiles' fields (an array a tile does not
+        hold is zero there)."""
+        n, widths = tiling.n_pixels, integrator.state_widths
         arrays = {name: np.zeros((n, w) if w > 1 else n) for name, w in widths.items()}
-        for k, blob in blobs.items():
+        for k, fields in blobs.items():
             span = tiling.span(k)
-            size = span.stop - span.start
-            held = setup if len(blob) == 8 * size * sum(setup.values()) else widths
-            for name, part in decode_state(blob, held, size).items():
+            for name, part in decode_state(fields, widths, span.stop - span.start).items():
                 arrays[name][span] = part
         return arrays
 
@@ -200,7 +251,7 @@ class TiledState:
         """The folded state (a tile a folder writes meanwhile is read again)."""
         while True:
             try:
-                blobs = self._blobs(job_id, tiling, self._versions(job_id, tiling))
+                blobs = self._blobs(job_id, tiling, integrator, self._versions(job_id, tiling))
                 break
             except FoldContended:
                 continue
@@ -214,6 +265,7 @@ class TiledState:
         another folder got to a tile first (this round's other tiles stay valid)."""
         batch_ids = sorted(accepted)
         widths = integrator.state_widths
+        stages = Stages()
         # Read: versions, which tiles already hold which batch, the state.
         got = self._each_node(tiling, lambda pipe, k: (
             pipe.hget(keys.tile(job_id, k, "meta"), "version"),
@@ -221,23 +273,37 @@ class TiledState:
         versions = {k: int(g[0] or 0) for k, g in got.items()}
         todo = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items()}
         todo = {k: ids for k, ids in todo.items() if ids}
-        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, versions)),
+        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
                                    emitted, passes, counters)
-        # The round's delta: each tile's batches it has not folded yet, read a tile at a time.
+        stages.lap("read state")
+        # The round's delta: each tile's batches it has not folded yet, read a tile at a time
+        # (a tile's first delta of an array is copied in, the rest added: the same sums as
+        # adding each to zero). Every delta is checked readable before anything is written.
         sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
+        sent: dict[int, set[str]] = {}  # per tile, the arrays its deltas carried
 
         def add(node: int, tiles: list[int]) -> dict[int, None]:
             for k in (k for k in tiles if k in todo):
                 span = tiling.span(k)
                 payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), todo[k])
+                carried = sent.setdefault(k, set())
                 for batch_id, payload in zip(todo[k], payloads):
                     if payload is None:
                         raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
-                    for name, part in decode_delta(payload, widths, span.stop - span.start).items():
-                        sums[name][span] += part  # tiles are disjoint: threads never add to one pixel
+                    try:
+                        parts = decode_delta(payload, widths, span.stop - span.start)
+                    except DeltaFormatError as exc:
+                        raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
+                    for name, part in parts.items():  # tiles are disjoint: threads never add to one pixel
+                        if name in carried:
+                            sums[name][span] += part
+                        else:
+                            sums[name][span] = part
+                            carried.add(name)
             return {}
 
         self._per_node(tiling, add)
+        stages.lap("read deltas")
         added: dict[str, int] = {}
         for header in accepted.values():
             for name, value in header["c"].items():
@@ -246,22 +312,32 @@ class TiledState:
                       emitted=sum(h["e"] for h in accepted.values()), sums=sums, counters=added)
         # Merge, then what the next batches read and the error.
         integrator.merge(state, delta)
+        stages.lap("merge")
         inputs = integrator.batch_inputs(state)
+        stages.lap("inputs")
         estimate = integrator.estimate(state)
+        stages.lap("estimate")
         arrays = state.arrays()
+        # What each tile writes: the arrays its deltas carried and what the merge derives from
+        # them (e.g. N); a merge changes nothing where a round's delta is zero, and the setup
+        # arrays (e.g. R0) never change.
+        derived = [name for name in widths if name not in integrator.sums.names and name not in integrator.setup_arrays]
+
         # Write each tile in a transaction on its version (the nodes at once).
         def write(node: int, tiles: list[int]) -> dict[int, None]:
             for k in tiles:
                 span, meta = tiling.span(k), keys.tile(job_id, k, "meta")
-                blob = encode_state(arrays, widths, span) if k in todo else None
+                changed = [name for name in widths if name in sent.get(k, ())] + (derived if sent.get(k) else [])
+                fields = encode_state(arrays, changed, span) if k in todo else None
                 with self.nodes[node].pipeline() as pipe:
                     try:
                         pipe.watch(meta)
                         if int(pipe.hget(meta, "version") or 0) != versions[k]:
                             raise FoldContended(f"tile {k} was folded by another folder")
                         pipe.multi()
-                        if blob is not None:
-                            pipe.set(keys.tile(job_id, k, "state"), blob)
+                        if fields is not None:
+                            if fields:
+                                pipe.hset(keys.tile(job_id, k, "state"), mapping=fields)
                             pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
                             pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
                             pipe.hincrby(meta, "version", 1)
@@ -269,12 +345,13 @@ class TiledState:
                         pipe.execute()
                     except redis.WatchError as exc:
                         raise FoldContended(f"tile {k} was folded by another folder") from exc
-                if blob is not None:
-                    CACHE.put(job_id, k, versions[k] + 1, blob)
+                if fields is not None:
+                    CACHE.put(job_id, k, versions[k] + 1, encode_state(arrays, list(widths), span))
             return {}
 
         self._per_node(tiling, write)
-        return Folded(state, estimate.average if estimate is not None else None)
+        stages.lap("write")
+        return Folded(state, estimate.average if estimate is not None else None, stages.seconds)
 
     def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
         """Count folded batches in the record (once each), log the error after the round and

@@ -8,15 +8,22 @@ many nodes it was created with, and every process must name the same nodes in th
 order. Queues, job records and leases always stay on the main Redis.
 
 Encodings (all little-endian numpy bytes, no pickle: nothing read from Redis runs code):
-- state: every array of the integrator's `state_widths`, float64, in that order.
-- delta: a JSON header naming the arrays sent (a tile's all-zero arrays are left out),
-  a newline, then those arrays as float32 (DELTA_DTYPE).
+- state: a hash, one field per array of the integrator's `state_widths`, float64. A field
+  is written only when its array changed (a fold writes the arrays its deltas carried, and
+  what the merge derives from them, e.g. N; never the setup arrays again, e.g. R0), and an
+  array a tile never received is absent (zero): a tile holds only its setup arrays until
+  its first fold, and directly seen emission only where it is seen.
+- delta: a JSON header naming its dtype (DELTA_DTYPE, float32) and the arrays sent (a
+  tile's all-zero arrays are left out), a newline, then those arrays in that dtype. A
+  folder refuses a delta of another dtype, or naming arrays it does not know
+  (DeltaFormatError: a worker of another version), rather than misread it.
 - inputs: a JSON header naming the per-pixel fields of the integrator's batch inputs and
   holding its other fields (numbers, or dataclasses of numbers, e.g. the adaptive sampler's
   chain inputs, exactly as computed), a newline, then the per-pixel fields as float32
   (what the kernels read).
 A header is padded with spaces to a multiple of 8 bytes, so the arrays after it are read
-in place (aligned, no copy); an encoding is written once into one buffer.
+in place (aligned, no copy); an encoding is written once into one buffer (a state field is
+sent straight from the folder's array, no copy).
 
 Why a delta may be float32 while the state stays float64: a batch's sums are rounded once,
 to nearest, when sent, so each folded sum is off by at most 2^-24 (6e-8) of the sum of its
@@ -119,24 +126,53 @@ def _split(flat: np.ndarray, widths: dict[str, int], n: int) -> dict[str, np.nda
 
 
 # ------------------------------------------------------------------- the state
-def encode_state(arrays: dict[str, np.ndarray], widths: dict[str, int], span: slice) -> memoryview:
-    return _pack(..., [arrays[name][span] for name in widths], STATE_DTYPE)
+def encode_state(arrays: dict[str, np.ndarray], names: list[str], span: slice) -> dict[str, memoryview]:
+    """A tile's fields of the named state arrays: views of the arrays' bytes (sent as they
+    are; the arrays must not change until sent)."""
+    return {name: memoryview(np.ascontiguousarray(arrays[name][span], STATE_DTYPE).reshape(-1)).cast("B")
+            for name in names}
 
 
-def decode_state(blob: bytes | memoryview, widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
-    return _split(np.frombuffer(blob, STATE_DTYPE), widths, n)
+def decode_state(fields: dict[bytes, bytes], widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
+    """The arrays a tile's state holds (the rest are zero), read in place."""
+    out = {}
+    for key, blob in fields.items():
+        name = key.decode() if isinstance(key, bytes) else key
+        flat = np.frombuffer(blob, STATE_DTYPE)
+        out[name] = flat.reshape(n, widths[name]) if widths[name] > 1 else flat
+    return out
 
 
 # ------------------------------------------------------------------- a delta
+class DeltaFormatError(ValueError):
+    """A delta this process cannot read: another dtype, or arrays it does not know (pushed
+    by a worker of another version)."""
+
+
 def encode_delta(sums: dict[str, np.ndarray], span: slice) -> memoryview:
     """One tile's part of a batch's sums; arrays that are zero over the tile are left out."""
     sent = [name for name, a in sums.items() if a[span].any()]
-    return _pack(sent, [sums[name][span] for name in sent], DELTA_DTYPE)
+    return _pack({"dtype": DELTA_DTYPE.str, "arrays": sent}, [sums[name][span] for name in sent], DELTA_DTYPE)
+
+
+def delta_arrays(payload: bytes) -> list[str]:
+    """The arrays a tile's delta carries (its header), checked to be readable here."""
+    header = json.loads(payload[:payload.index(b"\n")])
+    dtype = header.get("dtype") if isinstance(header, dict) else None
+    if dtype != DELTA_DTYPE.str:
+        raise DeltaFormatError(f"its delta is {'in dtype ' + repr(dtype) if dtype else 'of no named dtype'}, "
+                               f"this version reads {DELTA_DTYPE.str!r} (a worker of another photonfarm version?)")
+    return header["arrays"]
 
 
 def decode_delta(payload: bytes, widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
     """The arrays a tile's delta carries (the rest are zero), as DELTA_DTYPE views."""
-    sent, body = _unpack(payload, DELTA_DTYPE)
+    sent = delta_arrays(payload)
+    unknown = [name for name in sent if name not in widths]
+    body = np.frombuffer(payload, DELTA_DTYPE, offset=payload.index(b"\n") + 1)
+    if unknown or body.size != n * sum(widths[name] for name in sent):
+        raise DeltaFormatError(f"its delta holds {', '.join(unknown) if unknown else str(body.size) + ' values'}, "
+                               f"which this version's state does not (a worker of another photonfarm version?)")
     return _split(body, {name: widths[name] for name in sent}, n)
 
 
@@ -179,16 +215,18 @@ def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: t
 
 
 class TileCache:
-    """Folded tiles by (job, tile) with the version they were read or written at, bounded
-    in bytes: a tile whose node still shows that version need not be read again."""
+    """Folded tiles' state fields by (job, tile) with the version they were read or written
+    at, bounded in bytes: a tile whose node still shows that version need not be read again.
+    A folder's entries are views of its round's state arrays (no copy; a round never changes
+    them once written), so those arrays stay alive while an entry refers to them."""
 
     def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
         self.max_bytes = max_bytes
-        self._items: OrderedDict[tuple[str, int], tuple[int, bytes | memoryview]] = OrderedDict()
+        self._items: OrderedDict[tuple[str, int], tuple[int, dict[str, Any], int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
-    def get(self, job_id: str, k: int, version: int) -> bytes | memoryview | None:
+    def get(self, job_id: str, k: int, version: int) -> dict[str, Any] | None:
         with self._lock:
             item = self._items.get((job_id, k))
             if item is None or item[0] != version:
@@ -196,17 +234,19 @@ class TileCache:
             self._items.move_to_end((job_id, k))
             return item[1]
 
-    def put(self, job_id: str, k: int, version: int, blob: bytes | memoryview) -> None:
+    def put(self, job_id: str, k: int, version: int, fields: dict[str, Any]) -> None:
+        """A tile's state fields (name -> bytes) at `version`."""
+        size = sum(len(memoryview(v).cast("B")) for v in fields.values())
         with self._lock:
             old = self._items.pop((job_id, k), None)
-            self._bytes -= len(old[1]) if old else 0
-            if len(blob) > self.max_bytes:
+            self._bytes -= old[2] if old else 0
+            if size > self.max_bytes:
                 return
-            self._items[(job_id, k)] = (version, blob)
-            self._bytes += len(blob)
+            self._items[(job_id, k)] = (version, fields, size)
+            self._bytes += size
             while self._bytes > self.max_bytes:
-                _, (_, dropped) = self._items.popitem(last=False)
-                self._bytes -= len(dropped)
+                _, (_, _, dropped) = self._items.popitem(last=False)
+                self._bytes -= dropped
 
 
 CACHE = TileCache()

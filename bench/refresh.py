@@ -1,0 +1,96 @@
+"""How often the image a client sees refreshes on a big job, through the real service (issue 14:
+at least every 10 s on a 3840x2160 job).
+
+A real cluster (api_tests/cluster.py: embedded Redis, the API with its folder thread, RQ
+workers with one PoCL thread each) renders one furnace job of the given size for
+`--seconds` (the service's default photons per pass, error estimation on). The job record
+is read every 0.25 s; each fold round's end (`folded_at`, when the image a client reads
+changes) and length (`fold_seconds`) are noted. Reported: the intervals between image
+changes from the first image to the job's end (largest, median), the rounds' lengths, and
+the API's (folder) and Redis's CPU seconds per round. Wall time on a shared machine: the
+load average before and after is in the report.
+
+    python -m bench.refresh                          # 3840x2160, 2 workers, 120 s
+    python -m bench.refresh --size 640x360 --seconds 20   # a quick check that it runs
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from api_tests.cluster import Cluster, finished
+from bench.common import cpu_seconds, write_json
+from worker.store import Jobs
+from worker.store.policy import FINAL, REFRESH_SECONDS
+
+SCENE = "furnace"
+SAMPLE_SECONDS = 0.25
+
+
+def run(w: int, h: int, seconds: float, workers: int) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        c = Cluster(Path(tmp), workers=workers, threads_per_worker=1, redis_maxmemory="6gb")
+        try:
+            warm = c.submit(scene_name=SCENE, settings={"max_passes": 2 * workers, "photons_per_pass": 1 << 12,
+                                                        "resolution": [64, 64]})
+            c.wait(warm["id"], finished, timeout=600)  # kernels built in every worker first
+            jobs = Jobs(c.redis_client)
+            parts = {"api": [c.api.pid], "redis": [c.redis.proc.pid]}
+            load = os.getloadavg()[0]
+            cpu0 = {k: cpu_seconds(v) for k, v in parts.items()}
+            job_id = c.submit(scene_name=SCENE, settings={"max_seconds": seconds, "resolution": [w, h],
+                                                          "seed": 1})["id"]
+            rounds: list[dict] = []
+            while True:
+                record = jobs.get(job_id)
+                if record.folded_at and (not rounds or record.folded_at != rounds[-1]["end"]):
+                    rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
+                                   "passes": record.folded_passes})
+                if record.status in FINAL:
+                    break
+                time.sleep(SAMPLE_SECONDS)
+            cpu = {k: cpu_seconds(v) - cpu0[k] for k, v in parts.items()}
+        finally:
+            c.close()
+    intervals = [b["end"] - a["end"] for a, b in zip(rounds, rounds[1:])]
+    lengths = [r["seconds"] for r in rounds]
+    return {"width": w, "height": h, "workers": workers, "seconds": seconds, "status": record.status.value,
+            "passes": record.passes, "batches": record.merges, "fold_rounds": len(rounds),
+            "refresh_max_seconds": max(intervals, default=float("nan")),
+            "refresh_median_seconds": statistics.median(intervals) if intervals else float("nan"),
+            "fold_round_max_seconds": max(lengths, default=float("nan")),
+            "fold_round_median_seconds": statistics.median(lengths) if lengths else float("nan"),
+            "api_cpu_seconds_per_round": cpu["api"] / max(1, len(rounds)),
+            "redis_cpu_seconds_per_round": cpu["redis"] / max(1, len(rounds)),
+            "load_average_before": load, "load_average_after": os.getloadavg()[0],
+            "rounds": rounds, "intervals": intervals, "target_seconds": REFRESH_SECONDS}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size", default="3840x2160", help="frame size WxH")
+    parser.add_argument("--seconds", type=float, default=120.0, help="the job's time budget")
+    parser.add_argument("--workers", type=int, default=2, help="workers, one PoCL thread each")
+    args = parser.parse_args()
+    try:
+        w, h = (int(v) for v in args.size.split("x"))
+    except ValueError:
+        parser.error(f"--size: expected WxH, got {args.size!r}")
+    report = run(w, h, args.seconds, args.workers)
+    print(f"{w}x{h}, {args.workers} workers, {report['passes']} passes in {report['batches']} batches: "
+          f"{report['fold_rounds']} fold rounds, image refreshed every {report['refresh_median_seconds']:.1f} s "
+          f"(largest {report['refresh_max_seconds']:.1f} s; target {REFRESH_SECONDS:.0f} s), rounds "
+          f"{report['fold_round_median_seconds']:.1f} s (largest {report['fold_round_max_seconds']:.1f} s); "
+          f"CPU s a round: API {report['api_cpu_seconds_per_round']:.2f}, Redis "
+          f"{report['redis_cpu_seconds_per_round']:.2f}; load {report['load_average_before']:.1f} to "
+          f"{report['load_average_after']:.1f}")
+    write_json(f"refresh_{w}x{h}", report)
+
+
+if __name__ == "__main__":
+    main()
