@@ -108,7 +108,8 @@ class PhotonMappingPasses:
             events.append(dev.program.launch(
                 dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
                 u64(self.settings.seed), u32(pass_index), u32(self.settings.photons_per_pass),
-                i32(self.settings.max_bounces), u32(self.capacity), skip_first, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count))
+                i32(self.settings.max_bounces), u32(self.capacity), skip_first, self.ph_pos, self.ph_flux,
+                self.ph_dirs, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.ph_count)
             dev.times.add("trace", events)
@@ -165,12 +166,12 @@ class PhotonMappingPasses:
         ev = dev.program.launch(dev.queue, "scale_pass", n_stored, u32(n_stored), f32(scale), self.ph_pos)
         dev.times.add("trace", [ev])
 
-    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None,
-                          photons: float | None = None) -> None:
-        """Build the photon lookup and gather; `photons` is what a pass's own estimates
-        (the error estimator's per-pass samples) divide the flux by (default: photons per pass)."""
+    def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
+        """Build the photon lookup and gather; a pass's own estimates (the error estimator's
+        per-pass samples) divide the flux by the photons per pass (a chain pass's counts are
+        already in uniform photons, _scale_pass)."""
         dev, a, p = self.dev, self.dev.arrays, self.dev.program
-        photons = f32(self.settings.photons_per_pass if photons is None else photons)
+        photons = f32(self.settings.photons_per_pass)
         inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
         if (gather or self.settings.gather) == "stochastic":
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
