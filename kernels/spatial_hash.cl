@@ -189,8 +189,8 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
 // Add one pass's gather to pixel gid's sums (sums.cl).
 #define ADD_SUM(name, value) (*sum_at(batch_sums, n_pixels, gid, name, 1) += (value))
 
-inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float3 wgt, float2 coverage,
-                       PassSums s, float photons, float bias) {
+inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float rb, float3 wgt,
+                       float2 coverage, PassSums s, float photons, float bias) {
     double kr2 = K1 * (double)r * (double)r * (double)coverage.x;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
     __global double* rgb = sum_at(batch_sums, n_pixels, gid, SUM_S, 3);
@@ -198,6 +198,7 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
     rgb[1] += flux.y;
     rgb[2] += flux.z;
     ADD_SUM(SUM_D, (double)s.m / (M_PI * (double)r * (double)r));
+    ADD_SUM(SUM_DB, (double)s.m / (M_PI * (double)rb * (double)rb));  // N's increment, at the batch's radius rb
     ADD_SUM(SUM_H, 1.0);
 #ifdef SUM_G
     double lap = (double)s.lap / kr2;
@@ -213,6 +214,21 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
     ADD_SUM(SUM_DH, dh);
     ADD_SUM(SUM_DH2, dh * dh);
 #endif
+}
+
+// The radius rule within a batch (worker/stats.py, eqs. 6.5-6.6): after each pass the
+// pixel's count and radius move on as a sequential SPPM run's would, N' = N + alpha M and
+// R'^2 = R^2 (N + alpha M) / (N + M), so the batch's next pass gathers at the radius it
+// would have had, whatever the batch's length. The bias its per-pass samples subtract
+// (0.5 R^2 c lap L) scales with R^2.
+inline void shrink_radius(int gid, float m, float alpha, __global float* radius, __global float* count,
+                          __global float* bias) {
+    if (m <= 0.0f) return;
+    float n = count[gid];
+    float f = (n + alpha * m) / (n + m);
+    count[gid] = n + alpha * m;
+    radius[gid] *= sqrt(f);
+    bias[gid] *= f;
 }
 
 // A pixel's query this pass; false if the pixel has no measurement point.
@@ -266,7 +282,8 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
 
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                                 __global const float4* mp_wgt, __global const uint4* mp_cut,
-                                __global const float* radius, __global const float* bias, float photons,
+                                __global float* radius, __global const float* radius_batch,
+                                __global float* count, __global float* bias, float alpha, float photons,
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
                                 __global const uint2* tab_dirs,
@@ -285,7 +302,8 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
             && inside_cut(q.cut, q.n, pp.xyz - q.x, q.r))
             add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count * pp.w);  // w: 1, or a chain pass's scale
     }
-    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    accumulate(batch_sums, n_pixels, gid, q.r, radius_batch[gid], q.wgt, q.coverage, s, photons, bias[gid]);
+    shrink_radius(gid, s.m, alpha, radius, count, bias);
 }
 
 // Add the photons near[0 .. n) of the exact grid that match the query's surface and lie in
@@ -302,7 +320,8 @@ inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __glo
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                            __global const float4* mp_wgt, __global const uint4* mp_cut,
-                           __global const float* radius, __global const float* bias, float photons,
+                           __global float* radius, __global const float* radius_batch,
+                           __global float* count, __global float* bias, float alpha, float photons,
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const float4* grid_pos,
                            __global const float4* grid_flux, __global const float4* grid_in,
@@ -329,5 +348,6 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
         }
     }
     add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
-    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    accumulate(batch_sums, n_pixels, gid, q.r, radius_batch[gid], q.wgt, q.coverage, s, photons, bias[gid]);
+    shrink_radius(gid, s.m, alpha, radius, count, bias);
 }

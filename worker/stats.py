@@ -7,7 +7,8 @@ section 11.2 (iii), which turns the dissertation's sequential update (eqs. 6.5-6
     S += sum_p w * Phi_p / (pi r^2)    flux found at the radius r the pass used
     D += M / (pi r^2)                  photon density seen by the pixel
     E += photons emitted               (every path, also those that missed)
-    N += alpha * pi * R^2 * dD         R = the radius at merge time
+    N += alpha * pi * R^2 * dDb        R = the radius at merge time, dDb = the batch's
+                                       sum of M / (pi r_b^2), r_b the radius it was given
     R^2 = N / (pi D)  (R0^2 while D = 0)
     L = S / E + (directly seen emission) / passes
     (adaptive photon tracing: each pass's sums are already in uniform photons, worker/adaptive.py)
@@ -21,7 +22,14 @@ H (passes with a measurement point). The layout of the sums is the integrator's
 (worker/integrators/photon_mapping.py).
 
 With r = R (a batch of one pass gathered at the current radius) this is exactly eq. 6.6:
-R'^2 = R^2 (N + alpha M) / (N + M), and S/E equals tau/(pi R^2 E) of eq. 6.1. S, D, E and
+R'^2 = R^2 (N + alpha M) / (N + M), and S/E equals tau/(pi R^2 E) of eq. 6.1. A batch of
+several passes moves its radius on pass by pass on the device with the same rule
+(shrink_radius, kernels/spatial_hash.cl), from the N and R it was given, so its passes
+gather at the radii a sequential run would use; its N increment is then alpha sum M =
+alpha pi r_b^2 dDb, and with R = r_b (no other batch folded meanwhile) the merge leaves N
+and R = sqrt(N / (pi D)) exactly where the sequential run would (N = pi R^2 D holds after
+every pass). So the radius schedule does not depend on how passes are grouped into
+batches, only on which batches share a fold round. S, D, E and
 the emission sum are plain sums, so the estimate does not depend on merge order; N (and
 so the future radius schedule) assumes locally uniform photon density when a batch was
 gathered at a radius other than the current one, the same assumption PPM's flux
@@ -88,13 +96,14 @@ class Accumulators:
     _radius: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout) -> "Accumulators":
-        """Empty state: no pass merged, every radius at its initial value."""
+    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout, batch_only: tuple[str, ...] = ()) -> "Accumulators":
+        """Empty state: no pass merged, every radius at its initial value; it keeps every sum
+        of `layout` but those only a batch carries (`batch_only`)."""
         if not 0.0 < alpha <= 1.0:
             raise ValueError("alpha must lie in (0, 1]")
         n = len(R0)
         return cls(alpha=alpha, R0=np.asarray(R0, np.float64), N=np.zeros(n),
-                   sums={name: layout.zeros(n, name) for name in layout.names})
+                   sums={name: layout.zeros(n, name) for name in layout.names if name not in batch_only})
 
     def __getattr__(self, name: str) -> np.ndarray:
         sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
@@ -114,9 +123,9 @@ class Accumulators:
 
     def merge(self, delta: "Delta") -> None:
         """Add a batch. Commutative in every sum; N uses the radius at merge time."""
-        dN = np.square(self.radius())  # R^2 at merge time, then alpha pi R^2 dD, in place
+        dN = np.square(self.radius())  # R^2 at merge time, then alpha pi R^2 dDb, in place
         dN *= self.alpha * math.pi
-        dN *= delta.D
+        dN *= delta.sums["Db"]
         self.N += dN
         add_delta(self, delta)
         self._radius = None

@@ -103,10 +103,6 @@ class Integrator(ABC):
     def estimate(self, state: State) -> ErrorEstimate:
         """The per-pixel error bound and its image average (dissertation ch. 6)."""
 
-    def zeros(self, n_pixels: int, name: str) -> np.ndarray:
-        width = self.state_widths[name]
-        return np.zeros((n_pixels, width) if width > 1 else n_pixels)
-
 
 KeepGoing = Callable[[int], bool]
 

@@ -21,14 +21,17 @@ from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
 from worker.integrators.base import Delta, Integrator
 from worker.stats import Accumulators
 
-# S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; Ld: directly seen
-# emission (rgb); H: passes with a measurement point. Then the error estimator's sums
+# S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; Db: photon count /
+# pi r_b^2, r_b the radius the batch was given (a batch's passes gather at shrinking radii;
+# the merge turns Db into N's increment and the state does not keep it, BATCH_ONLY); Ld:
+# directly seen emission (rgb); H: passes with a measurement point. Then the error estimator's sums
 # (only for jobs that estimate their error): G the Laplacian, X1 and X2 the bias-corrected
 # per-pass samples and their squares, L2 the squared per-pass Laplacians, Dh and Dh2 the
 # per-pass change of the luminance estimate from radius r/2 to r and its square; with
 # direct light by next-event estimation (`direct: nee`), Ld2 the squared luminance of each
 # pass's Ld sample (its variance enters the error bound).
-PHOTON_SUMS = (("S", 3), ("D", 1), ("Ld", 3), ("H", 1))
+PHOTON_SUMS = (("S", 3), ("D", 1), ("Db", 1), ("Ld", 3), ("H", 1))
+BATCH_ONLY = ("Db",)
 ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1), ("Dh", 1), ("Dh2", 1))
 NEE_ERROR_SUMS = (("Ld2", 1),)
 
@@ -52,13 +55,15 @@ class ChainInputs:
 
 @dataclass(frozen=True)
 class GatherInputs:
-    """What a batch of photon-mapping passes reads: the radius per pixel, the bias
-    estimate its per-pass variance samples subtract (eq. 6.22; zero if not given), and
-    with the adaptive sampler its chains' inputs."""
+    """What a batch of photon-mapping passes reads: the radius per pixel and the radius
+    rule's count N there (zero if not given: the batch's first pass then shrinks the radius
+    as a job's first pass does), the bias estimate its per-pass variance samples subtract
+    (eq. 6.22; zero if not given), and with the adaptive sampler its chains' inputs."""
 
     radius: np.ndarray
     bias: np.ndarray | None = None
     chains: ChainInputs | None = None
+    count: np.ndarray | None = None
 
 
 class PhotonMapping(Integrator):
@@ -75,19 +80,20 @@ class PhotonMapping(Integrator):
 
     @property
     def state_widths(self) -> dict[str, int]:
-        return {"R0": 1, "N": 1, **dict(self.sums.widths)}
+        return {"R0": 1, "N": 1, **{name: w for name, w in self.sums.widths if name not in BATCH_ONLY}}
 
     @property
     def adaptive(self) -> bool:
         return self.settings.sampler == "adaptive"
 
     def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
-        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums)
+        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums, BATCH_ONLY)
 
     def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
                 counters: dict[str, int] | None = None) -> Accumulators:
         n = len(arrays["R0"])
-        sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name) for name in self.sums.names}
+        sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name)
+                for name in self.sums.names if name not in BATCH_ONLY}
         return Accumulators(alpha=self.settings.alpha, R0=arrays["R0"], N=arrays.get("N", np.zeros(n)),
                             sums=sums, emitted=emitted, passes=passes, counters=dict(counters or {}))
 
@@ -102,7 +108,7 @@ class PhotonMapping(Integrator):
                                  iterations, mutate)
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
-        return GatherInputs(r, bias, chains)
+        return GatherInputs(r, bias, chains, state.N)
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

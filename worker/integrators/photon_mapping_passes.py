@@ -46,7 +46,11 @@ class PhotonMappingPasses:
         self.mp_wgt = device.buffer(16 * n)  # path throughput * albedo / pi (w: disc coverage)
         self.mp_dist = device.buffer(4 * n)  # eye path length to the point
         self.mp_cut = device.buffer(16 * n)  # where the coverage rays cut the gather disc
+        # Per pixel within a batch: the radius and the radius rule's count N, moving on pass by
+        # pass (shrink_radius, spatial_hash.cl), the radius the batch was given, and the bias.
         self.radius = device.buffer(4 * n)
+        self.count = device.buffer(4 * n)
+        self.radius_batch = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
         self.ph_count = device.buffer(4)
         self.counters = device.buffer(4 * len(adaptive.COUNTERS))  # the chains' per-pass counters
@@ -166,6 +170,15 @@ class PhotonMappingPasses:
         ev = dev.program.launch(dev.queue, "scale_pass", n_stored, u32(n_stored), f32(scale), self.ph_pos)
         dev.times.add("trace", [ev])
 
+    def _radii(self) -> tuple:
+        """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, count, bias, alpha)."""
+        return self.radius, self.radius_batch, self.count, self.bias, f32(self.settings.alpha)
+
+    def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray) -> None:
+        """A batch's (or a probe's) starting radius, count N and bias per pixel, float32."""
+        for buf, host in ((self.radius, radius), (self.radius_batch, radius), (self.count, count), (self.bias, bias)):
+            cl.enqueue_copy(self.dev.queue, buf, np.ascontiguousarray(host, np.float32))
+
     def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
         """Build the photon lookup and gather; a pass's own estimates (the error estimator's
         per-pass samples) divide the flux by the photons per pass (a chain pass's counts are
@@ -185,7 +198,7 @@ class PhotonMappingPasses:
                               self.ph_dirs, self.ph_key, inv_cell, mask, self.tab_key, self.tab_pos, self.tab_flux,
                               self.tab_dirs)]
             gather_ev = p.launch(dev.queue, "gather_stochastic", a.n_pixels, i32(a.n_pixels), self.mp_pos,
-                                 self.mp_nrm, self.mp_wgt, self.mp_cut, self.radius, self.bias, photons, inv_cell, mask,
+                                 self.mp_nrm, self.mp_wgt, self.mp_cut, *self._radii(), photons, inv_cell, mask,
                                  self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums)
         else:
             entries = _next_pow2(n_stored)
@@ -203,7 +216,7 @@ class PhotonMappingPasses:
                      p.launch(dev.queue, "grid_permute", n_stored, u32(n_stored), self.sorted, self.ph_pos,
                               self.ph_flux, self.ph_dirs, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm)]
             gather_ev = p.launch(dev.queue, "gather_exact", a.n_pixels, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
-                                 self.mp_wgt, self.mp_cut, self.radius, self.bias, photons, inv_cell, mask, self.cell_start,
+                                 self.mp_wgt, self.mp_cut, *self._radii(), photons, inv_cell, mask, self.cell_start,
                                  self.tab_count, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm,
                                  dev.batch_sums)
         gather_ev.wait()
@@ -244,8 +257,7 @@ class PhotonMappingPasses:
         # Density: an exact gather of pass 0's photons at the probe radius.
         probe = PROBE_FOOTPRINTS * footprint
         dev.zero_sums()
-        cl.enqueue_copy(dev.queue, self.radius, np.full(n, probe, np.float32))
-        cl.enqueue_copy(dev.queue, self.bias, np.zeros(n, np.float32))
+        self._set_radii(np.full(n, probe), np.zeros(n), np.zeros(n))
         # Every photon counted, first hits too: with nee the radius is the one photons alone
         # would get (sized by the density of the photons that are stored, mostly bounced
         # light, it is up to 5x larger and blurs the caustics that only photons carry).
@@ -261,15 +273,15 @@ class PhotonMappingPasses:
     # -------------------------------------------------------------------- batch
     def run_batch(self, inputs: GatherInputs, first_pass: int, n_passes: int,
                   keep_going: KeepGoing | None = None) -> Delta:
-        """Run passes first_pass .. first_pass+n_passes-1, all gathering at `inputs.radius`."""
+        """Run passes first_pass .. first_pass+n_passes-1, the first gathering at `inputs.radius`
+        and each next one at the radius the pass before left (shrink_radius, spatial_hash.cl)."""
         dev = self.dev
         n = dev.arrays.n_pixels
         r32 = np.ascontiguousarray(inputs.radius, np.float32)
         if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
             raise ValueError("radius must hold one positive finite value per pixel")
-        b32 = np.zeros(n, np.float32) if inputs.bias is None else np.ascontiguousarray(inputs.bias, np.float32)
-        cl.enqueue_copy(dev.queue, self.radius, r32)
-        cl.enqueue_copy(dev.queue, self.bias, b32)
+        self._set_radii(r32, np.zeros(n) if inputs.count is None else inputs.count,
+                        np.zeros(n) if inputs.bias is None else inputs.bias)
         dev.zero_sums()
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
@@ -324,10 +336,10 @@ class PhotonMappingPasses:
         for buf, host in ((self.mp_pos, f4(points, 1.0)), (self.mp_nrm, f4(normals, 1.0)),
                           (self.mp_wgt, f4(np.ones((n, 3)), 1.0)), (self.ph_pos, f4(photon_pos, 1.0)),
                           (self.ph_flux, f4(photon_flux)), (self.ph_dirs, np.ascontiguousarray(dirs)),
-                          (self.radius, np.ascontiguousarray(radius, np.float32)), (self.bias, np.zeros(n, np.float32)),
                           (self.mp_cut, np.tile(np.array([0xFFFFFFFF, 0xFFFFFFFF, 0, 0], np.uint32), (n, 1)))):
             cl.enqueue_copy(dev.queue, buf, host)
         cl.enqueue_copy(dev.queue, self.ph_key, np.arange(m, dtype=np.uint64))
+        self._set_radii(radius, np.zeros(n), np.zeros(n))
         dev.zero_sums()
         self._build_and_gather(m, float(np.max(radius)))
         return dev.read_sums()

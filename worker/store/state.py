@@ -264,7 +264,7 @@ class TiledState:
         `emitted`, `passes` and `counters` are the record's folded counters. Raises FoldContended if
         another folder got to a tile first (this round's other tiles stay valid)."""
         batch_ids = sorted(accepted)
-        widths = integrator.state_widths
+        widths, delta_widths = integrator.state_widths, dict(integrator.sums.widths)
         stages = Stages()
         # Read: versions, which tiles already hold which batch, the state.
         got = self._each_node(tiling, lambda pipe, k: (
@@ -279,7 +279,7 @@ class TiledState:
         # The round's delta: each tile's batches it has not folded yet, read a tile at a time
         # (a tile's first delta of an array is copied in, the rest added: the same sums as
         # adding each to zero). Every delta is checked readable before anything is written.
-        sums = {name: integrator.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
+        sums = {name: integrator.sums.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
         sent: dict[int, set[str]] = {}  # per tile, the arrays its deltas carried
 
         def add(node: int, tiles: list[int]) -> dict[int, None]:
@@ -291,7 +291,7 @@ class TiledState:
                     if payload is None:
                         raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
                     try:
-                        parts = decode_delta(payload, widths, span.stop - span.start)
+                        parts = decode_delta(payload, delta_widths, span.stop - span.start)
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
                     for name, part in parts.items():  # tiles are disjoint: threads never add to one pixel
