@@ -87,10 +87,10 @@ def test_ten_thousand_passes_show_no_drift_with_float32_deltas(tmp_path: Path) -
             """The largest error over pixels, in units of the sum of the batches' magnitudes."""
             return float(np.max(np.abs(got.astype(np.longdouble) - ref) / magnitude[name]))
 
-        for name in widths:
+        for name in state.sums:  # (a batch's Db goes into N, not kept: worker/stats.py)
             assert error(getattr(state, name), sent[name], name) < 1e-12, name  # the fold adds exactly
             assert error(getattr(state, name), exact[name], name) <= UNIT * (1 + 1e-6), name  # one rounding a batch
-        worst32 = max(error(single[name], exact[name], name) for name in widths)
+        worst32 = max(error(single[name], exact[name], name) for name in state.sums)
         assert worst32 > 16 * UNIT, worst32  # float32 storage drifts: the test can see it
         # The variance of the per-pass samples: X2 - X1^2/m cancels to 1e-3 of X2. Its
         # first-order rounding bound: u (|X2| + 2 |X1| |X1| / m) / (m - 1), with |.| the
