@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs, sum_layout
@@ -105,3 +106,29 @@ def test_a_batch_moves_its_radius_on_as_sequential_passes_do(make_engine) -> Non
     np.testing.assert_allclose(batched.radius()[lit], one_by_one.radius()[lit], rtol=1e-5)
     np.testing.assert_allclose(batched.N[lit], one_by_one.N[lit], rtol=1e-5)
     np.testing.assert_allclose(batched.radiance().mean(axis=0), one_by_one.radiance().mean(axis=0), rtol=1e-3)
+
+
+@pytest.mark.parametrize("concurrency", [1, 3])
+def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine, concurrency: int) -> None:
+    """With W batches of the job rendering at once, a batch's passes count W times in its
+    radius rule: its count ends at N + W alpha sum M and its radius at the one the state
+    would reach with W such batches folded, R^2 = N' / (pi (D + W dD))."""
+    import pyopencl as cl
+
+    alpha = 0.7
+    eng = make_engine("cornell-caustics", resolution=(48, 48), photons_per_pass=1 << 14, seed=15, alpha=alpha)
+    state = eng.start()
+    state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
+    inputs = eng.integrator.for_concurrent_batches(eng.integrator.batch_inputs(state), concurrency)
+    delta = eng.run_batch(inputs, 1, 3)
+    n = eng.arrays.n_pixels
+    radius, count = np.empty(n, np.float32), np.empty(n, np.float32)
+    cl.enqueue_copy(eng.device.queue, radius, eng.passes.radius)
+    cl.enqueue_copy(eng.device.queue, count, eng.passes.count)
+    rb = inputs.radius.astype(np.float32).astype(np.float64)
+    expected = state.N + concurrency * alpha * math.pi * rb ** 2 * delta.sums["Db"]
+    lit = delta.D > 0
+    assert lit.mean() > 0.5
+    np.testing.assert_allclose(count[lit], expected[lit], rtol=1e-5)
+    np.testing.assert_allclose(radius[lit].astype(np.float64) ** 2,
+                               expected[lit] / (math.pi * (state.D[lit] + concurrency * delta.D[lit])), rtol=1e-4)

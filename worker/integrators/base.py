@@ -91,6 +91,11 @@ class Integrator(ABC):
     def batch_inputs(self, state: State) -> Any:
         """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
+    def for_concurrent_batches(self, inputs: Any, batches: int) -> Any:
+        """A batch's inputs when `batches` of the job's batches render at once (this one
+        included); the same inputs for a method whose passes do not depend on each other."""
+        return inputs
+
     @abstractmethod
     def merge(self, state: State, delta: Delta) -> None:
         """Add a batch to the state: commutative in every sum."""

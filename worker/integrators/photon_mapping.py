@@ -11,6 +11,7 @@ Markov chains over photon paths (worker/adaptive.py, kernels/photon_chains.cl).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,12 +59,16 @@ class GatherInputs:
     """What a batch of photon-mapping passes reads: the radius per pixel and the radius
     rule's count N there (zero if not given: the batch's first pass then shrinks the radius
     as a job's first pass does), the bias estimate its per-pass variance samples subtract
-    (eq. 6.22; zero if not given), and with the adaptive sampler its chains' inputs."""
+    (eq. 6.22; zero if not given), with the adaptive sampler its chains' inputs, and how
+    many of the job's batches render at once, this one included (each pass then counts
+    that many times in the radius rule within the batch: kernels/spatial_hash.cl,
+    shrink_radius; the worker sets it when it starts the batch)."""
 
     radius: np.ndarray
     bias: np.ndarray | None = None
     chains: ChainInputs | None = None
     count: np.ndarray | None = None
+    concurrency: int = 1
 
 
 class PhotonMapping(Integrator):
@@ -109,6 +114,9 @@ class PhotonMapping(Integrator):
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains, state.N)
+
+    def for_concurrent_batches(self, inputs: GatherInputs, batches: int) -> GatherInputs:
+        return dataclasses.replace(inputs, concurrency=max(1, batches))
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

@@ -52,6 +52,7 @@ class PhotonMappingPasses:
         self.count = device.buffer(4 * n)
         self.radius_batch = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
+        self.concurrency = 1
         self.ph_count = device.buffer(4)
         self.counters = device.buffer(4 * len(adaptive.COUNTERS))  # the chains' per-pass counters
         self.capacity = 0
@@ -171,13 +172,16 @@ class PhotonMappingPasses:
         dev.times.add("trace", [ev])
 
     def _radii(self) -> tuple:
-        """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, count, bias, alpha)."""
-        return self.radius, self.radius_batch, self.count, self.bias, f32(self.settings.alpha)
+        """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, count, bias,
+        alpha, weight)."""
+        return self.radius, self.radius_batch, self.count, self.bias, f32(self.settings.alpha), f32(self.concurrency)
 
-    def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray) -> None:
-        """A batch's (or a probe's) starting radius, count N and bias per pixel, float32."""
+    def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray, concurrency: int = 1) -> None:
+        """A batch's (or a probe's) starting radius, count N and bias per pixel, float32, and
+        how many of the job's batches render at once (GatherInputs.concurrency)."""
         for buf, host in ((self.radius, radius), (self.radius_batch, radius), (self.count, count), (self.bias, bias)):
             cl.enqueue_copy(self.dev.queue, buf, np.ascontiguousarray(host, np.float32))
+        self.concurrency = concurrency
 
     def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
         """Build the photon lookup and gather; a pass's own estimates (the error estimator's
@@ -281,7 +285,7 @@ class PhotonMappingPasses:
         if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
             raise ValueError("radius must hold one positive finite value per pixel")
         self._set_radii(r32, np.zeros(n) if inputs.count is None else inputs.count,
-                        np.zeros(n) if inputs.bias is None else inputs.bias)
+                        np.zeros(n) if inputs.bias is None else inputs.bias, inputs.concurrency)
         dev.zero_sums()
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):

@@ -255,8 +255,10 @@ class Jobs:
                                record.folded_passes, record.counters)
 
     def batch_inputs(self, record: JobRecord) -> Any:
-        """What a batch starting now needs: the inputs the last fold wrote to the tiles."""
-        return self.tiles.inputs(record.id, self.tiling(record), record.integrator)
+        """What a batch starting now needs: the inputs the last fold wrote to the tiles, for
+        as many concurrent batches as the job has in flight."""
+        inputs = self.tiles.inputs(record.id, self.tiling(record), record.integrator)
+        return record.integrator.for_concurrent_batches(inputs, self.leases.inflight(record.id))
 
     # ------------------------------------------------------------------ batches
     def allocate(self, job_id: str, pass_seconds: float | None = None, workers: int = 1) -> Batch | None:
