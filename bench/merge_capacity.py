@@ -11,19 +11,23 @@ the API's folder thread does. Against one Redis and against 3 state nodes, all r
 the embedded default (service/redis_server.py: append-only file, fsync always).
 
 The worker's speed: a pass takes trace + seconds-per-megapixel x megapixels (defaults:
-issue 14's figures at 1024 x 768, one PoCL thread), a batch the passes the scheduler's
-own rule gives for that pass time and the mean merge so far (worker/store/policy.py
-batch_passes: at least 20 merges long, at most MAX_BATCH_PASSES passes). Workers start
-staggered over one batch.
+a one-thread worker of today's engine, measured on furnace at 1920 x 1080 with the
+service's default 2^18 photons a pass: 1.18 s a pass, 0.15 s of it tracing), a batch the passes the scheduler's
+own rule gives for that pass time, the mean merge so far, the job's last fold round and
+the N workers (worker/store/policy.py batch_passes: a merge and the fold round it causes
+at most 5% of the batch, as far as the N workers together still bring a batch every
+10 s; at most MAX_BATCH_PASSES passes). Workers start staggered over one batch.
 
 Per frame size, node count and N: merge seconds (push + accept + encode; median, p95),
 its share of the simulated workers' time, the passes a batch needs for the mean merge to
-be 5% of it, the refresh interval (per accepted batch, the seconds until a fold round that
-started after it ended: when the image a client reads holds it; largest and median), and
-the fold backlog when the workers stop. N is sustained when the scheduler can keep the merge at 5% of
-a worker's time (the batch it needs is at most MAX_BATCH_PASSES passes), every refresh
-interval is at most 10 s, and the backlog at the end is at most N batches (the folder
-keeps up).
+be 5% of it, the refresh interval (the seconds between one fold round's end and the
+next's while batches arrive: how often the image a client reads changes, issue 14's
+measure, as bench/refresh.py's; largest and median), each accepted batch's wait until a
+fold round that started after it ended (when the image holds it; largest and median),
+and the fold backlog when the workers stop. N is sustained when the scheduler can keep
+the merge at 5% of a worker's time (the batch it needs is at most MAX_BATCH_PASSES
+passes), the image refreshes at least every 10 s, and the backlog at the end is at most
+N batches (the folder keeps up).
 
     python -m bench.merge_capacity --smoke   # a few minutes: small frames, N up to 2
     python -m bench.merge_capacity           # the real run: 1920x1080 and 3840x2160, N to 100
@@ -80,13 +84,18 @@ def _merge(store: Jobs, job_id: str, batch: Batch, delta: Delta, payloads: dict[
     assert store.accept(batch, header, 1.0, 1.0)[0] == "merged"
 
 
+def _batch_seconds(store: Jobs, job_id: str, pass_seconds: float, mean_merge: float, n_workers: int) -> float:
+    """The scheduler's batch for these workers (Jobs.allocate's rule, with the job's last fold round)."""
+    return batch_passes(pass_seconds, mean_merge, None, store.get(job_id).fold_seconds, n_workers) * pass_seconds
+
+
 def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pass_seconds: float,
             first_merge: float, start: float, end: float, first_batch: int, out: mp.Queue) -> None:
     """Simulated workers `workers` (of n_workers): render a batch (wait), push, accept,
     repeat; each batch sized by the scheduler's rule from the mean merge so far."""
     store = _store(urls)
     delta, payloads, encode = _delta(store, job_id)
-    first = batch_passes(pass_seconds, first_merge) * pass_seconds
+    first = _batch_seconds(store, job_id, pass_seconds, first_merge, n_workers)
     due = {w: start + first * (1 + w / n_workers) for w in workers}
     latencies, lateness, accepted, rendered, batch_no = [first_merge], [], [], 0.0, first_batch
     while True:
@@ -100,7 +109,7 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pa
         latencies.append(time.perf_counter() - t0 + encode)
         accepted.append(time.time())
         batch_no += 1
-        batch = batch_passes(pass_seconds, statistics.fmean(latencies)) * pass_seconds
+        batch = _batch_seconds(store, job_id, pass_seconds, statistics.fmean(latencies), n_workers)
         rendered += batch
         due[w] = time.time() + batch
     out.put({"latencies": latencies[1:], "lateness": lateness, "accepted": accepted, "rendered": rendered})
@@ -144,7 +153,8 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     t0 = time.perf_counter()
     _merge(store, job_id, Batch(job_id, 0, 1), delta, payloads)
     alone = time.perf_counter() - t0 + encode
-    batch_seconds = batch_passes(pass_seconds, alone) * pass_seconds
+    store.fold(job_id, wait=True)  # the job's first round: its length sizes the batches (Jobs.allocate)
+    batch_seconds = _batch_seconds(store, job_id, pass_seconds, alone, n_workers)
     # Run N workers and the folder for `batches` batches each.
     ctx = mp.get_context("spawn")
     out: mp.Queue = ctx.Queue()
@@ -163,10 +173,17 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     for p in procs:
         p.join()
     latencies = sorted(x for r in pushes for x in r["latencies"])
-    lags = _image_lags([t for r in pushes for t in r["accepted"]], fold["rounds"]) or [float("inf")]
+    accepted = [t for r in pushes for t in r["accepted"]]
+    lags = _image_lags(accepted, fold["rounds"]) or [float("inf")]
+    # The image changes at each round's end; between the first and the last batch accepted.
+    ends = [e for _, e in fold["rounds"]]
+    while_busy = [e for e in ends if min(accepted, default=0.0) <= e <= max(accepted, default=0.0)] + \
+        [min((e for e in ends if e > max(accepted, default=0.0)), default=float("inf"))]
+    refresh = [b - a for a, b in zip(while_busy, while_busy[1:])] or [float("inf")]
     p95 = latencies[int(0.95 * (len(latencies) - 1))] if latencies else float("nan")
     record = store.get(job_id)
     assert record.passes == 1 + len(latencies), "a merge was lost or counted twice"
+    assert record.folded_passes == record.passes, "the folder left accepted batches unfolded"
     report = {"width": w, "height": h, "nodes": len(urls) - 1 or 1, "workers": n_workers,
               "pass_seconds": pass_seconds, "first_batch_seconds": batch_seconds,
               "merge_alone_seconds": alone, "encode_seconds": encode, "merges": len(latencies),
@@ -175,7 +192,8 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
               "share": sum(latencies) / (sum(latencies) + sum(r["rendered"] for r in pushes)) if latencies else None,
               "needed_batch_passes": statistics.fmean(latencies) / MERGE_SHARE / pass_seconds if latencies else None,
               "lateness_max_seconds": max((x for r in pushes for x in r["lateness"]), default=0.0),
-              "refresh_max_seconds": max(lags), "refresh_median_seconds": statistics.median(lags),
+              "refresh_max_seconds": max(refresh), "refresh_median_seconds": statistics.median(refresh),
+              "image_lag_max_seconds": max(lags), "image_lag_median_seconds": statistics.median(lags),
               "fold_rounds": len(fold["rounds"]),
               "fold_round_median_seconds": statistics.median(e - s for s, e in fold["rounds"])
               if fold["rounds"] else None,
@@ -217,9 +235,9 @@ def _series(runs: list[dict]) -> dict[tuple[int, int, int], list[dict]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--smoke", action="store_true", help="small frames and few workers: checks the bench runs")
-    parser.add_argument("--seconds-per-megapixel", type=float, default=0.77,
+    parser.add_argument("--seconds-per-megapixel", type=float, default=0.49,
                         help="a pass's per-pixel cost (eye, gather, readback, host) per megapixel")
-    parser.add_argument("--trace-seconds", type=float, default=0.127, help="a pass's photon tracing")
+    parser.add_argument("--trace-seconds", type=float, default=0.15, help="a pass's photon tracing")
     parser.add_argument("--processes", type=int, default=8, help="pusher processes the simulated workers share")
     parser.add_argument("--sizes", help="comma-separated frame sizes WxH instead of the plan's (e.g. 1920x1080)")
     args = parser.parse_args()
@@ -243,7 +261,8 @@ def main() -> None:
                         runs.append(r)
                         print(f"{w}x{h} nodes={r['nodes']} workers={n}: merge p95 {r['merge_p95_seconds']:.3f} s, "
                               f"share {100 * r['share']:.2f}%, batch needs {r['needed_batch_passes']:.1f} passes, "
-                              f"refresh max {r['refresh_max_seconds']:.1f} s, "
+                              f"batch {r['first_batch_seconds']:.0f} s, refresh max {r['refresh_max_seconds']:.1f} s "
+                              f"(a batch in the image after {r['image_lag_max_seconds']:.1f} s at most), "
                               f"backlog {r['backlog_at_end']}, sustained {r['sustained']}", flush=True)
                         if not r["sustained"]:
                             break

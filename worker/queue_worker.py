@@ -8,6 +8,12 @@ fatal: the worker waits and reconnects; its batch in flight, if any, is re-issue
 the reaper when its lease expires. A worker asked to stop (SIGTERM, SIGINT) finishes or
 abandons its batch and exits; it never goes on retrying a Redis that went away with it.
 
+A worker runs at a lower CPU priority (nice NICE): where it shares a machine with the API
+and Redis (`photonfarm serve` starts local workers), their fold rounds and requests
+take the CPU when they need it, and the workers render with the rest (on a machine of
+its own a worker loses nothing). A 3840 x 2160 fold round on this 2-core machine beside
+two workers took 9-16 s at equal priority (bench/refresh.py).
+
 Job arguments travel as JSON (RQ's JSONSerializer: loading runs no code), and a worker
 runs only the render task, whatever function a job in the queue names.
 """
@@ -37,6 +43,7 @@ from worker.store.connection import connect
 
 log = logging.getLogger("photonfarm.worker")
 TASKS = ("worker.tasks.run_batch",)  # the only functions a queued job may name
+NICE = int(os.environ.get("PHOTONFARM_WORKER_NICE", "10"))  # added to the worker process's niceness
 
 
 class BatchJob(Job):
@@ -71,6 +78,7 @@ def _handle_stop_signals() -> None:
 
 def run_worker(redis_url: str, burst: bool = False) -> int:
     configure_logging()
+    os.nice(NICE)  # before any thread starts: the heartbeat and PoCL's threads inherit it
     conn = connect(redis_url)
     _handle_stop_signals()
     while not BatchWorker.stopping.is_set():
