@@ -7,10 +7,12 @@ workers with one PoCL thread each) renders one furnace job of the given size for
 is read every 0.25 s; each fold round's end (`folded_at`, when the image a client reads
 changes) and length (`fold_seconds`) are noted. Reported: the intervals between image
 changes from the first image to the job's end (largest, median), the rounds' lengths, and
-the API's (folder) and Redis's CPU seconds per round. Wall time on a shared machine: the
-load average before and after is in the report.
+the API's (folder) and Redis's CPU seconds per round (every redis-server's: with
+`--shards N` the job's state lies on N more servers, PHOTONFARM_STATE_URLS). Wall time on
+a shared machine: the load average before and after is in the report.
 
     python -m bench.refresh                          # 3840x2160, 2 workers, 120 s
+    python -m bench.refresh --shards 3               # the same with the state on 3 nodes
     python -m bench.refresh --size 640x360 --seconds 20   # a quick check that it runs
 """
 
@@ -32,15 +34,15 @@ SCENE = "furnace"
 SAMPLE_SECONDS = 0.25
 
 
-def run(w: int, h: int, seconds: float, workers: int) -> dict:
+def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        c = Cluster(Path(tmp), workers=workers, threads_per_worker=1, redis_maxmemory="6gb")
+        c = Cluster(Path(tmp), workers=workers, threads_per_worker=1, redis_maxmemory="6gb", shards=shards)
         try:
             warm = c.submit(scene_name=SCENE, settings={"max_passes": 2 * workers, "photons_per_pass": 1 << 12,
                                                         "resolution": [64, 64]})
             c.wait(warm["id"], finished, timeout=600)  # kernels built in every worker first
             jobs = Jobs(c.redis_client)
-            parts = {"api": [c.api.pid], "redis": [c.redis.proc.pid]}
+            parts = {"api": [c.api.pid], "redis": [s.proc.pid for s in (c.redis, *c.shards)]}
             load = os.getloadavg()[0]
             cpu0 = {k: cpu_seconds(v) for k, v in parts.items()}
             job_id = c.submit(scene_name=SCENE, settings={"max_seconds": seconds, "resolution": [w, h],
@@ -59,7 +61,8 @@ def run(w: int, h: int, seconds: float, workers: int) -> dict:
             c.close()
     intervals = [b["end"] - a["end"] for a, b in zip(rounds, rounds[1:])]
     lengths = [r["seconds"] for r in rounds]
-    return {"width": w, "height": h, "workers": workers, "seconds": seconds, "status": record.status.value,
+    return {"width": w, "height": h, "workers": workers, "shards": shards, "seconds": seconds,
+            "status": record.status.value,
             "passes": record.passes, "batches": record.merges, "fold_rounds": len(rounds),
             "refresh_max_seconds": max(intervals, default=float("nan")),
             "refresh_median_seconds": statistics.median(intervals) if intervals else float("nan"),
@@ -76,20 +79,21 @@ def main() -> None:
     parser.add_argument("--size", default="3840x2160", help="frame size WxH")
     parser.add_argument("--seconds", type=float, default=120.0, help="the job's time budget")
     parser.add_argument("--workers", type=int, default=2, help="workers, one PoCL thread each")
+    parser.add_argument("--shards", type=int, default=0, help="state nodes besides the main Redis (0: none)")
     args = parser.parse_args()
     try:
         w, h = (int(v) for v in args.size.split("x"))
     except ValueError:
         parser.error(f"--size: expected WxH, got {args.size!r}")
-    report = run(w, h, args.seconds, args.workers)
-    print(f"{w}x{h}, {args.workers} workers, {report['passes']} passes in {report['batches']} batches: "
+    report = run(w, h, args.seconds, args.workers, args.shards)
+    print(f"{w}x{h}, {args.workers} workers, {args.shards} shards, {report['passes']} passes in {report['batches']} batches: "
           f"{report['fold_rounds']} fold rounds, image refreshed every {report['refresh_median_seconds']:.1f} s "
           f"(largest {report['refresh_max_seconds']:.1f} s; target {REFRESH_SECONDS:.0f} s), rounds "
           f"{report['fold_round_median_seconds']:.1f} s (largest {report['fold_round_max_seconds']:.1f} s); "
           f"CPU s a round: API {report['api_cpu_seconds_per_round']:.2f}, Redis "
           f"{report['redis_cpu_seconds_per_round']:.2f}; load {report['load_average_before']:.1f} to "
           f"{report['load_average_after']:.1f}")
-    write_json(f"refresh_{w}x{h}", report)
+    write_json(f"refresh_{w}x{h}" + (f"_{args.shards}shards" if args.shards else ""), report)
 
 
 if __name__ == "__main__":
