@@ -124,7 +124,7 @@ def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine
     n = eng.arrays.n_pixels
     radius, count = np.empty(n, np.float32), np.empty(n, np.float32)
     cl.enqueue_copy(eng.device.queue, radius, eng.passes.radius)
-    cl.enqueue_copy(eng.device.queue, count, eng.passes.count)
+    cl.enqueue_copy(eng.device.queue, count, eng.passes.radius_count)
     rb = inputs.radius.astype(np.float32).astype(np.float64)
     expected = state.N + concurrency * alpha * math.pi * rb ** 2 * delta.sums["Db"]
     lit = delta.D > 0

@@ -49,7 +49,7 @@ class PhotonMappingPasses:
         # Per pixel within a batch: the radius and the radius rule's count N, moving on pass by
         # pass (shrink_radius, spatial_hash.cl), the radius the batch was given, and the bias.
         self.radius = device.buffer(4 * n)
-        self.count = device.buffer(4 * n)
+        self.radius_count = device.buffer(4 * n)
         self.radius_batch = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
         self.concurrency = 1
@@ -172,14 +172,16 @@ class PhotonMappingPasses:
         dev.times.add("trace", [ev])
 
     def _radii(self) -> tuple:
-        """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, count, bias,
-        alpha, weight)."""
-        return self.radius, self.radius_batch, self.count, self.bias, f32(self.settings.alpha), f32(self.concurrency)
+        """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, radius_count,
+        bias, alpha, weight)."""
+        return (self.radius, self.radius_batch, self.radius_count, self.bias, f32(self.settings.alpha),
+                f32(self.concurrency))
 
     def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray, concurrency: int = 1) -> None:
         """A batch's (or a probe's) starting radius, count N and bias per pixel, float32, and
         how many of the job's batches render at once (GatherInputs.concurrency)."""
-        for buf, host in ((self.radius, radius), (self.radius_batch, radius), (self.count, count), (self.bias, bias)):
+        for buf, host in ((self.radius, radius), (self.radius_batch, radius), (self.radius_count, count),
+                          (self.bias, bias)):
             cl.enqueue_copy(self.dev.queue, buf, np.ascontiguousarray(host, np.float32))
         self.concurrency = concurrency
 
