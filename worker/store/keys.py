@@ -65,15 +65,9 @@ def inflight(job_id: str) -> str:
     return f"pf:job:{job_id}:inflight"
 
 
-def batch_ends(job_id: str) -> str:
-    """When each started batch of the job is expected to end (batch id -> epoch seconds)."""
-    return f"pf:job:{job_id}:ends"
-
-
 def job_keys(job_id: str) -> list[str]:
     """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
-    return [job(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id), inflight(job_id),
-            batch_ends(job_id)]
+    return [job(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id), inflight(job_id)]
 
 
 def tile_keys(job_id: str, k: int) -> list[str]:

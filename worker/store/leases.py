@@ -66,7 +66,6 @@ class Leases:
         pipe.zrem(keys.LEASES, batch.member)
         pipe.hdel(keys.LEASE_OWNER, batch.member)
         pipe.hdel(keys.BATCH_RQ, batch.member)
-        pipe.hdel(keys.batch_ends(batch.job_id), batch.id)
 
     def drop(self, batch: Batch) -> None:
         pipe = self.r.pipeline()

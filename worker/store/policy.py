@@ -55,7 +55,7 @@ RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 *
 
 
 def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
-                 fold_seconds: float = 0.0, workers: int = 1, others_end: list[float] | None = None) -> int:
+                 fold_seconds: float = 0.0, workers: int = 1) -> int:
     """Passes for the next batch: about BATCH_TARGET_SECONDS of rendering, and long enough
     that a merge costs at most MERGE_SHARE of a worker's time, but not past the job's time
     budget (`seconds_left`), so a job ends within its budget plus one pass. One until a
@@ -65,32 +65,14 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     round: the folder and the state node read, merge and write the whole state), one round
     a batch while batches land less often than the fold interval. So a batch is also long
     enough for its merge and a round to stay within MERGE_SHARE, as far as the refresh
-    allows: the job's `workers` together still deliver a batch every REFRESH_SECONDS. For
-    that they must not end together: the batch ends where it spreads the ends of the job's
-    other running batches (`others_end`, seconds from now) most evenly (`staggered`)."""
+    allows: the job's `workers` together still deliver a batch every REFRESH_SECONDS."""
     if pass_seconds <= 0.0:
         return 1
     with_fold = min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, max(1, workers) * REFRESH_SECONDS)
-    target = staggered(max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE, with_fold), others_end or [])
+    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE, with_fold)
     if seconds_left is not None:
         target = min(target, seconds_left)
     return max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
-
-
-def staggered(length: float, others_end: list[float]) -> float:
-    """A batch's length, at most `length`, so that it ends in the middle of the largest gap
-    between the other running batches' ends, taken modulo `length` (every batch after it
-    is `length` long, so the ends keep their spacing): batches that started together (a
-    job's first ones) drift apart and then arrive evenly, one every length / workers.
-    Where the middle lies just ahead of now, `length` (phase 0) still lies in the gap's
-    first half: a batch is never made a sliver."""
-    if not others_end:
-        return length
-    points = sorted(e % length for e in others_end)
-    gaps = [(b - a, a) for a, b in zip(points, points[1:] + [points[0] + length])]
-    width, start = max(gaps)
-    middle = (start + width / 2.0) % length
-    return middle if middle >= width / 4.0 else length
 
 
 # ------------------------------------------------------------- the termination rule

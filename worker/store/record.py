@@ -274,11 +274,9 @@ class Jobs:
                     if record.status not in policy.RENDERING or record.stopping or \
                             policy.out_of_time(record.settings, elapsed):
                         return None
-                    now = time.time()
-                    ends = [float(t) - now for t in self.r.hvals(keys.batch_ends(job_id)) if float(t) > now]
                     n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds,
                                             policy.seconds_left(record.settings, elapsed), record.fold_seconds,
-                                            workers, ends)
+                                            workers)
                     left = policy.passes_left(record.settings, record.next_pass)
                     n = n if left is None else min(n, left)
                     if n <= 0:
@@ -302,9 +300,6 @@ class Jobs:
             return False
         self.leases.take(batch, worker)
         self.leases.heartbeat(worker, batch.job_id, batch.id)
-        per_pass = float(self.r.hget(keys.job(batch.job_id), "pass_seconds") or 0.0)
-        if per_pass > 0.0:  # when it will end, for the batches allocated meanwhile (policy.staggered)
-            self.r.hset(keys.batch_ends(batch.job_id), batch.id, time.time() + batch.n * per_pass)
         self._transition(batch.job_id, frozenset({Status.QUEUED}), lambda pipe: pipe.hset(
             keys.job(batch.job_id), mapping={"status": Status.RUNNING.value, "started": time.time()}))
         return True
