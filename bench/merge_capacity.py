@@ -180,8 +180,8 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     lags = _image_lags(accepted, fold["rounds"]) or [float("inf")]
     # The image changes at each round's end; between the first and the last batch accepted.
     ends = [e for _, e in fold["rounds"]]
-    while_busy = [e for e in ends if min(accepted, default=0.0) <= e <= max(accepted, default=0.0)] + \
-        [min((e for e in ends if e > max(accepted, default=0.0)), default=float("inf"))]
+    first, last = min(accepted, default=0.0), max(accepted, default=0.0)
+    while_busy = [e for e in ends if first <= e <= last] + [min((e for e in ends if e > last), default=float("inf"))]
     refresh = [b - a for a, b in zip(while_busy, while_busy[1:])] or [float("inf")]
     p95 = latencies[int(0.95 * (len(latencies) - 1))] if latencies else float("nan")
     record = store.get(job_id)

@@ -180,8 +180,8 @@ class PhotonMappingPasses:
     def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray, concurrency: int = 1) -> None:
         """A batch's (or a probe's) starting radius, count N and bias per pixel, float32, and
         how many of the job's batches render at once (GatherInputs.concurrency)."""
-        for buf, host in ((self.radius, radius), (self.radius_batch, radius), (self.radius_count, count),
-                          (self.bias, bias)):
+        r32 = np.ascontiguousarray(radius, np.float32)
+        for buf, host in ((self.radius, r32), (self.radius_batch, r32), (self.radius_count, count), (self.bias, bias)):
             cl.enqueue_copy(self.dev.queue, buf, np.ascontiguousarray(host, np.float32))
         self.concurrency = concurrency
 
