@@ -43,7 +43,7 @@ def test_counters_merge_through_the_store(tmp_path: Path) -> None:
         store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
         for d in random.Random(3).sample(deltas, len(deltas)):
             assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
-        store.fold(job_id, wait=True)  # the accepted batches' deltas and counters into the state
+        store.fold(job_id, wait=True, checkpoint=True)  # the accepted batches' deltas and counters into the state
         record = store.get(job_id)
         assert record.counters == memory.counters and memory.counters["splats"] > 0
         state = store.state(record)

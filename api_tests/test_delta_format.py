@@ -107,7 +107,7 @@ def test_a_tile_state_of_the_previous_version_reads_and_folds_on(tmp_path: Path)
             store.init_setup(store.get(job_id), {"R0": np.full(n, 0.05)})
             store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
             assert store.merge(Batch(job_id, 0, 2), deltas[0], 0.01) == "merged"
-            assert store.fold(job_id) is not None
+            assert store.fold(job_id, checkpoint=True) is not None
         # Job 1's tiles as the previous version stored them: every array in the state's order
         # in one string; tile 0 as before its first fold (only R0).
         legacy = store.state(store.get(jobs[1])).arrays()
@@ -127,7 +127,7 @@ def test_a_tile_state_of_the_previous_version_reads_and_folds_on(tmp_path: Path)
         # Tiles 1.. fold on as the job that never had the old layout.
         for job_id in jobs:
             assert store.merge(Batch(job_id, 2, 2), deltas[1], 0.01) == "merged"
-            assert store.fold(job_id) is not None
+            assert store.fold(job_id, checkpoint=True) is not None
         states = [store.state(store.get(job_id)).arrays() for job_id in jobs]
         rest = slice(tiling.span(1).start, n)
         for name in widths:

@@ -76,14 +76,16 @@ def _merge_and_fold(urls: list[str], job_id: str, deltas_file: str, order_seed: 
     order = list(range(len(made)))
     random.Random(order_seed).shuffle(order)
     outcomes = []
-    for i in order:
+    for n, i in enumerate(order):
         outcomes.append(store.merge(Batch(job_id, made[i].first_pass, made[i].n_passes), made[i], 0.1))
-        store.fold(job_id)  # folds race the other processes' pushes and folds
+        # Folds race the other processes' pushes and folds: rounds in memory (each process its
+        # own overlay) and checkpoints, which make the other processes' overlays stale.
+        store.fold(job_id, checkpoint=(n + order_seed) % 3 == 0)
     return outcomes
 
 
 def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
-    store.fold(job_id, wait=True)
+    store.fold(job_id, wait=True, checkpoint=True)
     record = store.get(job_id)
     state = store.state(record)
     record = store.get(job_id)
@@ -167,7 +169,7 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
     _assert_folded_once(store, job_id, made[:3])
 
 
-def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int) -> None:
+def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpoint: bool) -> None:
     """One fold round, SIGKILLed as it encodes its (tiles_before_kill + 1)-th tile's inputs,
     inside that tile's transaction."""
     encoded = []
@@ -180,11 +182,12 @@ def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int) -> None
         return real(inputs, span)
 
     state_module.encode_inputs = encode_inputs
-    _store(urls).fold(job_id)
+    _store(urls).fold(job_id, checkpoint=checkpoint)
 
 
+@pytest.mark.parametrize("checkpoint", [True, False])
 def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRedis], deltas: tuple,
-                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+                                                         monkeypatch: pytest.MonkeyPatch, checkpoint: bool) -> None:
     path, scene, settings, r0 = deltas
     urls = [s.url for s in servers]
     store = _store(urls)
@@ -193,7 +196,7 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
     for d in made:
         assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
     monkeypatch.setenv("PHOTONFARM_LEASE_SECONDS", "2")  # the dead folder's lease lapses soon
-    child = mp.get_context("spawn").Process(target=_fold_then_die, args=(urls, job_id, 3))
+    child = mp.get_context("spawn").Process(target=_fold_then_die, args=(urls, job_id, 3, checkpoint))
     child.start()
     child.join(120)
     assert child.exitcode == -signal.SIGKILL
@@ -201,8 +204,45 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
     tiling = store.tiling(record)
     versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
                 for k in range(tiling.count)]
-    # The nodes are written at once, a thread each: the folder died after 1 to 3 tiles.
-    assert set(versions) == {0, 1} and 1 <= sum(versions) <= 3, versions
+    if checkpoint:  # the nodes are written at once, a thread each: the folder died after 1 to 3 tiles
+        assert set(versions) == {0, 1} and 1 <= sum(versions) <= 3, versions
+    else:  # a round in memory writes only the inputs: the tiles are as the last checkpoint left them
+        assert set(versions) == {0}, versions
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 4
     assert store.fold(job_id, wait=True) is not None  # after its lease lapsed, the next folder
     _assert_folded_once(store, job_id, made)
+
+
+def test_an_overlay_is_dropped_once_another_folder_checkpoints(servers: list[EmbeddedRedis], deltas: tuple) -> None:
+    """A round in memory serves its image here and leaves the record's folded counters; a
+    checkpoint by another process makes that overlay stale, and the next round here starts
+    from the checkpoint: every batch still folds once."""
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    made: list[Delta] = pickle.loads(path.read_bytes())[:4]
+    for d in made[:2]:
+        assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    folded = store.fold(job_id)
+    assert folded is not None and not folded.checkpointed
+    record = store.get(job_id)
+    assert record.folded_passes == 0 and record.image_passes == 4 == store.state(record).passes
+    assert store.fold(job_id) is None  # nothing new, and no checkpoint due
+    child = mp.get_context("spawn").Process(target=_merge_and_checkpoint, args=(urls, job_id, str(path), 2))
+    child.start()
+    child.join(120)
+    assert child.exitcode == 0
+    assert store.get(job_id).folded_passes == 6
+    d = made[3]
+    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    folded = store.fold(job_id)
+    assert folded is not None and not folded.checkpointed and folded.state.passes == 8
+    _assert_folded_once(store, job_id, made)
+
+
+def _merge_and_checkpoint(urls: list[str], job_id: str, deltas_file: str, i: int) -> None:
+    d: Delta = pickle.loads(Path(deltas_file).read_bytes())[i]
+    store = _store(urls)
+    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    assert store.fold(job_id, wait=True, checkpoint=True).checkpointed

@@ -55,6 +55,7 @@ from worker.integrators.base import Delta
 from worker.scheduler import FOLD_POLL_SECONDS
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
+from worker.store.overlay import OVERLAYS
 from worker.store.policy import MAX_BATCH_PASSES, MERGE_SHARE, batch_passes
 from worker.store.tiles import encode_delta
 
@@ -124,13 +125,17 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
     round's start and end, and the backlog when the workers stopped (did it keep up?)."""
     store = _store(urls)
     rounds, backlog = [], None
-    while backlog is None or store.r.hlen(keys.tofold(job_id)):
+
+    def unfolded() -> int:  # accepted batches not in the image yet
+        return len({b.decode() for b in store.r.hkeys(keys.tofold(job_id))} - OVERLAYS.batches(job_id))
+    while backlog is None or unfolded():
         t0 = time.time()
         if backlog is None and pushed.is_set():
-            backlog = store.r.hlen(keys.tofold(job_id))
+            backlog = unfolded()
         if store.fold_if_due(job_id) is not None:
             rounds.append((t0, time.time()))
         time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
+    store.fold(job_id, wait=True, checkpoint=True)  # as the job's end does
     out.put({"rounds": rounds, "backlog": backlog})
 
 

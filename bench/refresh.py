@@ -52,7 +52,7 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
                 record = jobs.get(job_id)
                 if record.folded_at and (not rounds or record.folded_at != rounds[-1]["end"]):
                     rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
-                                   "passes": record.folded_passes})
+                                   "passes": record.image_passes})
                 if record.status in FINAL:
                     break
                 time.sleep(SAMPLE_SECONDS)

@@ -81,7 +81,7 @@ def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
     base = f"/v1/jobs/{record.id}"
     return JobView(
         id=record.id, status=record.status, scene_name=record.scene_name, settings=record.settings,
-        width=record.width, height=record.height, passes=record.passes, image_passes=record.folded_passes, photons=record.emitted,
+        width=record.width, height=record.height, passes=record.passes, image_passes=record.image_passes, photons=record.emitted,
         elapsed_seconds=round(record.elapsed_seconds(), 3), photons_per_second=round(record.photons_per_second, 1),
         workers_active=jobs.leases.owners(record.id), created=_iso(record.created), started=_iso(record.started),
         finished=_iso(record.finished), failure=record.failure, error_estimate=jobs.last_error(record.id),
@@ -181,7 +181,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     encoding = threading.Condition()
 
     def by_passes(kind: str):  # type: ignore[no-untyped-def]
-        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.folded_passes, fmt),
+        return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.image_passes, fmt),
                                  condition=encoding)
 
     @by_passes("image")
@@ -211,7 +211,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
         return body, {"X-Passes": str(state.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
 
-    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.folded_passes),
+    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.image_passes),
                        condition=threading.Condition())
     def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
         """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
@@ -418,7 +418,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         def value(name: str) -> float | None:  # none where unknown (an infinite bound) or not estimated
             v = float(arrays[name][y, x]) if name in arrays else math.nan
             return v if math.isfinite(v) else None
-        return PixelView(x=x, y=y, passes=record.folded_passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
+        return PixelView(x=x, y=y, passes=record.image_passes, rgb=tuple(float(v) for v in arrays["rgb"][y, x]),
                          luminance=value("luminance"), bound=value("bound"), relative_error=value("relative"),
                          measured=bool(arrays["measured"][y, x]) if "measured" in arrays else None,
                          confidence=record.settings.confidence if "relative" in arrays else None)

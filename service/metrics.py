@@ -50,7 +50,7 @@ class ServiceCollector:
             photons += record.emitted
             if record.status == Status.RUNNING:
                 rate += record.photons_per_second
-                if record.passes > record.folded_passes:  # accepted batches not yet in its image
+                if record.passes > record.image_passes:  # accepted batches not yet in its image
                     image_age = max(image_age, now - max(record.folded_at, record.started or now))
         jobs = GaugeMetricFamily("photonfarm_jobs", "Jobs by status", labels=["status"])
         for status, count in by_status.items():

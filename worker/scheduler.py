@@ -28,6 +28,7 @@ from rq.serializers import JSONSerializer
 
 from worker.settings import PRIORITIES, Priority
 from worker.store import Batch, Jobs, Status
+from worker.store.overlay import OVERLAYS
 from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
 
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
@@ -128,7 +129,9 @@ def reap(jobs: Jobs) -> int:
 def fold_active(jobs: Jobs) -> int:
     """The reducer: a fold round for every active job with accepted batches waiting whose
     round is due (a job another process is folding is skipped). Returns how many were folded."""
-    return sum(jobs.fold_if_due(job_id) is not None for job_id in jobs.active_ids())
+    active = jobs.active_ids()
+    OVERLAYS.keep_only(set(active))  # an ended job's last round was a checkpoint
+    return sum(jobs.fold_if_due(job_id) is not None for job_id in active)
 
 
 class Reaper:

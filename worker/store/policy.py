@@ -46,6 +46,11 @@ FOLD_SECONDS = 2.0
 # file): at most this share of the time goes to a job's rounds, as far as the refresh allows.
 FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
+# A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes the
+# state to the tiles (a checkpoint) at most this often, unless the deltas it keeps pending
+# on the state nodes reach CHECKPOINT_PENDING_SHARE of the state's bytes, or the job ends.
+CHECKPOINT_SECONDS = 30.0
+CHECKPOINT_PENDING_SHARE = 2.0
 FOLD_STALE_SECONDS = 5.0
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
 # not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
@@ -91,6 +96,13 @@ def fold_interval(fold_seconds: float) -> float:
     take at most FOLD_SHARE of the time (more batches folded per round), but short enough
     that a round starts and ends within REFRESH_SECONDS of the last one's end."""
     return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, REFRESH_SECONDS - fold_seconds))
+
+
+def checkpoint_due(overlay_seconds: float, pending_bytes: int, state_bytes: int) -> bool:
+    """Whether a fold round writes the state to the tiles: its overlay is CHECKPOINT_SECONDS
+    old, or keeping the folded batches' deltas pending costs the state nodes more memory than
+    CHECKPOINT_PENDING_SHARE states (each checkpoint costs them one state's bytes in)."""
+    return overlay_seconds >= CHECKPOINT_SECONDS or pending_bytes >= CHECKPOINT_PENDING_SHARE * state_bytes
 
 
 def seconds_left(settings: Settings, elapsed: float) -> float | None:

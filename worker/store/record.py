@@ -8,8 +8,9 @@ MULTI/EXEC under WATCH of the record accepts it: counters, the merged set, the t
 hash, the lease released. A worker that dies before EXEC leaves at most pending entries
 that the re-issued batch overwrites; a cancel landing between the acceptance's read and
 write makes it retry and see it. Folding is separate (`fold`): only accepted batches are
-folded, each into each tile once. A job moves to a final status only once everything
-accepted is folded, so its final image holds every pass it counts.
+folded, each into each tile once (rounds between checkpoints fold in the folder's memory,
+worker/store/overlay.py). A job moves to a final status only once everything accepted is
+folded and checkpointed, so its final image holds every pass it counts.
 
 Active jobs are a set (`pf:active`) changed in the same transaction as the status: a job
 is created only if the set is below the limit (checked and added atomically), and every
@@ -32,6 +33,7 @@ from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
 from worker.store.fold_lease import FoldLease
+from worker.store.overlay import OVERLAYS
 from worker.store.leases import Batch, Leases
 from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
 from worker.store.state import Folded, FoldContended, TiledState, UnreadableDelta
@@ -60,8 +62,9 @@ class JobRecord:
     finished: float | None
     passes: int  # accepted (merged)
     emitted: int  # photon paths of the accepted passes
-    folded_passes: int  # in the folded state (the image)
+    folded_passes: int  # in the state the tiles hold (the last checkpoint)
     folded_emitted: int
+    image_passes: int  # in the image after the last fold round (checkpoint or overlay, worker/store/overlay.py)
     folded_at: float
     fold_seconds: float  # the last fold round's
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
@@ -91,6 +94,7 @@ class JobRecord:
                    created=float(f["created"]), started=when("started"), finished=when("finished"),
                    passes=int(f["passes"]), emitted=int(f["emitted"]),
                    folded_passes=int(f.get("folded_passes", 0)), folded_emitted=int(f.get("folded_emitted", 0)),
+                   image_passes=int(f.get("image_passes", f.get("folded_passes", 0))),
                    folded_at=float(f.get("folded_at", 0.0)),
                    fold_seconds=float(f.get("fold_seconds", 0.0)), setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1",
@@ -351,7 +355,7 @@ class Jobs:
             self.r.hset(key, "stopping", "1")
         while True:
             if fold:
-                self.fold(job_id, wait=True, decide=False)
+                self.fold(job_id, wait=True, decide=False, checkpoint=True)
             with self.r.pipeline() as pipe:
                 try:
                     pipe.watch(key, keys.tofold(job_id), keys.inflight(job_id))
@@ -362,14 +366,16 @@ class Jobs:
                         return False
                     if fold and pipe.hlen(keys.tofold(job_id)) > 0:
                         continue  # accepted since the fold: fold it too
+                    image = {} if fold else {"image_passes": pipe.hget(key, "folded_passes") or 0}
                     pipe.multi()
-                    if fields:
-                        pipe.hset(key, mapping=fields)
+                    if fields or image:
+                        pipe.hset(key, mapping=(fields or {}) | image)
                     self._finish(pipe, job_id, final, time.time())
                     pipe.execute()
                     break
                 except redis.WatchError:
                     continue
+        OVERLAYS.drop(job_id)  # not folded (`fold` off): the image is the last checkpoint
         self._expire_tiles(job_id)
         return True
 
@@ -485,10 +491,11 @@ class Jobs:
                     continue
 
     # --------------------------------------------------------------------- fold
-    def fold(self, job_id: str, wait: bool = False, decide: bool = True) -> Folded | None:
-        """One fold round of the job's accepted batches, if any, by whoever gets the fold
-        lease (`wait`: wait for it). With `decide`, a job whose error reached its threshold
-        converges. None if there was nothing to fold or another folder had the lease."""
+    def fold(self, job_id: str, wait: bool = False, decide: bool = True, checkpoint: bool = False) -> Folded | None:
+        """One fold round of the job's accepted batches, if any is new to this process or
+        its checkpoint is due (`checkpoint`: one is), by whoever gets the fold lease (`wait`:
+        wait for it). With `decide`, a job whose error reached its threshold converges. None
+        if there was nothing to fold or another folder had the lease."""
         if not self.r.hlen(keys.tofold(job_id)):
             return None
         with FoldLease(self.r, job_id, wait) as held:
@@ -498,17 +505,20 @@ class Jobs:
             accepted = {b.decode(): json.loads(v) for b, v in self.r.hgetall(keys.tofold(job_id)).items()}
             if record is None or not record.setup or not accepted:
                 return None
+            checkpoint = checkpoint or record.stopping or record.status in policy.FINAL  # no later round
+            if accepted.keys() <= OVERLAYS.batches(job_id) and not checkpoint and not OVERLAYS.checkpoint_due(job_id):
+                return None  # all in this process's image already
             fold_start = time.perf_counter()
             try:
-                folded = self.tiles.fold_round(job_id, self.tiling(record), record.integrator,
-                                               record.folded_emitted, record.folded_passes, record.counters, accepted)
+                folded = self.tiles.fold_round(job_id, self.tiling(record), record.integrator, record.folded_emitted,
+                                               record.folded_passes, record.counters, accepted, checkpoint)
             except FoldContended:
                 return None  # another folder holds the tiles now; its round counts
             except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
                 self.r.hdel(keys.tofold(job_id), exc.batch_id)
                 self.fail(job_id, f"cannot fold {exc}")
                 return None
-            self.tiles.account(job_id, list(accepted), {
+            self.tiles.account(job_id, folded, list(accepted), {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
                 time.perf_counter() - fold_start)

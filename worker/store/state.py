@@ -5,13 +5,15 @@ tiles, into each tile's pending hash (HSET by batch id: a re-pushed batch overwr
 own entry, never adds a second one), and the job record then accepts the batch
 (worker/store/record.py). The folder, whoever holds the job's fold lease (the API's
 folder thread, a reader, or a worker when the last fold is stale), folds every accepted
-batch not yet folded: it reads the state (from its cache when the tile's version is
-unchanged), adds the round's deltas with the integrator's own merge (one merge per round:
-a big pass, digest 11.2 (i)), and writes each tile in one transaction that WATCHes the
-tile's version: new state, new batch inputs, the batches added to the tile's folded set,
-their pending entries removed. So a tile takes a batch exactly once, whichever folder
-gets there, and a folder killed mid-round leaves each tile either folded or not; the next
-round folds the rest (tiles that have the batch skip it).
+batch it has not folded yet: it takes the state (its overlay, worker/store/overlay.py, or
+the last checkpoint, from its cache when the tile's version is unchanged), adds the
+round's deltas with the integrator's own merge (one merge per round: a big pass, digest
+11.2 (i)) and writes each tile's batch inputs. Now and then a round checkpoints: it writes
+each tile in one transaction that WATCHes the tile's version: new state, new batch
+inputs, the batches added to the tile's folded set, their pending entries removed. So a
+tile takes a batch exactly once, whichever folder gets there, and a folder killed
+mid-round leaves each tile either folded or not; the next round folds the rest (tiles
+that have the batch skip it).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import redis
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
+from worker.store.overlay import OVERLAYS, Overlay
 from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, decode_delta, decode_inputs, decode_state,
                                 encode_delta, encode_inputs, encode_state, state_nodes)
 
@@ -94,12 +97,14 @@ class UnreadableDelta(Exception):
 
 @dataclass(frozen=True)
 class Folded:
-    """What a fold round made of the job: its state, the image's error after it, and this
-    process's CPU seconds per stage of the round (logged; bench/fold_round.py)."""
+    """What a fold round made of the job: its state, the image's error after it, this
+    process's CPU seconds per stage of the round (logged; bench/fold_round.py), and whether
+    the round wrote the state to the tiles (a checkpoint) or kept it in memory."""
 
     state: State
     error: float | None
     stages: dict[str, float]
+    checkpointed: bool
 
 
 class Stages:
@@ -248,10 +253,15 @@ class TiledState:
 
     def read(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
              counters: dict[str, int]) -> State:
-        """The folded state (a tile a folder writes meanwhile is read again)."""
+        """The folded state: this process's overlay if it is on the tiles' versions, else the
+        last checkpoint, whose counters the record gives (a tile a folder writes meanwhile is
+        read again)."""
         while True:
             try:
-                blobs = self._blobs(job_id, tiling, integrator, self._versions(job_id, tiling))
+                versions = self._versions(job_id, tiling)
+                if (overlay := OVERLAYS.valid(job_id, versions)) is not None:
+                    return overlay.state
+                blobs = self._blobs(job_id, tiling, integrator, versions)
                 break
             except FoldContended:
                 continue
@@ -259,35 +269,51 @@ class TiledState:
 
     # ------------------------------------------------------------------- fold
     def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
-                   counters: dict[str, int], accepted: dict[str, dict[str, Any]]) -> Folded:
-        """Fold the accepted batches (id -> {n, e, c}; at least one) into every tile that lacks them;
-        `emitted`, `passes` and `counters` are the record's folded counters. Raises FoldContended if
-        another folder got to a tile first (this round's other tiles stay valid)."""
+                   counters: dict[str, int], accepted: dict[str, dict[str, Any]], checkpoint: bool = False) -> Folded:
+        """Fold the accepted batches (id -> {n, e, c}; at least one) not yet in this process's
+        overlay into it, and write the state to every tile that lacks some of them when the
+        round checkpoints (`checkpoint`, or policy.checkpoint_due). `emitted`, `passes` and
+        `counters` are the record's folded counters (the last checkpoint's). Raises
+        FoldContended if another folder got to a tile first (this round's other tiles stay
+        valid)."""
         batch_ids = sorted(accepted)
         widths, delta_widths = integrator.state_widths, dict(integrator.sums.widths)
         stages = Stages()
-        # Read: versions, which tiles already hold which batch, the state.
+        # Read: versions, which tiles already hold which batch, the state (the overlay's if
+        # it was built on these versions, else the last checkpoint's).
         got = self._each_node(tiling, lambda pipe, k: (
             pipe.hget(keys.tile(job_id, k, "meta"), "version"),
             pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids)))
         versions = {k: int(g[0] or 0) for k, g in got.items()}
         todo = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items()}
         todo = {k: ids for k, ids in todo.items() if ids}
-        state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
-                                   emitted, passes, counters)
+        overlay = OVERLAYS.valid(job_id, versions)
+        if overlay is not None and not overlay.batches <= accepted.keys():
+            overlay = None  # cannot happen while the versions hold (only a checkpoint ends an accepted batch)
+        held = overlay.batches if overlay is not None else frozenset()
+        fresh = {k: [b for b in ids if b not in held] for k, ids in todo.items()}
+        fresh = {k: ids for k, ids in fresh.items() if ids}
+        fresh_ids = [b for b in batch_ids if b not in held]
+        if overlay is None:
+            state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
+                                       emitted, passes, counters)
+        else:
+            state = overlay.copy_state(integrator) if fresh_ids else overlay.state
         stages.lap("read state")
         # The round's delta: each tile's batches it has not folded yet, read a tile at a time
         # (a tile's first delta of an array is copied in, the rest added: the same sums as
         # adding each to zero). Every delta is checked readable before anything is written.
         sums = {name: integrator.sums.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
-        sent: dict[int, set[str]] = {}  # per tile, the arrays its deltas carried
+        sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
+        carried: dict[int, set[str]] = {}  # per tile, the arrays this round's deltas carried
 
-        def add(node: int, tiles: list[int]) -> dict[int, None]:
-            for k in (k for k in tiles if k in todo):
+        def add(node: int, tiles: list[int]) -> dict[int, int]:
+            read = {}
+            for k in (k for k in tiles if k in fresh):
                 span = tiling.span(k)
-                payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), todo[k])
-                carried = sent.setdefault(k, set())
-                for batch_id, payload in zip(todo[k], payloads):
+                payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), fresh[k])
+                names = carried.setdefault(k, set())
+                for batch_id, payload in zip(fresh[k], payloads):
                     if payload is None:
                         raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
                     try:
@@ -295,32 +321,45 @@ class TiledState:
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
                     for name, part in parts.items():  # tiles are disjoint: threads never add to one pixel
-                        if name in carried:
+                        if name in names:
                             sums[name][span] += part
                         else:
                             sums[name][span] = part
-                            carried.add(name)
-            return {}
+                            names.add(name)
+                read[k] = sum(len(p) for p in payloads)
+            return read
 
-        self._per_node(tiling, add)
+        read_bytes = sum(self._per_node(tiling, add).values())
+        for k, names in carried.items():
+            sent.setdefault(k, set()).update(names)
         stages.lap("read deltas")
         added: dict[str, int] = {}
-        for header in accepted.values():
+        for header in (accepted[b] for b in fresh_ids):
             for name, value in header["c"].items():
                 added[name] = added.get(name, 0) + int(value)
-        delta = Delta(first_pass=-1, n_passes=sum(h["n"] for h in accepted.values()),
-                      emitted=sum(h["e"] for h in accepted.values()), sums=sums, counters=added)
+        delta = Delta(first_pass=-1, n_passes=sum(accepted[b]["n"] for b in fresh_ids),
+                      emitted=sum(accepted[b]["e"] for b in fresh_ids), sums=sums, counters=added)
         # Merge, then what the next batches read and the error.
-        integrator.merge(state, delta)
+        if fresh_ids:
+            integrator.merge(state, delta)
         stages.lap("merge")
         inputs = integrator.batch_inputs(state)
         stages.lap("inputs")
-        estimate = integrator.estimate(state)
+        if fresh_ids or overlay is None:
+            estimate = integrator.estimate(state)
+            error = estimate.average if estimate is not None else None
+        else:
+            error = overlay.error
         stages.lap("estimate")
+        now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
+                           {k: frozenset(names) for k, names in sent.items()},
+                           (overlay.pending_bytes if overlay is not None else 0) + read_bytes,
+                           **({"since": overlay.since} if overlay is not None else {}))
+        checkpoint = checkpoint or now_held.checkpoint_due()
         arrays = state.arrays()
-        # What each tile writes: the arrays its deltas carried and what the merge derives from
-        # them (e.g. N); a merge changes nothing where a round's delta is zero, and the setup
-        # arrays (e.g. R0) never change.
+        # What each tile writes at a checkpoint: the arrays its deltas carried and what the
+        # merge derives from them (e.g. N); a merge changes nothing where a delta is zero, and
+        # the setup arrays (e.g. R0) never change. Between checkpoints only the inputs.
         derived = [name for name in widths if name not in integrator.sums.names and name not in integrator.setup_arrays]
 
         # Write each tile in a transaction on its version (the nodes at once).
@@ -328,7 +367,7 @@ class TiledState:
             for k in tiles:
                 span, meta = tiling.span(k), keys.tile(job_id, k, "meta")
                 changed = [name for name in widths if name in sent.get(k, ())] + (derived if sent.get(k) else [])
-                fields = encode_state(arrays, changed, span) if k in todo else None
+                fields = encode_state(arrays, changed, span) if checkpoint and k in todo else None
                 with self.nodes[node].pipeline() as pipe:
                     try:
                         pipe.watch(meta)
@@ -349,16 +388,26 @@ class TiledState:
                     CACHE.put(job_id, k, versions[k] + 1, encode_state(arrays, list(widths), span))
             return {}
 
-        self._per_node(tiling, write)
+        try:
+            self._per_node(tiling, write)
+        finally:
+            if checkpoint:
+                OVERLAYS.drop(job_id)  # the tiles hold it now (or another folder's round)
+        if not checkpoint:
+            OVERLAYS.put(job_id, now_held)
         stages.lap("write")
-        return Folded(state, estimate.average if estimate is not None else None, stages.seconds)
+        return Folded(state, error, stages.seconds, checkpoint)
 
-    def account(self, job_id: str, batch_ids: list[str], history: dict[str, Any], seconds: float) -> None:
-        """Count folded batches in the record (once each), log the error after the round and
-        when and how long the round took."""
+    def account(self, job_id: str, folded: Folded, batch_ids: list[str], history: dict[str, Any],
+                seconds: float) -> None:
+        """After a round: count the batches a checkpoint wrote in the record (once each), log
+        the error after the round, and when and how long the round took and the passes its
+        image holds."""
         pipe = self.main.pipeline()
-        self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
-        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds})
+        if folded.checkpointed:
+            self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
+        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds,
+                                             "image_passes": folded.state.passes})
         pipe.rpush(keys.history(job_id), json.dumps(history))
         pipe.execute()
 
