@@ -85,3 +85,23 @@ def test_redis_restart(faulty: Cluster, method: str) -> None:
     after = faulty.wait(job["id"], lambda j: True)
     assert after["passes"] >= before  # nothing merged was lost (append-only file, fsync always)
     _assert_exact(faulty, job["id"])
+
+
+def test_redis_down_while_workers_render(tmp_path) -> None:  # noqa: ANN001
+    """Redis gone for longer than a pass while both workers hold a batch: their renewals
+    fail, and RQ, filing each batch's failure on the dead Redis, quits its work loop. The
+    worker processes start a new loop once Redis is back, and the job still finishes with
+    every pass once."""
+    c = Cluster(tmp_path, workers=2)
+    try:
+        job = _long_job(c, "sppm")
+        c.wait(job["id"], lambda j: j["passes"] >= 2)
+        _worker_holding_a_lease(c, job["id"])
+        c.redis.proc.send_signal(signal.SIGKILL)
+        c.redis.proc.wait()
+        time.sleep(3.0)
+        c.redis.start(supervise=False)
+        _assert_exact(c, job["id"])
+        assert all(proc.poll() is None for proc in c.workers), "a worker process exited"
+    finally:
+        c.close()

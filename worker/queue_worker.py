@@ -4,7 +4,8 @@ included): scenes travel inline.
 
 SimpleWorker runs every batch in this process (no fork), so the OpenCL context and
 compiled kernels live across batches. A lost Redis connection (a Redis restart) is not
-fatal: the worker waits and reconnects; its batch in flight, if any, is re-issued by
+fatal, wherever it strikes (RQ's own loop quits on errors it does not handle): the worker
+waits and starts its loop again; its batch in flight, if any, is re-issued by
 the reaper when its lease expires. A worker asked to stop (SIGTERM, SIGINT) finishes or
 abandons its batch and exits; it never goes on retrying a Redis that went away with it.
 
@@ -88,14 +89,19 @@ def run_worker(redis_url: str, burst: bool = False) -> int:
             queues = [Queue(q, connection=conn, job_class=BatchJob, serializer=JSONSerializer) for q in QUEUE_NAMES]
             BatchWorker(queues, connection=conn, name=name, job_class=BatchJob,
                         serializer=JSONSerializer).work(burst=burst, with_scheduler=False)
-            return 0
+            if burst:
+                return 0
+            # RQ's loop also ends, logging it, on an error it does not handle (Redis gone while
+            # it files a job's end among them): unless asked to stop, a new loop starts.
+            reason = "its work loop ended"
         except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
-            _handle_stop_signals()
-            if BatchWorker.stopping.is_set():
-                break
-            log.warning("redis unavailable; retrying in 1 s: %s", exc)
-            time.sleep(1.0)
+            reason = f"redis unavailable: {exc}"
         finally:
             beat.stop()
-    log.info("stopped while redis was unavailable")
+        _handle_stop_signals()
+        if BatchWorker.stopping.is_set():
+            break
+        log.warning("%s; starting again in 1 s", reason)
+        time.sleep(1.0)
+    log.info("stopped")
     return 0
