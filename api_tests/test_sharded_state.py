@@ -25,7 +25,7 @@ from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
-from worker.store import Batch, Jobs, keys
+from worker.store import Batch, Jobs, keys, policy
 from worker.store import state as state_module
 from worker.store.state import TiledState
 from worker.store.tiles import DELTA_DTYPE
@@ -246,3 +246,27 @@ def _merge_and_checkpoint(urls: list[str], job_id: str, deltas_file: str, i: int
     store = _store(urls)
     assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
     assert store.fold(job_id, wait=True, checkpoint=True).checkpointed
+
+
+def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: list[EmbeddedRedis], deltas: tuple,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """policy.checkpoint_due: by the overlay's age (a round with nothing new writes it), and
+    by the bytes of the deltas it keeps pending on the tiles."""
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    made: list[Delta] = pickle.loads(path.read_bytes())[:3]
+    assert store.merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1) == "merged"
+    assert not store.fold(job_id).checkpointed
+    monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 0.0)
+    folded = store.fold(job_id)
+    assert folded is not None and folded.checkpointed
+    assert store.get(job_id).folded_passes == made[0].n_passes and not store.r.exists(keys.tofold(job_id))
+    monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 3600.0)
+    assert store.merge(Batch(job_id, made[1].first_pass, made[1].n_passes), made[1], 0.1) == "merged"
+    assert not store.fold(job_id).checkpointed
+    monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # any delta kept pending is too much
+    assert store.merge(Batch(job_id, made[2].first_pass, made[2].n_passes), made[2], 0.1) == "merged"
+    assert store.fold(job_id).checkpointed
+    _assert_folded_once(store, job_id, made)

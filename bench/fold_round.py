@@ -4,11 +4,13 @@ One SPPM job (the service's defaults: exact gather, error estimation) of the giv
 size on one embedded redis-server (service/redis_server.py: append-only file, fsync on
 every write). Per round, `--batches` synthetic batches are pushed and accepted as workers
 do (Jobs.merge), then one fold round runs in this process as the API's folder runs it
-(Jobs.fold). A batch's sums look like a render's: a band of background (no measurement
+(Jobs.fold): in memory, or every `--checkpoint-every`-th round (or when the checkpoint rule
+says so) a checkpoint that writes the state to the tiles. A batch's sums look like a render's: a band of background (no measurement
 point, every sum zero), a band of never-lit pixels (only H), a small emitter seen directly
 (Ld), and lit pixels with every sum; values differ per batch (seeded).
 
-Reported per round, and the mean of the rounds after the first (whose state read is from
+Reported per round, and the mean of the rounds after the first of each kind (memory,
+checkpoint; the first round's state read is from
 Redis, the later ones from the folder's tile cache, as in the API; Redis's CPU moves with
 when its append-only-file rewrites land, so take the mean of several rounds): the folder's CPU seconds per stage of
 `TiledState.fold_round` (read state, read deltas, merge, inputs, estimate, write), the
@@ -80,7 +82,7 @@ def _cpu(f, *args):
     return out, time.process_time() - t0
 
 
-def run(w: int, h: int, rounds: int, batches: int, data_dir: Path) -> dict:
+def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_dir: Path) -> dict:
     server = EmbeddedRedis(data_dir, maxmemory="0").start(supervise=False)
     try:
         store = Jobs(connect(server.url))
@@ -99,7 +101,7 @@ def run(w: int, h: int, rounds: int, batches: int, data_dir: Path) -> dict:
                 assert store.merge(Batch(job_id, first, PASSES_PER_BATCH), delta, 1.0) == "merged"
             del sums, delta
             redis_before, cpu_before = cpu_seconds([server.proc.pid]), time.process_time()
-            folded = store.fold(job_id)
+            folded = store.fold(job_id, checkpoint=(r + 1) % checkpoint_every == 0)
             fold_cpu, redis_cpu = time.process_time() - cpu_before, cpu_seconds([server.proc.pid]) - redis_before
             assert folded is not None, "the round folded nothing"
             stages = dict(folded.stages)
@@ -125,30 +127,32 @@ def run(w: int, h: int, rounds: int, batches: int, data_dir: Path) -> dict:
             _, unlit_cpu = _cpu(never_lit)
             _, estimate_cpu = _cpu(record.integrator.estimate, state)
             per_round.append({
-                "round": r, "batches": batches, "fold_cpu_seconds": fold_cpu, "redis_cpu_seconds": redis_cpu,
+                "round": r, "batches": batches, "checkpoint": folded.checkpointed, "fold_cpu_seconds": fold_cpu, "redis_cpu_seconds": redis_cpu,
                 "stages": stages, "error": folded.error,
                 "image_read": {"state from cache": read_cpu, "image": image_cpu},
                 "estimate_parts": {"radius": radius_cpu, "bias estimate": bias_cpu,
                                    "discontinuity bias": edge_cpu, "never-lit bound": unlit_cpu,
                                    "whole estimate": estimate_cpu}})
-            print(f"{w}x{h} round {r}: folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s, "
+            print(f"{w}x{h} round {r} ({'checkpoint' if folded.checkpointed else 'memory'}): folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s, "
                   + ", ".join(f"{k} {v:.3f}" for k, v in stages.items()), flush=True)
             state = None  # the frame's arrays go before the next round allocates its own
         store.delete(job_id)
     finally:
         server.stop()
+    def summary(later: list[dict]) -> dict:
+        def mean(get) -> float:
+            return statistics.fmean(get(x) for x in later)
+        return {
+            "rounds": len(later),
+            "fold_cpu_seconds": mean(lambda x: x["fold_cpu_seconds"]),
+            "redis_cpu_seconds": mean(lambda x: x["redis_cpu_seconds"]),
+            "stages": {k: mean(lambda x, k=k: x["stages"][k]) for k in later[0]["stages"]},
+            "image_read": {k: mean(lambda x, k=k: x["image_read"][k]) for k in later[0]["image_read"]},
+            "estimate_parts": {k: mean(lambda x, k=k: x["estimate_parts"][k]) for k in later[0]["estimate_parts"]}}
     later = per_round[1:] or per_round
-
-    def mean(get) -> float:
-        return statistics.fmean(get(x) for x in later)
-
-    summary = {
-        "fold_cpu_seconds": mean(lambda x: x["fold_cpu_seconds"]),
-        "redis_cpu_seconds": mean(lambda x: x["redis_cpu_seconds"]),
-        "stages": {k: mean(lambda x, k=k: x["stages"][k]) for k in later[0]["stages"]},
-        "image_read": {k: mean(lambda x, k=k: x["image_read"][k]) for k in later[0]["image_read"]},
-        "estimate_parts": {k: mean(lambda x, k=k: x["estimate_parts"][k]) for k in later[0]["estimate_parts"]}}
-    return {"width": w, "height": h, "rounds": per_round, "mean_after_first": summary}
+    by_kind = {kind: [x for x in later if x["checkpoint"] == (kind == "checkpoint")] for kind in ("memory", "checkpoint")}
+    return {"width": w, "height": h, "rounds": per_round, "mean_after_first": summary(later),
+            "mean_after_first_by_kind": {kind: summary(xs) for kind, xs in by_kind.items() if xs}}
 
 
 def main() -> None:
@@ -156,6 +160,8 @@ def main() -> None:
     parser.add_argument("--sizes", default="1920x1080,3840x2160", help="comma-separated frame sizes WxH")
     parser.add_argument("--rounds", type=int, default=5, help="fold rounds per size (the first is reported apart)")
     parser.add_argument("--batches", type=int, default=2, help="batches folded per round")
+    parser.add_argument("--checkpoint-every", type=int, default=3,
+                        help="every K-th round writes the state to the tiles (1: every round, as before overlays)")
     parser.add_argument("--name", default="fold_round", help="bench/out/NAME.json")
     args = parser.parse_args()
     try:
@@ -165,13 +171,13 @@ def main() -> None:
     reports = []
     with tempfile.TemporaryDirectory() as tmp:
         for w, h in sizes:
-            report = run(w, h, args.rounds, args.batches, Path(tmp) / f"{w}x{h}")
+            report = run(w, h, args.rounds, args.batches, args.checkpoint_every, Path(tmp) / f"{w}x{h}")
             reports.append(report)
-            s = report["mean_after_first"]
-            print(f"{w}x{h} (mean of the rounds after the first): folder {s['fold_cpu_seconds']:.2f} CPU s, "
-                  f"redis {s['redis_cpu_seconds']:.2f} CPU s", flush=True)
-            for group in ("stages", "image_read", "estimate_parts"):
-                print(f"  {group}: " + ", ".join(f"{k} {v:.3f}" for k, v in s[group].items()), flush=True)
+            for kind, s in [("all", report["mean_after_first"]), *report["mean_after_first_by_kind"].items()]:
+                print(f"{w}x{h}, {kind} rounds after the first ({s['rounds']}): folder {s['fold_cpu_seconds']:.2f} "
+                      f"CPU s, redis {s['redis_cpu_seconds']:.2f} CPU s", flush=True)
+                for group in ("stages", "image_read", "estimate_parts"):
+                    print(f"  {group}: " + ", ".join(f"{k} {v:.3f}" for k, v in s[group].items()), flush=True)
     write_json(args.name, {"batches_per_round": args.batches, "passes_per_batch": PASSES_PER_BATCH,
                            "sizes": reports})
 

@@ -4,8 +4,9 @@
     pf:active                      set     ids of jobs holding an active slot (queued, running, cancelling)
     pf:job:{id}                    hash    the job record (worker/store/record.py)
     pf:job:{id}:merged             set     batch ids accepted (counted in the record, exactly once)
-    pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet folded
-                                           (folded counters add into the record: folded_passes, folded_emitted, counter:NAME)
+    pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet in the
+                                           tiles' state (a checkpoint adds them to the record: folded_passes,
+                                           folded_emitted, counter:NAME; worker/store/overlay.py)
     pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
     pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each fold round
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from worker.integrators import Integrator
 from worker.integrators.base import State
@@ -32,7 +32,7 @@ class Overlay:
     error: float | None  # the image's estimated error in `state`
     sent: dict[int, frozenset[str]]  # per tile, the arrays those batches' deltas carried
     pending_bytes: int  # their deltas' bytes the tiles still hold
-    since: float = field(default_factory=time.monotonic)  # when the first of them was folded
+    since: float  # time.monotonic() when the first of them was folded
 
     def checkpoint_due(self) -> bool:
         return policy.checkpoint_due(time.monotonic() - self.since, self.pending_bytes,

@@ -354,7 +354,7 @@ class TiledState:
         now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
                            {k: frozenset(names) for k, names in sent.items()},
                            (overlay.pending_bytes if overlay is not None else 0) + read_bytes,
-                           **({"since": overlay.since} if overlay is not None else {}))
+                           overlay.since if overlay is not None else time.monotonic())
         checkpoint = checkpoint or now_held.checkpoint_due()
         arrays = state.arrays()
         # What each tile writes at a checkpoint: the arrays its deltas carried and what the
