@@ -219,18 +219,24 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
 // The radius rule within a batch (worker/stats.py, eqs. 6.5-6.6): after each pass the
 // pixel's count and radius move on as a sequential SPPM run's would, N' = N + alpha M and
 // R'^2 = R^2 (N + alpha M) / (N + M), so the batch's next pass gathers at the radius it
-// would have had, whatever the batch's length. With `weight` = W batches of the job
-// rendering at once, M counts W times (the others' photons, unseen here, are as many in
-// expectation), so the radius follows the schedule of all the job's passes. The bias its
-// per-pass samples subtract (0.5 R^2 c lap L) scales with R^2.
-inline void shrink_radius(int gid, float m, float alpha, float weight, __global float* radius,
+// would have had, whatever the batch's length. The pass stands for `steps` passes of the
+// job (the batches rendering beside it; at a batch's first pass also the job's passes its
+// inputs lack): the rule is taken once per step, each with the photons this pass found
+// scaled to that step's disc, M (R_j / R)^2 (the others' photons, unseen here, are of the
+// same density in expectation), so the radius follows the schedule of all the job's
+// passes. The bias its per-pass samples subtract (0.5 R^2 c lap L) scales with R^2.
+inline void shrink_radius(int gid, float m, float alpha, uint steps, __global float* radius,
                           __global float* radius_count, __global float* bias) {
     if (m <= 0.0f) return;
-    float n = radius_count[gid], wm = weight * m;
-    float f = (n + alpha * wm) / (n + wm);
-    radius_count[gid] = n + alpha * wm;
-    radius[gid] *= sqrt(f);
-    bias[gid] *= f;
+    float n = radius_count[gid], r2 = 1.0f;  // r2: (R_j / R)^2
+    for (uint j = 0; j < steps; ++j) {
+        float mj = m * r2;
+        r2 *= (n + alpha * mj) / (n + mj);
+        n += alpha * mj;
+    }
+    radius_count[gid] = n;
+    radius[gid] *= sqrt(r2);
+    bias[gid] *= r2;
 }
 
 // A pixel's query this pass; false if the pixel has no measurement point.
@@ -285,7 +291,7 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                                 __global const float4* mp_wgt, __global const uint4* mp_cut,
                                 __global float* radius, __global const float* radius_batch,
-                                __global float* radius_count, __global float* bias, float alpha, float weight,
+                                __global float* radius_count, __global float* bias, float alpha, uint steps,
                                 float photons,
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
@@ -306,7 +312,7 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
             add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count * pp.w);  // w: 1, or a chain pass's scale
     }
     accumulate(batch_sums, n_pixels, gid, q.r, radius_batch[gid], q.wgt, q.coverage, s, photons, bias[gid]);
-    shrink_radius(gid, s.m, alpha, weight, radius, radius_count, bias);
+    shrink_radius(gid, s.m, alpha, steps, radius, radius_count, bias);
 }
 
 // Add the photons near[0 .. n) of the exact grid that match the query's surface and lie in
@@ -324,7 +330,7 @@ inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __glo
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                            __global const float4* mp_wgt, __global const uint4* mp_cut,
                            __global float* radius, __global const float* radius_batch,
-                           __global float* radius_count, __global float* bias, float alpha, float weight,
+                           __global float* radius_count, __global float* bias, float alpha, uint steps,
                            float photons,
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const float4* grid_pos,
@@ -353,5 +359,5 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
     }
     add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
     accumulate(batch_sums, n_pixels, gid, q.r, radius_batch[gid], q.wgt, q.coverage, s, photons, bias[gid]);
-    shrink_radius(gid, s.m, alpha, weight, radius, radius_count, bias);
+    shrink_radius(gid, s.m, alpha, steps, radius, radius_count, bias);
 }

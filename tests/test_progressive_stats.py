@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -110,9 +111,10 @@ def test_a_batch_moves_its_radius_on_as_sequential_passes_do(make_engine) -> Non
 
 @pytest.mark.parametrize("concurrency", [1, 3])
 def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine, concurrency: int) -> None:
-    """With W batches of the job rendering at once, a batch's passes count W times in its
-    radius rule: its count ends at N + W alpha sum M and its radius at the one the state
-    would reach with W such batches folded, R^2 = N' / (pi (D + W dD))."""
+    """With W batches of the job rendering at once, a batch's pass takes the radius rule W
+    times, each step with the photons it found scaled to the step's disc, M (R_j / R)^2:
+    the host's float64 recursion gives the device's count and radius, and the radius keeps
+    the rule's invariant R^2 = N / (pi (D + W dD))."""
     import pyopencl as cl
 
     alpha = 0.7
@@ -120,15 +122,59 @@ def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine
     state = eng.start()
     state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
     inputs = eng.integrator.for_concurrent_batches(eng.integrator.batch_inputs(state), concurrency)
-    delta = eng.run_batch(inputs, 1, 3)
+    delta = eng.run_batch(inputs, 1, 1)
     n = eng.arrays.n_pixels
     radius, count = np.empty(n, np.float32), np.empty(n, np.float32)
     cl.enqueue_copy(eng.device.queue, radius, eng.passes.radius)
     cl.enqueue_copy(eng.device.queue, count, eng.passes.radius_count)
     rb = inputs.radius.astype(np.float32).astype(np.float64)
-    expected = state.N + concurrency * alpha * math.pi * rb ** 2 * delta.sums["Db"]
     lit = delta.D > 0
     assert lit.mean() > 0.5
-    np.testing.assert_allclose(count[lit], expected[lit], rtol=1e-5)
+    rb, m = rb[lit], (math.pi * rb ** 2 * delta.sums["Db"])[lit]  # the photons the pass found
+    expected, r2 = inputs.count.astype(np.float32).astype(np.float64)[lit], np.ones(len(m))
+    for _ in range(concurrency):
+        mj = m * r2
+        r2 *= (expected + alpha * mj) / (expected + mj)
+        expected = expected + alpha * mj
+    np.testing.assert_allclose(count[lit], expected, rtol=1e-5)
+    np.testing.assert_allclose(radius[lit].astype(np.float64) ** 2, rb ** 2 * r2, rtol=1e-5)
     np.testing.assert_allclose(radius[lit].astype(np.float64) ** 2,
-                               expected[lit] / (math.pi * (state.D[lit] + concurrency * delta.D[lit])), rtol=1e-4)
+                               expected / (math.pi * (state.D[lit] + concurrency * delta.D[lit])), rtol=1e-4)
+
+
+def test_a_batch_behind_the_job_counts_its_first_pass_for_the_passes_it_lacks(make_engine) -> None:
+    """A batch whose inputs lack `behind` of the job's passes counts its first pass
+    concurrency + behind times and the next ones concurrency times: a 3-pass batch ends
+    where a 1-pass batch with `behind` and then a 2-pass batch from its radius, count and
+    bias end (float32 on the device)."""
+    import pyopencl as cl
+
+    eng = make_engine("cornell-caustics", resolution=(48, 48), photons_per_pass=1 << 14, seed=16, alpha=0.7)
+    state = eng.start()
+    state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
+    start = eng.integrator.batch_inputs(state)
+    n = eng.arrays.n_pixels
+
+    def device() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        out = [np.empty(n, np.float32) for _ in range(3)]
+        for host, buf in zip(out, (eng.passes.radius, eng.passes.radius_count, eng.passes.bias)):
+            cl.enqueue_copy(eng.device.queue, host, buf)
+        return tuple(out)
+
+    whole = eng.run_batch(eng.integrator.for_concurrent_batches(start, 2, behind=5), 1, 3)
+    whole_end = device()
+    first = eng.run_batch(eng.integrator.for_concurrent_batches(start, 2, behind=5), 1, 1)
+    radius, count, bias = device()
+    rest = eng.run_batch(eng.integrator.for_concurrent_batches(
+        dataclasses.replace(start, radius=radius, count=count, bias=bias), 2), 2, 2)
+    split_end = device()
+    lit = whole.D > 0
+    assert lit.mean() > 0.5
+    for a, b in zip(whole_end, split_end):
+        np.testing.assert_allclose(a[lit], b[lit], rtol=1e-6)
+    np.testing.assert_allclose(whole.D, first.D + rest.D, rtol=1e-5)
+    # ... and it did count: without `behind` the radius ends larger at most lit pixels (the
+    # later passes, gathering at other radii, find other photons: not at every one).
+    eng.run_batch(eng.integrator.for_concurrent_batches(start, 2), 1, 3)
+    larger = device()[0][lit] > whole_end[0][lit]
+    assert larger.mean() > 0.8, larger.mean()

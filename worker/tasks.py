@@ -69,7 +69,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         with holding(batch):
             if not jobs.has_setup(record):
                 jobs.init_setup(record, engine.passes.setup())
-            delta = engine.run_batch(jobs.batch_inputs(record), first, n,
+            delta = engine.run_batch(jobs.batch_inputs(record, batch), first, n,
                                      keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
     except BatchAborted:
         jobs.drop(batch)

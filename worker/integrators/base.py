@@ -91,9 +91,10 @@ class Integrator(ABC):
     def batch_inputs(self, state: State) -> Any:
         """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
-    def for_concurrent_batches(self, inputs: Any, batches: int) -> Any:
+    def for_concurrent_batches(self, inputs: Any, batches: int, behind: int = 0) -> Any:
         """A batch's inputs when `batches` of the job's batches render at once (this one
-        included); the same inputs for a method whose passes do not depend on each other."""
+        included) and `behind` of the job's passes are rendered or accepted but not in the
+        inputs; the same inputs for a method whose passes do not depend on each other."""
         return inputs
 
     @abstractmethod

@@ -59,16 +59,19 @@ class GatherInputs:
     """What a batch of photon-mapping passes reads: the radius per pixel and the radius
     rule's count N there (zero if not given: the batch's first pass then shrinks the radius
     as a job's first pass does), the bias estimate its per-pass variance samples subtract
-    (eq. 6.22; zero if not given), with the adaptive sampler its chains' inputs, and how
-    many of the job's batches render at once, this one included (each pass then counts
-    that many times in the radius rule within the batch: kernels/spatial_hash.cl,
-    shrink_radius; the worker sets it when it starts the batch)."""
+    (eq. 6.22; zero if not given), with the adaptive sampler its chains' inputs, how many
+    of the job's batches render at once, this one included (each pass then counts that
+    many times in the radius rule within the batch: kernels/spatial_hash.cl,
+    shrink_radius), and how many of the job's passes the radius lags when the batch starts
+    (rendered or accepted, not yet folded: the batch's first pass counts for them too).
+    The worker sets the last two when it starts the batch."""
 
     radius: np.ndarray
     bias: np.ndarray | None = None
     chains: ChainInputs | None = None
     count: np.ndarray | None = None
     concurrency: int = 1
+    behind: int = 0
 
 
 class PhotonMapping(Integrator):
@@ -115,8 +118,8 @@ class PhotonMapping(Integrator):
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains, state.N)
 
-    def for_concurrent_batches(self, inputs: GatherInputs, batches: int) -> GatherInputs:
-        return dataclasses.replace(inputs, concurrency=max(1, batches))
+    def for_concurrent_batches(self, inputs: GatherInputs, batches: int, behind: int = 0) -> GatherInputs:
+        return dataclasses.replace(inputs, concurrency=max(1, batches), behind=max(0, behind))
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

@@ -26,6 +26,9 @@ if TYPE_CHECKING:
 R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at the median lit pixel ...
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
 PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
+# A batch's first pass stands for at most this many of the passes its inputs lack
+# (GatherInputs.behind): the radius rule's steps cost a loop per pixel (shrink_radius).
+MAX_CATCH_UP = 32
 
 
 def _next_pow2(n: int) -> int:
@@ -52,7 +55,7 @@ class PhotonMappingPasses:
         self.radius_count = device.buffer(4 * n)
         self.radius_batch = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
-        self.concurrency = 1
+        self.steps = 1  # how many passes of the job the pass being gathered stands for (shrink_radius)
         self.ph_count = device.buffer(4)
         self.counters = device.buffer(4 * len(adaptive.COUNTERS))  # the chains' per-pass counters
         self.capacity = 0
@@ -173,17 +176,17 @@ class PhotonMappingPasses:
 
     def _radii(self) -> tuple:
         """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, radius_count,
-        bias, alpha, weight)."""
+        bias, alpha, steps)."""
         return (self.radius, self.radius_batch, self.radius_count, self.bias, f32(self.settings.alpha),
-                f32(self.concurrency))
+                u32(self.steps))
 
-    def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray, concurrency: int = 1) -> None:
-        """A batch's (or a probe's) starting radius, count N and bias per pixel, float32, and
-        how many of the job's batches render at once (GatherInputs.concurrency)."""
+    def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray) -> None:
+        """A batch's (or a probe's) starting radius, count N and bias per pixel, float32 (each
+        pass counting once until run_batch says otherwise)."""
         r32 = np.ascontiguousarray(radius, np.float32)
         for buf, host in ((self.radius, r32), (self.radius_batch, r32), (self.radius_count, count), (self.bias, bias)):
             cl.enqueue_copy(self.dev.queue, buf, np.ascontiguousarray(host, np.float32))
-        self.concurrency = concurrency
+        self.steps = 1
 
     def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
         """Build the photon lookup and gather; a pass's own estimates (the error estimator's
@@ -287,10 +290,12 @@ class PhotonMappingPasses:
         if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
             raise ValueError("radius must hold one positive finite value per pixel")
         self._set_radii(r32, np.zeros(n) if inputs.count is None else inputs.count,
-                        np.zeros(n) if inputs.bias is None else inputs.bias, inputs.concurrency)
+                        np.zeros(n) if inputs.bias is None else inputs.bias)
         dev.zero_sums()
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
+            # The passes of the job this one stands for in the radius rule (GatherInputs).
+            self.steps = inputs.concurrency + (min(inputs.behind, MAX_CATCH_UP) if k == first_pass else 0)
             self._eye_pass(k)
             if inputs.chains is None:
                 self.photons_stored = self._photon_pass(k)

@@ -258,11 +258,15 @@ class Jobs:
         return self.tiles.read(record.id, self.tiling(record), record.integrator, record.folded_emitted,
                                record.folded_passes, record.counters)
 
-    def batch_inputs(self, record: JobRecord) -> Any:
-        """What a batch starting now needs: the inputs the last fold wrote to the tiles, for
-        as many concurrent batches as the job has in flight."""
+    def batch_inputs(self, record: JobRecord, batch: Batch) -> Any:
+        """What `batch`, starting now, needs: the inputs the last fold round wrote to the
+        tiles, for as many concurrent batches as the job has in flight, and the passes those
+        inputs lack: accepted since that round, and rendered so far by the other batches in
+        flight (a round landing between the reads makes it off by that round's passes)."""
         inputs = self.tiles.inputs(record.id, self.tiling(record), record.integrator)
-        return record.integrator.for_concurrent_batches(inputs, self.leases.inflight(record.id))
+        now = self.get(record.id) or record
+        behind = max(0, now.passes - now.image_passes) + self.leases.progress(record.id, excluding=batch)
+        return record.integrator.for_concurrent_batches(inputs, self.leases.inflight(record.id), behind)
 
     # ------------------------------------------------------------------ batches
     def allocate(self, job_id: str, pass_seconds: float | None = None, workers: int = 1) -> Batch | None:
