@@ -270,3 +270,28 @@ def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: lis
     assert store.merge(Batch(job_id, made[2].first_pass, made[2].n_passes), made[2], 0.1) == "merged"
     assert store.fold(job_id).checkpointed
     _assert_folded_once(store, job_id, made)
+
+
+def test_a_batch_is_told_the_passes_its_inputs_lack(servers: list[EmbeddedRedis], deltas: tuple) -> None:
+    """GatherInputs.behind: the passes rendered so far by the job's other batches in flight
+    (their renewals) and those accepted since the last fold round; `concurrency` counts
+    the batches in flight."""
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    first, second = store.allocate(job_id), store.allocate(job_id)
+    assert store.start(first, "w1") and store.start(second, "w2")
+    for _ in range(3):
+        store.renew(first, "w1")
+    inputs = store.batch_inputs(store.get(job_id), second)
+    assert (inputs.behind, inputs.concurrency) == (3, 2)
+    assert store.batch_inputs(store.get(job_id), first).behind == 0  # its own passes are in its radius already
+    made: list[Delta] = pickle.loads(path.read_bytes())
+    d = made[5]
+    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"  # accepted, not yet folded
+    assert store.batch_inputs(store.get(job_id), second).behind == 3 + d.n_passes
+    store.fold(job_id)
+    assert store.batch_inputs(store.get(job_id), second).behind == 3
+    store.drop(first)  # a dropped (or merged) batch's passes are no longer in flight
+    assert store.batch_inputs(store.get(job_id), second).behind == 0
