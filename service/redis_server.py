@@ -27,7 +27,7 @@ from service.child_process import spawn
 PASSWORD_FILE = "password"
 # A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
 # rather than dropping a job's state. One job takes 128 bytes a pixel (80 without error
-# estimation; README, "Limits").
+# estimation), and its batches' deltas up to as much again between checkpoints (README, "Limits").
 MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
 # Commands no photonfarm process uses and that give an attacker a way out of the data.
 DISABLED_COMMANDS = ("CONFIG", "DEBUG", "MODULE", "SLAVEOF", "REPLICAOF", "SYNC", "PSYNC", "MIGRATE", "ACL",

@@ -49,7 +49,7 @@ REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 # state to the tiles (a checkpoint) at most this often, unless the deltas it keeps pending
 # on the state nodes reach CHECKPOINT_PENDING_SHARE of the state's bytes, or the job ends.
 CHECKPOINT_SECONDS = 30.0
-CHECKPOINT_PENDING_SHARE = 2.0
+CHECKPOINT_PENDING_SHARE = 1.0  # a job then holds at most about two states (README, "Limits")
 FOLD_STALE_SECONDS = 5.0
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
 # not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
