@@ -65,10 +65,6 @@ class Overlays:
         overlay = self._items.get(job_id)
         return overlay.batches if overlay is not None else frozenset()
 
-    def checkpoint_due(self, job_id: str) -> bool:
-        overlay = self._items.get(job_id)
-        return overlay is not None and overlay.checkpoint_due()
-
     def put(self, job_id: str, overlay: Overlay) -> None:
         with self._lock:
             self._items[job_id] = overlay

@@ -46,8 +46,9 @@ FOLD_SECONDS = 2.0
 FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 # A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes the
-# state to the tiles (a checkpoint) at most this often, unless the deltas it keeps pending
-# on the state nodes reach CHECKPOINT_PENDING_SHARE of the state's bytes, or the job ends.
+# state to the tiles (a checkpoint) when its overlay is this old, or the deltas it keeps
+# pending on the state nodes reach CHECKPOINT_PENDING_SHARE of the state's bytes (at the
+# next round that folds a new batch: a checkpoint alone changes no image), or the job ends.
 CHECKPOINT_SECONDS = 30.0
 CHECKPOINT_PENDING_SHARE = 1.0  # a job then holds at most about two states (README, "Limits")
 FOLD_STALE_SECONDS = 5.0

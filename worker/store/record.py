@@ -496,8 +496,8 @@ class Jobs:
 
     # --------------------------------------------------------------------- fold
     def fold(self, job_id: str, wait: bool = False, decide: bool = True, checkpoint: bool = False) -> Folded | None:
-        """One fold round of the job's accepted batches, if any is new to this process or
-        its checkpoint is due (`checkpoint`: one is), by whoever gets the fold lease (`wait`:
+        """One fold round of the job's accepted batches, if any is new to this process
+        (`checkpoint`: a checkpoint round in any case), by whoever gets the fold lease (`wait`:
         wait for it). With `decide`, a job whose error reached its threshold converges. None
         if there was nothing to fold or another folder had the lease."""
         if not self.r.hlen(keys.tofold(job_id)):
@@ -510,8 +510,8 @@ class Jobs:
             if record is None or not record.setup or not accepted:
                 return None
             checkpoint = checkpoint or record.stopping or record.status in policy.FINAL  # no later round
-            if accepted.keys() <= OVERLAYS.batches(job_id) and not checkpoint and not OVERLAYS.checkpoint_due(job_id):
-                return None  # all in this process's image already
+            if accepted.keys() <= OVERLAYS.batches(job_id) and not checkpoint:
+                return None  # all in this process's image already (a due checkpoint waits for news or the end)
             fold_start = time.perf_counter()
             try:
                 folded = self.tiles.fold_round(job_id, self.tiling(record), record.integrator, record.folded_emitted,
