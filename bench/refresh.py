@@ -5,8 +5,8 @@ A real cluster (api_tests/cluster.py: embedded Redis, the API with its folder th
 workers with one PoCL thread each) renders one furnace job of the given size for
 `--seconds` (the service's default photons per pass, error estimation on). The job record
 is read every 0.25 s; each fold round's end (`folded_at`, when the image a client reads
-changes) and length (`fold_seconds`) are noted. Reported: the intervals between image
-changes from the first image to the job's end (largest, median), the rounds' lengths, and
+changes if it folded new passes) and length (`fold_seconds`) are noted. Reported: the
+intervals between image changes from the first image to the job's end (largest, median), the rounds' lengths, and
 the API's (folder) and Redis's CPU seconds per round (every redis-server's: with
 `--shards N` the job's state lies on N more servers, PHOTONFARM_STATE_URLS). Wall time on
 a shared machine: the load average before and after is in the report.
@@ -59,7 +59,10 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
             cpu = {k: cpu_seconds(v) - cpu0[k] for k, v in parts.items()}
         finally:
             c.close()
-    intervals = [b["end"] - a["end"] for a, b in zip(rounds, rounds[1:])]
+    # The image changes at the end of a round that folded new passes (not at a checkpoint
+    # that wrote what the image already held).
+    changes = [r for i, r in enumerate(rounds) if i == 0 or r["passes"] != rounds[i - 1]["passes"]]
+    intervals = [b["end"] - a["end"] for a, b in zip(changes, changes[1:])]
     lengths = [r["seconds"] for r in rounds]
     return {"width": w, "height": h, "workers": workers, "shards": shards, "seconds": seconds,
             "status": record.status.value,
