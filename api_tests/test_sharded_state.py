@@ -26,6 +26,7 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys, policy
+from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.state import TiledState
 from worker.store.tiles import DELTA_DTYPE
@@ -298,3 +299,30 @@ def test_a_batch_is_told_the_passes_its_inputs_lack(servers: list[EmbeddedRedis]
     assert store.batch_inputs(store.get(job_id), second).behind == 3
     store.drop(first)  # a dropped (or merged) batch's passes are no longer in flight
     assert store.batch_inputs(store.get(job_id), second).behind == 0
+
+
+def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis], deltas: tuple,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Jobs.fold_if_stale, a worker's fold after its merge: only when accepted passes have
+    waited for the image past the fold interval and FOLD_STALE_SECONDS (not merely because
+    the last round was long ago), and then as a checkpoint (a worker keeps no overlay)."""
+    path, scene, settings, r0 = deltas
+    urls = [s.url for s in servers]
+    store = _store(urls)
+    job_id = _job(store, scene, settings, r0)
+    made: list[Delta] = pickle.loads(path.read_bytes())[:3]
+    assert store.merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1) == "merged"
+    assert store.fold_if_stale(job_id) is None  # it has just been accepted
+    monkeypatch.setattr(record_module, "FOLD_STALE_SECONDS", -1e6)  # any wait is too long
+    folded = store.fold_if_stale(job_id)
+    assert folded is not None and folded.checkpointed
+    record = store.get(job_id)
+    assert record.folded_passes == record.image_passes == record.passes == made[0].n_passes
+    assert store.fold_if_stale(job_id) is None  # the image holds every accepted pass
+    # The API folds the next batch in memory: its image holds it, so a worker does not fold.
+    assert store.merge(Batch(job_id, made[1].first_pass, made[1].n_passes), made[1], 0.1) == "merged"
+    assert not store.fold(job_id).checkpointed
+    assert store.fold_if_stale(job_id) is None
+    assert store.merge(Batch(job_id, made[2].first_pass, made[2].n_passes), made[2], 0.1) == "merged"
+    assert store.fold_if_stale(job_id).checkpointed
+    _assert_folded_once(store, job_id, made)

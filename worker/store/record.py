@@ -65,6 +65,7 @@ class JobRecord:
     folded_passes: int  # in the state the tiles hold (the last checkpoint)
     folded_emitted: int
     image_passes: int  # in the image after the last fold round (checkpoint or overlay, worker/store/overlay.py)
+    waiting_since: float  # accepted passes beyond the image have waited since (fold_if_stale)
     folded_at: float
     fold_seconds: float  # the last fold round's
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
@@ -95,6 +96,7 @@ class JobRecord:
                    passes=int(f["passes"]), emitted=int(f["emitted"]),
                    folded_passes=int(f.get("folded_passes", 0)), folded_emitted=int(f.get("folded_emitted", 0)),
                    image_passes=int(f.get("image_passes", f.get("folded_passes", 0))),
+                   waiting_since=float(f.get("waiting_since", 0.0)),
                    folded_at=float(f.get("folded_at", 0.0)),
                    fold_seconds=float(f.get("fold_seconds", 0.0)), setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1",
@@ -481,6 +483,8 @@ class Jobs:
                         "render_seconds": record.render_seconds + seconds,
                         "render_cpu_seconds": record.render_cpu_seconds + cpu_seconds, "merges": record.merges + 1,
                         "longest_batch_seconds": max(record.longest_batch_seconds, wall_seconds)}
+                    if record.passes <= record.image_passes:  # the first batch the image lacks
+                        fields["waiting_since"] = time.time()
                     counters = delta.counters
                     # Write.
                     pipe.multi()
@@ -507,6 +511,7 @@ class Jobs:
                 return None
             record = self.get(job_id)
             accepted = {b.decode(): json.loads(v) for b, v in self.r.hgetall(keys.tofold(job_id)).items()}
+            read_at = time.time()  # batches accepted after it wait for the next round
             if record is None or not record.setup or not accepted:
                 return None
             checkpoint = checkpoint or record.stopping or record.status in policy.FINAL  # no later round
@@ -525,7 +530,7 @@ class Jobs:
             self.tiles.account(job_id, folded, list(accepted), {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
-                time.perf_counter() - fold_start)
+                time.perf_counter() - fold_start, read_at)
         status = self.status(job_id)
         if status in policy.FINAL:
             self._expire_tiles(job_id)  # a fold racing the final move rewrote tiles
@@ -548,13 +553,13 @@ class Jobs:
         return self.fold(job_id)
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
-        """A worker's fold after its merge, if no one folded the job (or, before its first
-        fold, no one since it started) for FOLD_STALE_SECONDS past its interval: the API is
-        down or behind, and the image still refreshes."""
+        """A worker's fold after its merge, if accepted passes have waited for the image
+        FOLD_STALE_SECONDS past the fold interval: the API is down or behind, and the image
+        still refreshes. It checkpoints: a worker serves no image, so it keeps no overlay."""
         record = self.get(job_id)
-        if record is None:
+        if record is None or record.passes <= record.image_passes:
             return None
-        since = time.time() - (record.folded_at or record.started or time.time())
-        if since < policy.fold_interval(record.fold_seconds) + FOLD_STALE_SECONDS:
+        waiting = time.time() - (record.waiting_since or record.started or time.time())
+        if waiting < policy.fold_interval(record.fold_seconds) + FOLD_STALE_SECONDS:
             return None
-        return self.fold(job_id)
+        return self.fold(job_id, checkpoint=True)

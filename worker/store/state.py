@@ -399,15 +399,15 @@ class TiledState:
         return Folded(state, error, stages.seconds, checkpoint)
 
     def account(self, job_id: str, folded: Folded, batch_ids: list[str], history: dict[str, Any],
-                seconds: float) -> None:
+                seconds: float, read_at: float) -> None:
         """After a round: count the batches a checkpoint wrote in the record (once each), log
-        the error after the round, and when and how long the round took and the passes its
-        image holds."""
+        the error after the round, and when and how long the round took, the passes its
+        image holds and since when batches it did not see (accepted after `read_at`) wait."""
         pipe = self.main.pipeline()
         if folded.checkpointed:
             self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
         pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds,
-                                             "image_passes": folded.state.passes})
+                                             "image_passes": folded.state.passes, "waiting_since": read_at})
         pipe.rpush(keys.history(job_id), json.dumps(history))
         pipe.execute()
 
