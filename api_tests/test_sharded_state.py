@@ -71,6 +71,17 @@ def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray) -> str:
     return job_id
 
 
+def _fresh_job(servers: list[EmbeddedRedis], deltas: tuple, n: int) -> tuple[Jobs, str, list[Delta]]:
+    """A new running job on the servers, and the first n of the module's deltas."""
+    path, scene, settings, r0 = deltas
+    store = _store([s.url for s in servers])
+    return store, _job(store, scene, settings, r0), pickle.loads(path.read_bytes())[:n]
+
+
+def _merge(store: Jobs, job_id: str, d: Delta) -> None:
+    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+
+
 def _merge_and_fold(urls: list[str], job_id: str, deltas_file: str, order_seed: int) -> list[str]:
     made: list[Delta] = pickle.loads(Path(deltas_file).read_bytes())
     store = _store(urls)
@@ -219,34 +230,28 @@ def test_an_overlay_is_dropped_once_another_folder_checkpoints(servers: list[Emb
     """A round in memory serves its image here and leaves the record's folded counters; a
     checkpoint by another process makes that overlay stale, and the next round here starts
     from the checkpoint: every batch still folds once."""
-    path, scene, settings, r0 = deltas
-    urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
-    made: list[Delta] = pickle.loads(path.read_bytes())[:4]
+    store, job_id, made = _fresh_job(servers, deltas, 4)
     for d in made[:2]:
-        assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+        _merge(store, job_id, d)
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed
     record = store.get(job_id)
     assert record.folded_passes == 0 and record.image_passes == 4 == store.state(record).passes
     assert store.fold(job_id) is None  # nothing new, and no checkpoint due
-    child = mp.get_context("spawn").Process(target=_merge_and_checkpoint, args=(urls, job_id, str(path), 2))
+    child = mp.get_context("spawn").Process(target=_merge_and_checkpoint, args=([s.url for s in servers], job_id, str(deltas[0]), 2))
     child.start()
     child.join(120)
     assert child.exitcode == 0
     assert store.get(job_id).folded_passes == 6
-    d = made[3]
-    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    _merge(store, job_id, made[3])
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed and folded.state.passes == 8
     _assert_folded_once(store, job_id, made)
 
 
 def _merge_and_checkpoint(urls: list[str], job_id: str, deltas_file: str, i: int) -> None:
-    d: Delta = pickle.loads(Path(deltas_file).read_bytes())[i]
     store = _store(urls)
-    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    _merge(store, job_id, pickle.loads(Path(deltas_file).read_bytes())[i])
     assert store.fold(job_id, wait=True, checkpoint=True).checkpointed
 
 
@@ -255,23 +260,19 @@ def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: lis
     """policy.checkpoint_due: by the overlay's age and by the bytes of the deltas it keeps
     pending on the tiles, at the next round with a new batch (none runs for a checkpoint
     alone)."""
-    path, scene, settings, r0 = deltas
-    urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
-    made: list[Delta] = pickle.loads(path.read_bytes())[:3]
-    assert store.merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1) == "merged"
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    _merge(store, job_id, made[0])
     assert not store.fold(job_id).checkpointed
     monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 0.0)
     assert store.fold(job_id) is None  # due, but nothing new to show
-    assert store.merge(Batch(job_id, made[1].first_pass, made[1].n_passes), made[1], 0.1) == "merged"
+    _merge(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed
     assert store.get(job_id).folded_passes == made[0].n_passes + made[1].n_passes
     assert not store.r.exists(keys.tofold(job_id))
     monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 3600.0)
     monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # any delta kept pending is too much
-    assert store.merge(Batch(job_id, made[2].first_pass, made[2].n_passes), made[2], 0.1) == "merged"
+    _merge(store, job_id, made[2])
     assert store.fold(job_id).checkpointed
     _assert_folded_once(store, job_id, made)
 
@@ -280,10 +281,7 @@ def test_a_batch_is_told_the_passes_its_inputs_lack(servers: list[EmbeddedRedis]
     """GatherInputs.behind: the passes rendered so far by the job's other batches in flight
     (their renewals) and those accepted since the last fold round; `concurrency` counts
     the batches in flight."""
-    path, scene, settings, r0 = deltas
-    urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
+    store, job_id, made = _fresh_job(servers, deltas, 6)
     first, second = store.allocate(job_id), store.allocate(job_id)
     assert store.start(first, "w1") and store.start(second, "w2")
     for _ in range(3):
@@ -291,9 +289,8 @@ def test_a_batch_is_told_the_passes_its_inputs_lack(servers: list[EmbeddedRedis]
     inputs = store.batch_inputs(store.get(job_id), second)
     assert (inputs.behind, inputs.concurrency) == (3, 2)
     assert store.batch_inputs(store.get(job_id), first).behind == 0  # its own passes are in its radius already
-    made: list[Delta] = pickle.loads(path.read_bytes())
     d = made[5]
-    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"  # accepted, not yet folded
+    _merge(store, job_id, d)  # accepted, not yet folded
     assert store.batch_inputs(store.get(job_id), second).behind == 3 + d.n_passes
     store.fold(job_id)
     assert store.batch_inputs(store.get(job_id), second).behind == 3
@@ -306,12 +303,8 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
     """Jobs.fold_if_stale, a worker's fold after its merge: only when accepted passes have
     waited for the image past the fold interval and FOLD_STALE_SECONDS (not merely because
     the last round was long ago), and then as a checkpoint (a worker keeps no overlay)."""
-    path, scene, settings, r0 = deltas
-    urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
-    made: list[Delta] = pickle.loads(path.read_bytes())[:3]
-    assert store.merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1) == "merged"
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    _merge(store, job_id, made[0])
     assert store.fold_if_stale(job_id) is None  # it has just been accepted
     monkeypatch.setattr(record_module, "FOLD_STALE_SECONDS", -1e6)  # any wait is too long
     folded = store.fold_if_stale(job_id)
@@ -320,9 +313,9 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
     assert record.folded_passes == record.image_passes == record.passes == made[0].n_passes
     assert store.fold_if_stale(job_id) is None  # the image holds every accepted pass
     # The API folds the next batch in memory: its image holds it, so a worker does not fold.
-    assert store.merge(Batch(job_id, made[1].first_pass, made[1].n_passes), made[1], 0.1) == "merged"
+    _merge(store, job_id, made[1])
     assert not store.fold(job_id).checkpointed
     assert store.fold_if_stale(job_id) is None
-    assert store.merge(Batch(job_id, made[2].first_pass, made[2].n_passes), made[2], 0.1) == "merged"
+    _merge(store, job_id, made[2])
     assert store.fold_if_stale(job_id).checkpointed
     _assert_folded_once(store, job_id, made)
