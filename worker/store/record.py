@@ -264,10 +264,10 @@ class Jobs:
         """What `batch`, starting now, needs: the inputs the last fold round wrote to the
         tiles, for as many concurrent batches as the job has in flight, and the passes those
         inputs lack: accepted since that round, and rendered so far by the other batches in
-        flight (a round landing between the reads makes it off by that round's passes)."""
+        flight (`record` read just before: a round landing between makes it off by that
+        round's passes)."""
         inputs = self.tiles.inputs(record.id, self.tiling(record), record.integrator)
-        now = self.get(record.id) or record
-        behind = max(0, now.passes - now.image_passes) + self.leases.progress(record.id, excluding=batch)
+        behind = max(0, record.passes - record.image_passes) + self.leases.progress(record.id, excluding=batch)
         return record.integrator.for_concurrent_batches(inputs, self.leases.inflight(record.id), behind)
 
     # ------------------------------------------------------------------ batches

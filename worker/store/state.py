@@ -345,10 +345,10 @@ class TiledState:
         stages.lap("merge")
         inputs = integrator.batch_inputs(state)
         stages.lap("inputs")
-        if fresh_ids or overlay is None:
+        if fresh_ids:
             estimate = integrator.estimate(state)
             error = estimate.average if estimate is not None else None
-        else:
+        else:  # a checkpoint of the overlay as it was (without an overlay every batch is fresh)
             error = overlay.error
         stages.lap("estimate")
         now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
