@@ -42,7 +42,8 @@ MAX_INFLIGHT_PER_JOB = 8
 FOLD_LEASE_SECONDS = LEASE_SECONDS
 FOLD_SECONDS = 2.0
 # A round costs about the same however many batches it folds (it merges and estimates the
-# whole state, and a checkpoint writes it): at most this share of the time goes to a job's rounds, as far as the refresh allows.
+# whole state, and a checkpoint writes it): at most this share of the time goes to a job's
+# rounds, as far as the refresh allows.
 FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 # A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes the

@@ -33,8 +33,8 @@ from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
 from worker.store.fold_lease import FoldLease
-from worker.store.overlay import OVERLAYS
 from worker.store.leases import Batch, Leases
+from worker.store.overlay import OVERLAYS
 from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
 from worker.store.state import Folded, FoldContended, TiledState, UnreadableDelta
 from worker.store.tiles import TILE_PIXELS, Tiling
