@@ -67,6 +67,7 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
     return {"width": w, "height": h, "workers": workers, "shards": shards, "seconds": seconds,
             "status": record.status.value,
             "passes": record.passes, "batches": record.merges, "fold_rounds": len(rounds),
+            "pass_seconds": record.pass_seconds, "merge_seconds_mean": record.mean_merge_seconds,
             "refresh_max_seconds": max(intervals, default=float("nan")),
             "refresh_median_seconds": statistics.median(intervals) if intervals else float("nan"),
             "fold_round_max_seconds": max(lengths, default=float("nan")),

@@ -61,24 +61,29 @@ RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 *
 
 
 def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
-                 fold_seconds: float = 0.0, workers: int = 1) -> int:
-    """Passes for the next batch: about BATCH_TARGET_SECONDS of rendering, and long enough
-    that a merge costs at most MERGE_SHARE of a worker's time, but not past the job's time
-    budget (`seconds_left`), so a job ends within its budget plus one pass. One until a
-    pass was timed.
+                 fold_seconds: float = 0.0, workers: int = 1, passes_left: int | None = None) -> int:
+    """Passes for the next batch of a job whose `workers` render its batches at once.
 
-    A batch also costs the fold round that takes it in (`fold_seconds`, the job's last
-    round: the folder and the state node read, merge and write the whole state), one round
-    a batch while batches land less often than the fold interval. So a batch is also long
-    enough for its merge and a round to stay within MERGE_SHARE, as far as the refresh
-    allows: the job's `workers` together still deliver a batch every REFRESH_SECONDS."""
-    if pass_seconds <= 0.0:
-        return 1
-    with_fold = min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, max(1, workers) * REFRESH_SECONDS)
-    target = max(BATCH_TARGET_SECONDS, mean_merge_seconds / MERGE_SHARE, with_fold)
-    if seconds_left is not None:
-        target = min(target, seconds_left)
-    return max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
+    About BATCH_TARGET_SECONDS of rendering, and long enough that the batch's merge and the
+    fold round that takes it in (`fold_seconds`, the job's last round: the folder and the
+    state nodes read, merge and estimate the whole state) cost at most MERGE_SHARE of a
+    worker's time, as far as the refresh allows: the refresh is a budget, the merge share a
+    cost, so the job's workers together still deliver a batch every REFRESH_SECONDS, each
+    batch's merge included (a job whose merge alone is long pays a larger share for that).
+    Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
+    plus one pass) and its passes (`passes_left`, split among the workers, so the last
+    batches end together rather than one worker rendering the tail alone). One pass until a
+    pass was timed."""
+    workers, n = max(1, workers), 1
+    if pass_seconds > 0.0:
+        refresh = max(pass_seconds, workers * REFRESH_SECONDS - mean_merge_seconds)
+        target = max(BATCH_TARGET_SECONDS, min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, refresh))
+        if seconds_left is not None:
+            target = min(target, seconds_left)
+        n = max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
+    if passes_left is not None:
+        n = min(n, -(-passes_left // workers))
+    return n
 
 
 # ------------------------------------------------------------- the termination rule

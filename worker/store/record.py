@@ -286,9 +286,7 @@ class Jobs:
                         return None
                     n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds,
                                             policy.seconds_left(record.settings, elapsed), record.fold_seconds,
-                                            workers)
-                    left = policy.passes_left(record.settings, record.next_pass)
-                    n = n if left is None else min(n, left)
+                                            workers, policy.passes_left(record.settings, record.next_pass))
                     if n <= 0:
                         return None
                     batch = Batch(job_id, record.next_pass, n)
