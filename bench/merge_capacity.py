@@ -31,6 +31,12 @@ could keep it there (the batch it needs is at most MAX_BATCH_PASSES passes), and
 backlog at the end is at most N batches (the folder keeps up); the refresh interval is
 reported beside it.
 
+Every process here shares this machine's 2 cores, so the direct runs stop short of what the
+merge path carries when the state nodes and the folder have cores of their own. The report's
+`projected` part estimates that from what the runs measured (`project`): each server's and
+the folder's CPU seconds a batch and the merge alone, at the scheduler's batch for each N. It
+is a model calibrated here, not a run of N workers.
+
     python -m bench.merge_capacity --smoke   # a few minutes: small frames, N up to 2
     python -m bench.merge_capacity           # the real run: 1920x1080 and 3840x2160, N to 100
     python -m bench.merge_capacity --sizes 1920x1080   # one frame size of it
@@ -49,7 +55,7 @@ from pathlib import Path
 import numpy as np
 import redis
 
-from bench.common import save_figure, write_json
+from bench.common import cpu_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.scheduler import FOLD_POLL_SECONDS
@@ -60,6 +66,7 @@ from worker.store.policy import MAX_BATCH_PASSES, MERGE_SHARE, batch_passes
 from worker.store.tiles import encode_delta
 
 REFRESH_LIMIT = 10.0
+PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)
 FULL = {"sizes": [(1920, 1080), (3840, 2160)], "workers": [1, 2, 5, 10, 20, 50, 100], "batches": 3}
 SMOKE = {"sizes": [(320, 180), (640, 360)], "workers": [1, 2], "batches": 2}
 
@@ -124,7 +131,7 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
     simulated workers are done (`pushed`) and everything they had accepted is folded. Each
     round's start and end, and the backlog when the workers stopped (did it keep up?)."""
     store = _store(urls)
-    rounds, backlog = [], None
+    rounds, backlog, cpu0 = [], None, time.process_time()
 
     def unfolded() -> int:  # accepted batches not in the image yet
         return len({b.decode() for b in store.r.hkeys(keys.tofold(job_id))} - OVERLAYS.batches(job_id))
@@ -136,7 +143,7 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
             rounds.append((t0, time.time()))
         time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
     store.fold(job_id, wait=True, checkpoint=True)  # as the job's end does
-    out.put({"rounds": rounds, "backlog": backlog})
+    out.put({"rounds": rounds, "backlog": backlog, "cpu_seconds": time.process_time() - cpu0})
 
 
 def _image_lags(accepted: list[float], rounds: list[tuple[float, float]]) -> list[float]:
@@ -152,7 +159,7 @@ def _job(store: Jobs, w: int, h: int) -> str:
     return job_id
 
 
-def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, batches: int,
+def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_seconds: float, batches: int,
         processes: int) -> dict:
     store = _store(urls)
     # Calibrate: one merge alone gives the scheduler's batch size.
@@ -173,6 +180,7 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
                                                1 + i * 10 ** 6, out)) for i, g in enumerate(groups)]
     pushed = ctx.Event()
     procs.append(ctx.Process(target=_folder, args=(urls, job_id, pushed, out)))
+    node_cpu0 = [cpu_seconds([pid]) for pid in pids]
     for p in procs:
         p.start()
     pushes = [out.get() for _ in groups]
@@ -180,6 +188,7 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
     fold = out.get()
     for p in procs:
         p.join()
+    node_cpu = [cpu_seconds([pid]) - c for pid, c in zip(pids, node_cpu0)]
     latencies = sorted(x for r in pushes for x in r["latencies"])
     accepted = [t for r in pushes for t in r["accepted"]]
     lags = _image_lags(accepted, fold["rounds"]) or [float("inf")]
@@ -205,12 +214,62 @@ def run(urls: list[str], w: int, h: int, n_workers: int, pass_seconds: float, ba
               "fold_rounds": len(fold["rounds"]),
               "fold_round_median_seconds": statistics.median(e - s for s, e in fold["rounds"])
               if fold["rounds"] else None,
-              "backlog_at_end": fold["backlog"]}
+              "backlog_at_end": fold["backlog"],
+              # CPU seconds a batch, pushes, folds and checkpoints included: the main Redis
+              # (the record, the queue) and each state node, and the folder
+              "node_cpu_per_batch": [c / len(latencies) for c in node_cpu] if latencies else None,
+              "folder_cpu_per_batch": fold["cpu_seconds"] / len(latencies) if latencies else None,
+              "delta_bytes": sum(len(p) for p in payloads.values())}
     report["sustained"] = bool(latencies and report["share"] <= MERGE_SHARE
                                and report["needed_batch_passes"] <= MAX_BATCH_PASSES
                                and report["backlog_at_end"] <= n_workers)
     store.delete(job_id)
     return report
+
+
+def project(runs: list[dict]) -> dict:
+    """Beyond this machine: each server and the folder on a core of its own. From the
+    largest N a series sustained here, the CPU seconds a batch costs the main Redis, each
+    state node and the folder (pushes, folds and checkpoints; a round's cost spread over more
+    batches at a larger N, so this overstates it there), and the merge alone. For each N
+    the scheduler's batch gives the rate batches arrive, N / (batch + merge), and with it
+    each part's load; the merge waits longer on a loaded node (as on a queue served at
+    random: alone / (1 - load)). A part is saturated at PROJECTED_LOAD. Reported per
+    series: the largest N whose every part stays below that with the merge under 5%, which
+    part limits it, and the loads at N = 100."""
+    out = {}
+    for (w, h, nodes), series in _series(runs).items():
+        done = [r for r in series if r["sustained"]]
+        if not done:
+            continue
+        base = done[-1]
+        costs = {"main redis" if nodes > 1 else "redis": base["node_cpu_per_batch"][0],
+                 **{f"state node {i}": c for i, c in enumerate(base["node_cpu_per_batch"][1:], 1)},
+                 "folder": base["folder_cpu_per_batch"]}
+        merge, pass_seconds = base["merge_alone_seconds"], base["pass_seconds"]
+
+        def loads(n: int) -> tuple[dict[str, float], float]:
+            batch = batch_passes(pass_seconds, merge, None, base["fold_round_median_seconds"] or 0.0, n) * pass_seconds
+            rate = n / (batch + merge)
+            load = {part: rate * c for part, c in costs.items()}
+            waited = merge / max(1e-9, 1.0 - max(load.values()))
+            return load, waited / (batch + waited)
+
+        capacity, limit = 0, None
+        for n in range(1, 1001):
+            load, share = loads(n)
+            if max(load.values()) > PROJECTED_LOAD or share > MERGE_SHARE:
+                limit = max(load, key=load.get) if max(load.values()) > PROJECTED_LOAD else "merge share"
+                break
+            capacity = n
+        at_100, share_100 = loads(100)
+        out[f"{w}x{h}, {nodes} node(s)"] = {
+            "from_workers": base["workers"], "cpu_seconds_per_batch": costs, "merge_alone_seconds": merge,
+            "capacity": capacity, "limited_by": limit, "loads_at_100": at_100, "merge_share_at_100": share_100,
+            "bytes_per_second_at_100": 100 / (batch_passes(pass_seconds, merge, None,
+                                                            base["fold_round_median_seconds"] or 0.0, 100)
+                                              * pass_seconds + merge) * base["delta_bytes"]}
+    return out
 
 
 def chart(report: dict, name: str) -> None:
@@ -265,7 +324,8 @@ def main() -> None:
                 for w, h in plan["sizes"]:
                     pass_seconds = args.trace_seconds + args.seconds_per_megapixel * w * h / 1e6
                     for n in plan["workers"]:
-                        r = run(urls, w, h, n, pass_seconds, plan["batches"], args.processes)
+                        r = run(urls, [s.proc.pid for s in servers], w, h, n, pass_seconds, plan["batches"],
+                                args.processes)
                         runs.append(r)
                         print(f"{w}x{h} nodes={r['nodes']} workers={n}: merge p95 {r['merge_p95_seconds']:.3f} s, "
                               f"share {100 * r['share']:.2f}%, batch needs {r['needed_batch_passes']:.1f} passes, "
@@ -279,12 +339,18 @@ def main() -> None:
                     s.stop()
     capacity = {f"{w}x{h}, {nodes} node(s)": max((r["workers"] for r in rs if r["sustained"]), default=0)
                 for (w, h, nodes), rs in _series(runs).items()}
+    projected = project(runs)
     report = {"smoke": args.smoke, "seconds_per_megapixel": args.seconds_per_megapixel,
-              "trace_seconds": args.trace_seconds, "capacity": capacity, "runs": runs}
+              "trace_seconds": args.trace_seconds, "capacity": capacity, "projected": projected, "runs": runs}
     name = "merge_capacity_smoke" if args.smoke else "merge_capacity"
     write_json(name, report)
     chart(report, name)
     print(capacity)
+    for series, p in projected.items():
+        print(f"projected, {series}, each part on a core of its own: {p['capacity']} workers "
+              f"(limited by {p['limited_by']}); at 100 workers: "
+              + ", ".join(f"{part} {load:.0%}" for part, load in p["loads_at_100"].items())
+              + f", merge share {p['merge_share_at_100']:.1%}, {p['bytes_per_second_at_100'] / 1e6:.0f} MB/s of deltas")
 
 
 if __name__ == "__main__":

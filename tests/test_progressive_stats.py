@@ -178,3 +178,31 @@ def test_a_batch_behind_the_job_counts_its_first_pass_for_the_passes_it_lacks(ma
     eng.run_batch(eng.integrator.for_concurrent_batches(start, 2), 1, 3)
     larger = device()[0][lit] > whole_end[0][lit]
     assert larger.mean() > 0.8, larger.mean()
+
+
+def test_a_fold_of_several_batches_lands_where_merging_them_one_at_a_time_does(make_engine) -> None:
+    """The store folds a round's batches at once (Delta.steps: each batch's D and Db in
+    pass order). N and every sum end where merging the batches one at a time ends; one
+    increment at the round's first radius (the steps left out) ends at a larger radius."""
+    eng = make_engine("furnace", photons_per_pass=1 << 14, seed=12, alpha=0.7)
+    state = eng.start()
+    state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
+    inputs = eng.integrator.for_concurrent_batches(eng.integrator.batch_inputs(state), 3)
+    batches = [eng.run_batch(inputs, first, 2) for first in (1, 3, 5)]  # three concurrent batches
+    one_at_a_time, at_once, one_pass = (dataclasses.replace(state, N=state.N.copy(),
+                                                            sums={k: v.copy() for k, v in state.sums.items()})
+                                        for _ in range(3))
+    for delta in batches:
+        one_at_a_time.merge(delta)
+    total = {name: sum(d.sums[name] for d in batches) for name in batches[0].sums}
+    fold = Delta(1, 6, sum(d.emitted for d in batches), total)
+    at_once.merge(dataclasses.replace(fold, steps=[{k: d.sums[k] for k in ("D", "Db")} for d in batches]))
+    one_pass.merge(fold)
+    lit = one_at_a_time.D > 0
+    assert lit.mean() > 0.5
+    np.testing.assert_allclose(at_once.N, one_at_a_time.N, rtol=1e-12)
+    np.testing.assert_allclose(at_once.radius(), one_at_a_time.radius(), rtol=1e-12)
+    for name, expected in one_at_a_time.sums.items():  # added in another order: signed sums cancel
+        np.testing.assert_allclose(at_once.sums[name], expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    assert at_once.passes == one_at_a_time.passes == 7
+    assert (one_pass.radius()[lit] > at_once.radius()[lit]).mean() > 0.9

@@ -122,11 +122,20 @@ class Accumulators:
         return self._radius
 
     def merge(self, delta: "Delta") -> None:
-        """Add a batch. Commutative in every sum; N uses the radius at merge time."""
-        dN = np.square(self.radius())  # R^2 at merge time, then alpha pi R^2 dDb, in place
-        dN *= self.alpha * math.pi
-        dN *= delta.sums["Db"]
-        self.N += dN
+        """Add a batch. Commutative in every sum; N uses the radius at merge time. A fold of
+        several batches (`delta.steps`, each batch's D and Db in pass order) takes each
+        batch's N increment at the radius the batches before it left, as merging them one
+        at a time would: one increment at the round's first radius would shrink it less."""
+        steps = delta.steps or [delta.sums]
+        D = self.D if len(steps) == 1 else self.D.copy()  # the photon density as far as the steps went
+        for i, step in enumerate(steps):
+            r = self.radius() if i == 0 else radius(self.R0, self.N, D)
+            dN = np.square(r)  # R^2 at merge time, then alpha pi R^2 dDb, in place
+            dN *= self.alpha * math.pi
+            dN *= step["Db"]
+            self.N += dN
+            if i + 1 < len(steps):
+                D += step["D"]
         add_delta(self, delta)
         self._radius = None
 

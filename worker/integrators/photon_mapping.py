@@ -81,6 +81,7 @@ class PhotonMapping(Integrator):
     fixed_points = False  # PPM: every pass uses pass 0's measurement points
     setup_arrays = ("R0",)
     inputs_type = GatherInputs
+    per_batch_sums = ("D", "Db")  # N's increment is taken at the radius the batches before left
 
     @property
     def sums(self) -> SumLayout:
