@@ -63,12 +63,13 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         jobs.drop(batch)
         log.error("job failed: cannot render its scene", extra=context)
         return "failed"
-    # Render: the job's first batch fixes its setup arrays (e.g. R0, from pass 0).
-    start, cpu = time.perf_counter(), time.process_time()
+    # Render: the job's first batch fixes its setup arrays (e.g. R0, from pass 0); the
+    # passes alone are timed (the next batches are sized by that time).
     try:
         with holding(batch):
             if not jobs.has_setup(record):
                 jobs.init_setup(record, engine.passes.setup())
+            start, cpu = time.perf_counter(), time.process_time()
             delta = engine.run_batch(jobs.batch_inputs(record, batch), first, n,
                                      keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
     except BatchAborted:
