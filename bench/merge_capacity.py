@@ -307,6 +307,7 @@ def main() -> None:
     parser.add_argument("--trace-seconds", type=float, default=0.15, help="a pass's photon tracing")
     parser.add_argument("--processes", type=int, default=8, help="pusher processes the simulated workers share")
     parser.add_argument("--sizes", help="comma-separated frame sizes WxH instead of the plan's (e.g. 1920x1080)")
+    parser.add_argument("--workers", help="comma-separated N instead of the plan's (e.g. 1,10,20)")
     args = parser.parse_args()
     plan = SMOKE if args.smoke else FULL
     if args.sizes:
@@ -314,6 +315,11 @@ def main() -> None:
             plan = {**plan, "sizes": [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]}
         except ValueError:
             parser.error(f"--sizes: expected WxH[,WxH...], got {args.sizes!r}")
+    if args.workers:
+        try:
+            plan = {**plan, "workers": [int(n) for n in args.workers.split(",")]}
+        except ValueError:
+            parser.error(f"--workers: expected N[,N...], got {args.workers!r}")
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for n_nodes in (1, 3):
@@ -332,7 +338,13 @@ def main() -> None:
                               f"batch {r['first_batch_seconds']:.0f} s, refresh max {r['refresh_max_seconds']:.1f} s "
                               f"(a batch in the image after {r['image_lag_max_seconds']:.1f} s at most), "
                               f"backlog {r['backlog_at_end']}, sustained {r['sustained']}", flush=True)
-                        if not r["sustained"]:
+                        # A larger N only loads the folder and the nodes more: stop once it
+                        # falls behind, or fails after a smaller N was sustained (a small N can
+                        # fail alone: the scheduler shortens its batches for the refresh).
+                        if not r["sustained"] and (r["backlog_at_end"] > n
+                                                   or any(x["sustained"] for x in runs[:-1]
+                                                          if (x["width"], x["height"], x["nodes"])
+                                                          == (w, h, r["nodes"]))):
                             break
             finally:
                 for s in servers:
