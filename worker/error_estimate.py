@@ -96,6 +96,7 @@ import numpy as np
 from scipy import stats as scipy_stats
 
 from kernels.contract import K1, K2, LUMINANCE
+from worker.host_threads import each
 
 if TYPE_CHECKING:
     from worker.stats import Accumulators
@@ -278,8 +279,8 @@ def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
     run = _Round(state, constant, significance, discontinuities, t, z_rough, z_margin,
                  unlit_scale(state, lum, known, confidence))
     out = {name: np.empty(len(lum)) for name in ("bias", "noise", "bound")}
-    for blk in blocks(len(lum)):
-        _block(run, blk, direct[blk] if nee else None, dark[blk], out)
+    state.radius()  # computed once, before the blocks share it
+    each(lambda blk: _block(run, blk, direct[blk] if nee else None, dark[blk], out), blocks(len(lum)))
     if nee:
         lum += direct
     # Relative errors against a floor, and the image average.

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 import redis
 
+from worker.host_threads import HOST_THREADS, each
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
@@ -138,14 +138,14 @@ class TiledState:
         return Tiling(n_pixels, shards, tile_pixels)
 
     def _per_node(self, tiling: Tiling, work: Callable[[int, list[int]], dict[int, Any]]) -> dict[int, Any]:
-        """`work(node, its tiles)` for every node, the nodes at once (a thread each)."""
+        """`work(node, some of its tiles)` for every node's tiles, the nodes and parts of
+        each node's tiles at once (worker/host_threads.py: at least a thread a node)."""
         by_node = tiling.by_node()
-        if len(by_node) == 1:
-            return work(*next(iter(by_node.items())))
+        parts = max(1, -(-HOST_THREADS // len(by_node)))
         out: dict[int, Any] = {}
-        with ThreadPoolExecutor(len(by_node)) as pool:
-            for part in pool.map(lambda item: work(*item), by_node.items()):
-                out |= part
+        for part in each(lambda item: work(*item), [(node, tiles[i::parts]) for node, tiles in by_node.items()
+                                                    for i in range(parts) if tiles[i::parts]]):
+            out |= part
         return out
 
     def _each_node(self, tiling: Tiling, queue: Any) -> dict[int, list[Any]]:
