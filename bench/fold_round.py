@@ -100,9 +100,10 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
                 delta = Delta(first, PASSES_PER_BATCH, EMITTED_PER_PASS * PASSES_PER_BATCH, sums)
                 assert store.merge(Batch(job_id, first, PASSES_PER_BATCH), delta, 1.0) == "merged"
             del sums, delta
-            redis_before, cpu_before = cpu_seconds([server.proc.pid]), time.process_time()
+            redis_before, cpu_before, wall_before = cpu_seconds([server.proc.pid]), time.process_time(), time.perf_counter()
             folded = store.fold(job_id, checkpoint=(r + 1) % checkpoint_every == 0)
             fold_cpu, redis_cpu = time.process_time() - cpu_before, cpu_seconds([server.proc.pid]) - redis_before
+            fold_wall = time.perf_counter() - wall_before
             assert folded is not None, "the round folded nothing"
             stages = dict(folded.stages)
             stages["other (lease, record, accounting)"] = fold_cpu - sum(stages.values())
@@ -128,12 +129,14 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             _, estimate_cpu = _cpu(record.integrator.estimate, state)
             per_round.append({
                 "round": r, "batches": batches, "checkpoint": folded.checkpointed, "fold_cpu_seconds": fold_cpu, "redis_cpu_seconds": redis_cpu,
+                "fold_wall_seconds": fold_wall,
                 "stages": stages, "error": folded.error,
                 "image_read": {"state from cache": read_cpu, "image": image_cpu},
                 "estimate_parts": {"radius": radius_cpu, "bias estimate": bias_cpu,
                                    "discontinuity bias": edge_cpu, "never-lit bound": unlit_cpu,
                                    "whole estimate": estimate_cpu}})
-            print(f"{w}x{h} round {r} ({'checkpoint' if folded.checkpointed else 'memory'}): folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s, "
+            print(f"{w}x{h} round {r} ({'checkpoint' if folded.checkpointed else 'memory'}): {fold_wall:.2f} s, "
+                  f"folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s, "
                   + ", ".join(f"{k} {v:.3f}" for k, v in stages.items()), flush=True)
             state = None  # the frame's arrays go before the next round allocates its own
         store.delete(job_id)
@@ -144,6 +147,7 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             return statistics.fmean(get(x) for x in later)
         return {
             "rounds": len(later),
+            "fold_wall_seconds": mean(lambda x: x["fold_wall_seconds"]),
             "fold_cpu_seconds": mean(lambda x: x["fold_cpu_seconds"]),
             "redis_cpu_seconds": mean(lambda x: x["redis_cpu_seconds"]),
             "stages": {k: mean(lambda x, k=k: x["stages"][k]) for k in later[0]["stages"]},
@@ -174,7 +178,8 @@ def main() -> None:
             report = run(w, h, args.rounds, args.batches, args.checkpoint_every, Path(tmp) / f"{w}x{h}")
             reports.append(report)
             for kind, s in [("all", report["mean_after_first"]), *report["mean_after_first_by_kind"].items()]:
-                print(f"{w}x{h}, {kind} rounds after the first ({s['rounds']}): folder {s['fold_cpu_seconds']:.2f} "
+                print(f"{w}x{h}, {kind} rounds after the first ({s['rounds']}): {s['fold_wall_seconds']:.2f} s, "
+                      f"folder {s['fold_cpu_seconds']:.2f} "
                       f"CPU s, redis {s['redis_cpu_seconds']:.2f} CPU s", flush=True)
                 for group in ("stages", "image_read", "estimate_parts"):
                     print(f"  {group}: " + ", ".join(f"{k} {v:.3f}" for k, v in s[group].items()), flush=True)

@@ -16,7 +16,8 @@ from typing import Callable, Iterable, TypeVar
 T = TypeVar("T")
 R = TypeVar("R")
 
-HOST_THREADS = max(1, min(4, len(os.sched_getaffinity(0))))  # beyond 4 the memory bus, not the cores, limits
+# A thread per core, at most 4 (beyond, the memory bus limits); PHOTONFARM_HOST_THREADS sets it.
+HOST_THREADS = max(1, int(os.environ.get("PHOTONFARM_HOST_THREADS", min(4, len(os.sched_getaffinity(0))))))
 _PREFIX = "photonfarm-host"
 _POOL = ThreadPoolExecutor(HOST_THREADS, thread_name_prefix=_PREFIX)
 
