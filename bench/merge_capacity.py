@@ -308,6 +308,8 @@ def main() -> None:
     parser.add_argument("--processes", type=int, default=8, help="pusher processes the simulated workers share")
     parser.add_argument("--sizes", help="comma-separated frame sizes WxH instead of the plan's (e.g. 1920x1080)")
     parser.add_argument("--workers", help="comma-separated N instead of the plan's (e.g. 1,10,20)")
+    parser.add_argument("--nodes", default="1,3", help="comma-separated state node counts (1: the one Redis)")
+    parser.add_argument("--name", help="bench/out/NAME.json and .png (default: merge_capacity, or _smoke)")
     args = parser.parse_args()
     plan = SMOKE if args.smoke else FULL
     if args.sizes:
@@ -320,9 +322,13 @@ def main() -> None:
             plan = {**plan, "workers": [int(n) for n in args.workers.split(",")]}
         except ValueError:
             parser.error(f"--workers: expected N[,N...], got {args.workers!r}")
+    try:
+        node_counts = [int(v) for v in args.nodes.split(",")]
+    except ValueError:
+        parser.error(f"--nodes: expected N[,N...], got {args.nodes!r}")
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        for n_nodes in (1, 3):
+        for n_nodes in node_counts:
             servers = [EmbeddedRedis(Path(tmp) / f"{n_nodes}-{i}", maxmemory="0").start(supervise=False)
                        for i in range(1 + (n_nodes if n_nodes > 1 else 0))]
             urls = [s.url for s in servers]
@@ -354,7 +360,7 @@ def main() -> None:
     projected = project(runs)
     report = {"smoke": args.smoke, "seconds_per_megapixel": args.seconds_per_megapixel,
               "trace_seconds": args.trace_seconds, "capacity": capacity, "projected": projected, "runs": runs}
-    name = "merge_capacity_smoke" if args.smoke else "merge_capacity"
+    name = args.name or ("merge_capacity_smoke" if args.smoke else "merge_capacity")
     write_json(name, report)
     chart(report, name)
     print(capacity)
