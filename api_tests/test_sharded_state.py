@@ -280,15 +280,16 @@ def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: lis
 def test_a_batch_is_told_the_passes_its_inputs_lack(servers: list[EmbeddedRedis], deltas: tuple) -> None:
     """GatherInputs.behind: the passes rendered so far by the job's other batches in flight
     (their renewals) and those accepted since the last fold round; `concurrency` counts
-    the batches in flight."""
+    the batches in flight, `order` those of them that start at an earlier pass."""
     store, job_id, made = _fresh_job(servers, deltas, 6)
     first, second = store.allocate(job_id), store.allocate(job_id)
     assert store.start(first, "w1") and store.start(second, "w2")
     for _ in range(3):
         store.renew(first, "w1")
     inputs = store.batch_inputs(store.get(job_id), second)
-    assert (inputs.behind, inputs.concurrency) == (3, 2)
-    assert store.batch_inputs(store.get(job_id), first).behind == 0  # its own passes are in its radius already
+    assert (inputs.behind, inputs.concurrency, inputs.order) == (3, 2, 1)
+    own = store.batch_inputs(store.get(job_id), first)
+    assert (own.behind, own.order) == (0, 0)  # its own passes are in its radius already; it starts first
     d = made[5]
     _merge(store, job_id, d)  # accepted, not yet folded
     assert store.batch_inputs(store.get(job_id), second).behind == 3 + d.n_passes

@@ -62,7 +62,7 @@ def synthetic_delta(layout_names: dict[str, int], w: int, h: int, passes: int, r
     sums["H"][~background] = passes
     d = rng.uniform(50.0, 150.0, n) * passes
     sums["D"][lit] = d[lit]
-    sums["Db"][lit] = d[lit] / 1.2  # the passes after a batch's first gather at smaller radii (D >= Db)
+    sums["M"][lit] = rng.uniform(10.0, 30.0, n)[lit] * passes  # photons counted
     sums["S"][lit] = (lum * EMITTED_PER_PASS * passes)[lit, None] * rng.uniform(0.8, 1.2, (int(lit.sum()), 3))
     sums["Ld"][emitter] = passes * 5.0
     sums["G"][lit] = (rng.normal(0.0, 1.0, n) * EMITTED_PER_PASS * passes)[lit]

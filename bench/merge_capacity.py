@@ -81,7 +81,6 @@ def _delta(store: Jobs, job_id: str) -> tuple[Delta, dict[int, bytes], float]:
     layout, n = record.integrator.sums, record.n_pixels
     rng = np.random.default_rng(1)
     delta = Delta(0, 1, 1, {name: rng.random(layout.zeros(n, name).shape) for name in layout.names})
-    delta.sums["Db"] = 0.8 * delta.D  # as a render's: a batch's passes gather within its first radius (Db <= D)
     tiling = store.tiling(record)
     t0 = time.perf_counter()
     payloads = {k: encode_delta(delta.sums, tiling.span(k)) for k in range(tiling.count)}

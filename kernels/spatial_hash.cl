@@ -189,7 +189,7 @@ inline void add_photon(PassSums* s, float3 x, float3 n, float r, float3 wgt, flo
 // Add one pass's gather to pixel gid's sums (sums.cl).
 #define ADD_SUM(name, value) (*sum_at(batch_sums, n_pixels, gid, name, 1) += (value))
 
-inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float rb, float3 wgt,
+inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float r, float3 wgt,
                        float2 coverage, PassSums s, float photons, float bias) {
     double kr2 = K1 * (double)r * (double)r * (double)coverage.x;  // the kernel weight of the covered disc
     double3 flux = convert_double3(wgt * s.phi) / kr2;
@@ -198,7 +198,6 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
     rgb[1] += flux.y;
     rgb[2] += flux.z;
     ADD_SUM(SUM_D, (double)s.m / (M_PI * (double)r * (double)r));
-    ADD_SUM(SUM_DB, (double)s.m / (M_PI * (double)rb * (double)rb));  // N's increment, at the batch's radius rb
     ADD_SUM(SUM_H, 1.0);
 #ifdef SUM_G
     double lap = (double)s.lap / kr2;
@@ -221,22 +220,27 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
 // R'^2 = R^2 (N + alpha M) / (N + M), so the batch's next pass gathers at the radius it
 // would have had, whatever the batch's length. The pass stands for `steps` passes of the
 // job (the batches rendering beside it; at a batch's first pass also the job's passes its
-// inputs lack): the rule is taken once per step, each with the photons this pass found
-// scaled to that step's disc, M (R_j / R)^2 (the others' photons, unseen here, are of the
-// same density in expectation), so the radius follows the schedule of all the job's
-// passes. The bias its per-pass samples subtract (0.5 R^2 c lap L) scales with R^2.
-inline void shrink_radius(int gid, float m, float alpha, uint steps, __global float* radius,
-                          __global float* radius_count, __global float* bias) {
-    if (m <= 0.0f) return;
-    float n = radius_count[gid], r2 = 1.0f;  // r2: (R_j / R)^2
+// inputs lack, which come first): the rule is taken once per step, each with the photons
+// this pass found scaled to that step's disc, M (R_j / R)^2 (the others' photons, unseen
+// here, are of the same density in expectation), so the radius follows the schedule of
+// all the job's passes. The bias its per-pass samples subtract (0.5 R^2 c lap L) scales
+// with R^2. Returns this pass's own photons at its own place in that schedule, step `own`
+// (M (R_own / R)^2): N's increment from this pass is alpha times that, whenever and in
+// whatever group the batch is merged (sum M).
+inline float shrink_radius(int gid, float m, float alpha, uint steps, uint own, __global float* radius,
+                           __global float* radius_count, __global float* bias) {
+    if (m <= 0.0f) return 0.0f;
+    float n = radius_count[gid], r2 = 1.0f, own_m = m;  // r2: (R_j / R)^2
     for (uint j = 0; j < steps; ++j) {
         float mj = m * r2;
+        if (j == own) own_m = mj;
         r2 *= (n + alpha * mj) / (n + mj);
         n += alpha * mj;
     }
     radius_count[gid] = n;
     radius[gid] *= sqrt(r2);
     bias[gid] *= r2;
+    return own_m;
 }
 
 // A pixel's query this pass; false if the pixel has no measurement point.
@@ -290,8 +294,8 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
 
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                                 __global const float4* mp_wgt, __global const uint4* mp_cut,
-                                __global float* radius, __global const float* radius_batch,
-                                __global float* radius_count, __global float* bias, float alpha, uint steps,
+                                __global float* radius,
+                                __global float* radius_count, __global float* bias, float alpha, uint steps, uint own,
                                 float photons,
                                 float inv_cell, uint mask, __global const uint* tab_count,
                                 __global const float4* tab_pos, __global const float4* tab_flux,
@@ -311,8 +315,8 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
             && inside_cut(q.cut, q.n, pp.xyz - q.x, q.r))
             add_photon(&s, q.x, q.n, q.r, q.wgt, pp, tab_flux[h].xyz, (float)count * pp.w);  // w: 1, or a chain pass's scale
     }
-    accumulate(batch_sums, n_pixels, gid, q.r, radius_batch[gid], q.wgt, q.coverage, s, photons, bias[gid]);
-    shrink_radius(gid, s.m, alpha, steps, radius, radius_count, bias);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    ADD_SUM(SUM_M, (double)shrink_radius(gid, s.m, alpha, steps, own, radius, radius_count, bias));
 }
 
 // Add the photons near[0 .. n) of the exact grid that match the query's surface and lie in
@@ -329,8 +333,8 @@ inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __glo
 
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                            __global const float4* mp_wgt, __global const uint4* mp_cut,
-                           __global float* radius, __global const float* radius_batch,
-                           __global float* radius_count, __global float* bias, float alpha, uint steps,
+                           __global float* radius,
+                           __global float* radius_count, __global float* bias, float alpha, uint steps, uint own,
                            float photons,
                            float inv_cell, uint mask, __global const uint* cell_start,
                            __global const uint* cell_count, __global const float4* grid_pos,
@@ -358,6 +362,6 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
         }
     }
     add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
-    accumulate(batch_sums, n_pixels, gid, q.r, radius_batch[gid], q.wgt, q.coverage, s, photons, bias[gid]);
-    shrink_radius(gid, s.m, alpha, steps, radius, radius_count, bias);
+    accumulate(batch_sums, n_pixels, gid, q.r, q.wgt, q.coverage, s, photons, bias[gid]);
+    ADD_SUM(SUM_M, (double)shrink_radius(gid, s.m, alpha, steps, own, radius, radius_count, bias));
 }

@@ -7,8 +7,8 @@ section 11.2 (iii), which turns the dissertation's sequential update (eqs. 6.5-6
     S += sum_p w * Phi_p / (pi r^2)    flux found at the radius r the pass used
     D += M / (pi r^2)                  photon density seen by the pixel
     E += photons emitted               (every path, also those that missed)
-    N += alpha * pi * R^2 * dDb        R = the radius at merge time, dDb = the batch's
-                                       sum of M / (pi r_b^2), r_b the radius it was given
+    N += alpha * dM                    dM = the batch's photons, each pass's counted at its
+                                       own place in the job's radius schedule (below)
     R^2 = N / (pi D)  (R0^2 while D = 0)
     L = S / E + (directly seen emission) / passes
     (adaptive photon tracing: each pass's sums are already in uniform photons, worker/adaptive.py)
@@ -25,15 +25,19 @@ With r = R (a batch of one pass gathered at the current radius) this is exactly 
 R'^2 = R^2 (N + alpha M) / (N + M), and S/E equals tau/(pi R^2 E) of eq. 6.1. A batch of
 several passes moves its radius on pass by pass on the device with the same rule
 (shrink_radius, kernels/spatial_hash.cl), from the N and R it was given, so its passes
-gather at the radii a sequential run would use; its N increment is then alpha sum M =
-alpha pi r_b^2 dDb, and with R = r_b (no other batch folded meanwhile) the merge leaves N
-and R = sqrt(N / (pi D)) exactly where the sequential run would (N = pi R^2 D holds after
-every pass). So the radius schedule does not depend on how passes are grouped into
-batches, only on which batches share a fold round. S, D, E and
-the emission sum are plain sums, so the estimate does not depend on merge order; N (and
-so the future radius schedule) assumes locally uniform photon density when a batch was
-gathered at a radius other than the current one, the same assumption PPM's flux
-correction makes. All of it is float64 on the host.
+gather at the radii a sequential run would use, and its N increment is alpha times the
+photons they found. A pass that stands for several of the job's passes (the batches
+rendering beside it, and at a batch's first pass those its inputs lack) takes the rule
+once for each, and its own photons count at its own step: after the passes its inputs
+lack, and after those of the concurrent batches that start at an earlier pass. So N is a
+plain sum too: the state does not depend on how passes are grouped into batches, nor on
+which batches share a fold round, nor on merge order, and the radius follows the
+sequential schedule (tests/test_progressive_stats.py: within 2% for concurrent and
+pipelined batches). Before, the merge took N's increment at the radius of the merge
+(digest 11.2 (iii)'s rescaling), which shrank the radius twice for a batch whose device
+had already counted the passes before it. The others' photons on the device are assumed
+of the same density as the pass's own, the same assumption PPM's flux correction makes.
+All of it is float64 on the host.
 """
 
 from __future__ import annotations
@@ -122,20 +126,11 @@ class Accumulators:
         return self._radius
 
     def merge(self, delta: "Delta") -> None:
-        """Add a batch. Commutative in every sum; N uses the radius at merge time. A fold of
-        several batches (`delta.steps`, each batch's D and Db in pass order) takes each
-        batch's N increment at the radius the batches before it left, as merging them one
-        at a time would: one increment at the round's first radius would shrink it less."""
-        steps = delta.steps or [delta.sums]
-        D = self.D if len(steps) == 1 else self.D.copy()  # the photon density as far as the steps went
-        for i, step in enumerate(steps):
-            r = self.radius() if i == 0 else radius(self.R0, self.N, D)
-            dN = np.square(r)  # R^2 at merge time, then alpha pi R^2 dDb, in place
-            dN *= self.alpha * math.pi
-            dN *= step["Db"]
-            self.N += dN
-            if i + 1 < len(steps):
-                D += step["D"]
+        """Add a batch (or a fold round's batches at once): every sum adds, and N takes alpha
+        times the photons the passes counted at their own places in the radius schedule
+        (M, kernels/spatial_hash.cl). Commutative: the same state whatever the order and
+        grouping of the batches."""
+        self.N += self.alpha * delta.sums["M"]
         add_delta(self, delta)
         self._radius = None
 

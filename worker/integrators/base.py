@@ -34,9 +34,6 @@ class Delta:
     # Scalar integer counters the job state sums as it sums `emitted` (e.g. the adaptive
     # sampler's uniform draws, worker/adaptive.py); a name missing counts as 0.
     counters: dict[str, int] = field(default_factory=dict)
-    # A fold of several batches at once (worker/store/state.py): per batch, in pass order,
-    # the sums its merge does not simply add (Integrator.per_batch_sums); empty for one batch.
-    steps: list[dict[str, np.ndarray]] = field(default_factory=list)
 
     def __getattr__(self, name: str) -> np.ndarray:
         sums = self.__dict__.get("sums")  # (no recursion while unpickling, before `sums` exists)
@@ -67,9 +64,6 @@ class Integrator(ABC):
     # The dataclass of per-pixel arrays `batch_inputs` returns (None: a batch reads nothing);
     # the store keeps it per tile and rebuilds it for a batch.
     inputs_type: ClassVar[type | None] = None
-    # Sums a fold of several batches keeps per batch (Delta.steps): the merge of one batch
-    # depends on the state the batches before it left, not only on their sums.
-    per_batch_sums: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
@@ -97,10 +91,11 @@ class Integrator(ABC):
     def batch_inputs(self, state: State) -> Any:
         """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
-    def for_concurrent_batches(self, inputs: Any, batches: int, behind: int = 0) -> Any:
+    def for_concurrent_batches(self, inputs: Any, batches: int, behind: int = 0, order: int = 0) -> Any:
         """A batch's inputs when `batches` of the job's batches render at once (this one
-        included) and `behind` of the job's passes are rendered or accepted but not in the
-        inputs; the same inputs for a method whose passes do not depend on each other."""
+        included, `order` of them starting at an earlier pass) and `behind` of the job's
+        passes are rendered or accepted but not in the inputs; the same inputs for a method
+        whose passes do not depend on each other."""
         return inputs
 
     @abstractmethod

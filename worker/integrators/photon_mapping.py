@@ -22,17 +22,17 @@ from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
 from worker.integrators.base import Delta, Integrator
 from worker.stats import Accumulators
 
-# S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; Db: photon count /
-# pi r_b^2, r_b the radius the batch was given (a batch's passes gather at shrinking radii;
-# the merge turns Db into N's increment and the state does not keep it, BATCH_ONLY); Ld:
+# S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; M: photons counted,
+# each pass's at its own place in the radius schedule (kernels/spatial_hash.cl,
+# shrink_radius: the merge adds alpha M to N, and the state does not keep M, BATCH_ONLY); Ld:
 # directly seen emission (rgb); H: passes with a measurement point. Then the error estimator's sums
 # (only for jobs that estimate their error): G the Laplacian, X1 and X2 the bias-corrected
 # per-pass samples and their squares, L2 the squared per-pass Laplacians, Dh and Dh2 the
 # per-pass change of the luminance estimate from radius r/2 to r and its square; with
 # direct light by next-event estimation (`direct: nee`), Ld2 the squared luminance of each
 # pass's Ld sample (its variance enters the error bound).
-PHOTON_SUMS = (("S", 3), ("D", 1), ("Db", 1), ("Ld", 3), ("H", 1))
-BATCH_ONLY = ("Db",)
+PHOTON_SUMS = (("S", 3), ("D", 1), ("M", 1), ("Ld", 3), ("H", 1))
+BATCH_ONLY = ("M",)
 ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1), ("Dh", 1), ("Dh2", 1))
 NEE_ERROR_SUMS = (("Ld2", 1),)
 
@@ -63,8 +63,11 @@ class GatherInputs:
     of the job's batches render at once, this one included (each pass then counts that
     many times in the radius rule within the batch: kernels/spatial_hash.cl,
     shrink_radius), and how many of the job's passes the radius lags when the batch starts
-    (rendered or accepted, not yet folded: the batch's first pass counts for them too).
-    The worker sets the last two when it starts the batch."""
+    (rendered or accepted, not yet folded: the batch's first pass counts for them too),
+    and where its passes fall among the concurrent batches' in the job's pass order (how
+    many of those start at an earlier pass: its photons count for N at that step,
+    kernels/spatial_hash.cl, shrink_radius). The worker sets the last three when it starts
+    the batch."""
 
     radius: np.ndarray
     bias: np.ndarray | None = None
@@ -72,6 +75,7 @@ class GatherInputs:
     count: np.ndarray | None = None
     concurrency: int = 1
     behind: int = 0
+    order: int = 0
 
 
 class PhotonMapping(Integrator):
@@ -81,7 +85,6 @@ class PhotonMapping(Integrator):
     fixed_points = False  # PPM: every pass uses pass 0's measurement points
     setup_arrays = ("R0",)
     inputs_type = GatherInputs
-    per_batch_sums = ("D", "Db")  # N's increment is taken at the radius the batches before left
 
     @property
     def sums(self) -> SumLayout:
@@ -119,8 +122,11 @@ class PhotonMapping(Integrator):
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains, state.N)
 
-    def for_concurrent_batches(self, inputs: GatherInputs, batches: int, behind: int = 0) -> GatherInputs:
-        return dataclasses.replace(inputs, concurrency=max(1, batches), behind=max(0, behind))
+    def for_concurrent_batches(self, inputs: GatherInputs, batches: int, behind: int = 0,
+                               order: int = 0) -> GatherInputs:
+        batches = max(1, batches)
+        return dataclasses.replace(inputs, concurrency=batches, behind=max(0, behind),
+                                   order=min(max(0, order), batches - 1))
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

@@ -53,9 +53,9 @@ class PhotonMappingPasses:
         # pass (shrink_radius, spatial_hash.cl), the radius the batch was given, and the bias.
         self.radius = device.buffer(4 * n)
         self.radius_count = device.buffer(4 * n)
-        self.radius_batch = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)
         self.steps = 1  # how many passes of the job the pass being gathered stands for (shrink_radius)
+        self.own = 0  # which of those steps is the pass itself (after the passes its batch's inputs lack)
         self.ph_count = device.buffer(4)
         self.counters = device.buffer(4 * len(adaptive.COUNTERS))  # the chains' per-pass counters
         self.capacity = 0
@@ -175,18 +175,17 @@ class PhotonMappingPasses:
         dev.times.add("trace", [ev])
 
     def _radii(self) -> tuple:
-        """The gathers' radius arguments (spatial_hash.cl: radius, radius_batch, radius_count,
-        bias, alpha, steps)."""
-        return (self.radius, self.radius_batch, self.radius_count, self.bias, f32(self.settings.alpha),
-                u32(self.steps))
+        """The gathers' radius arguments (spatial_hash.cl: radius, radius_count, bias, alpha,
+        steps, own)."""
+        return (self.radius, self.radius_count, self.bias, f32(self.settings.alpha), u32(self.steps), u32(self.own))
 
     def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray) -> None:
         """A batch's (or a probe's) starting radius, count N and bias per pixel, float32 (each
         pass counting once until run_batch says otherwise)."""
         r32 = np.ascontiguousarray(radius, np.float32)
-        for buf, host in ((self.radius, r32), (self.radius_batch, r32), (self.radius_count, count), (self.bias, bias)):
+        for buf, host in ((self.radius, r32), (self.radius_count, count), (self.bias, bias)):
             cl.enqueue_copy(self.dev.queue, buf, np.ascontiguousarray(host, np.float32))
-        self.steps = 1
+        self.steps, self.own = 1, 0
 
     def _build_and_gather(self, n_stored: int, max_radius: float, gather: str | None = None) -> None:
         """Build the photon lookup and gather; a pass's own estimates (the error estimator's
@@ -295,7 +294,8 @@ class PhotonMappingPasses:
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
             # The passes of the job this one stands for in the radius rule (GatherInputs).
-            self.steps = inputs.concurrency + (min(inputs.behind, MAX_CATCH_UP) if k == first_pass else 0)
+            catch_up = min(inputs.behind, MAX_CATCH_UP) if k == first_pass else 0
+            self.steps, self.own = inputs.concurrency + catch_up, catch_up + inputs.order
             self._eye_pass(k)
             if inputs.chains is None:
                 self.photons_stored = self._photon_pass(k)

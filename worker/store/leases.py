@@ -76,6 +76,9 @@ class Leases:
     def inflight(self, job_id: str) -> int:
         return self.r.scard(keys.inflight(job_id))
 
+    def inflight_batches(self, job_id: str) -> list[Batch]:
+        return [Batch.from_id(job_id, b.decode()) for b in self.r.smembers(keys.inflight(job_id))]
+
     def progress(self, job_id: str, excluding: Batch) -> int:
         """Passes the job's batches in flight have rendered so far, but `excluding`'s."""
         done = self.r.hgetall(keys.progress(job_id))
@@ -86,7 +89,7 @@ class Leases:
 
     def unowned(self, job_id: str) -> list[Batch]:
         """The job's in-flight batches that no worker has taken."""
-        batches = [Batch.from_id(job_id, b.decode()) for b in self.r.smembers(keys.inflight(job_id))]
+        batches = self.inflight_batches(job_id)
         pipe = self.r.pipeline()
         for batch in batches:
             pipe.hexists(keys.LEASE_OWNER, batch.member)

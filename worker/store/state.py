@@ -30,9 +30,8 @@ from worker.host_threads import HOST_THREADS, each
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
-from worker.store.leases import Batch
 from worker.store.overlay import OVERLAYS, Overlay
-from worker.store.tiles import (CACHE, DELTA_DTYPE, STATE_DTYPE, DeltaFormatError, Tiling, decode_delta, decode_inputs,
+from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, decode_delta, decode_inputs,
                                 decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
 
 # Applies a folded round to the job record once per batch, however many folders try.
@@ -305,9 +304,6 @@ class TiledState:
         # (a tile's first delta of an array is copied in, the rest added: the same sums as
         # adding each to zero). Every delta is checked readable before anything is written.
         sums = {name: integrator.sums.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
-        fresh_ids.sort(key=lambda b: Batch.from_id(job_id, b).first)  # pass order
-        steps = {b: {name: np.zeros(sums[name].shape, DELTA_DTYPE) for name in integrator.per_batch_sums}
-                 for b in fresh_ids} if len(fresh_ids) > 1 else {}
         sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
         carried: dict[int, set[str]] = {}  # per tile, the arrays this round's deltas carried
 
@@ -324,8 +320,6 @@ class TiledState:
                         parts = decode_delta(payload, delta_widths, span.stop - span.start)
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
-                    for name in steps.get(batch_id, {}).keys() & parts.keys():
-                        steps[batch_id][name][span] = parts[name]
                     for name, part in parts.items():  # tiles are disjoint: threads never add to one pixel
                         if name in names:
                             sums[name][span] += part
@@ -344,8 +338,7 @@ class TiledState:
             for name, value in header["c"].items():
                 added[name] = added.get(name, 0) + int(value)
         delta = Delta(first_pass=-1, n_passes=sum(accepted[b]["n"] for b in fresh_ids),
-                      emitted=sum(accepted[b]["e"] for b in fresh_ids), sums=sums, counters=added,
-                      steps=[steps[b] for b in fresh_ids] if steps else [])
+                      emitted=sum(accepted[b]["e"] for b in fresh_ids), sums=sums, counters=added)
         # Merge, then what the next batches read and the error.
         if fresh_ids:
             integrator.merge(state, delta)
