@@ -34,7 +34,7 @@ BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this lon
 MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
 MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
-MAX_INFLIGHT_PER_JOB = 8
+MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy (issue 14: 100 on one job)
 # The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
 # The API's folder thread folds a job FOLD_SECONDS after its last round, or later for a
 # large state (`fold_interval`); a worker folds after its merge when the API has not for
