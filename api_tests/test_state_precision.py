@@ -87,7 +87,7 @@ def test_ten_thousand_passes_show_no_drift_with_float32_deltas(tmp_path: Path) -
             """The largest error over pixels, in units of the sum of the batches' magnitudes."""
             return float(np.max(np.abs(got.astype(np.longdouble) - ref) / magnitude[name]))
 
-        for name in state.sums:  # (a batch's Db goes into N, not kept: worker/stats.py)
+        for name in state.sums:  # (a batch's M goes into N, not kept: worker/stats.py)
             assert error(getattr(state, name), sent[name], name) < 1e-12, name  # the fold adds exactly
             assert error(getattr(state, name), exact[name], name) <= UNIT * (1 + 1e-6), name  # one rounding a batch
         worst32 = max(error(single[name], exact[name], name) for name in state.sums)

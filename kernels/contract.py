@@ -68,7 +68,7 @@ HYBRID_SKIP = {"nee": 1, "connect": 2, "merge": 4, "splat": 8}
 # The hybrid program builds on the photon-mapping sources (for spatial_hash.cl's grid build),
 # whose eye-pass and gather kernels address these sums unconditionally; a layout without
 # them gets them defined as offset 0 so the source compiles (those kernels never run).
-PHOTON_RECORD_NAMES = ("S", "D", "DB", "H", "LD")
+PHOTON_RECORD_NAMES = ("S", "D", "M", "H", "LD")
 # The eye pass casts its disc-coverage rays only where a conservative test finds a shape
 # that could cut the disc (kernels/eye_pass.cl, disc_may_be_cut); 0 casts them at every
 # point, which must give the same coverage bit for bit (tests/test_disc_coverage.py).
