@@ -4,15 +4,25 @@ A large job's state moves in pipelines of hundreds of megabytes, and with the ap
 file fsynced on every write a Redis taking such a pipeline can leave another client
 waiting longer than redis-py's default 5 s. That wait is load, not a lost server: a
 socket times out only after SOCKET_TIMEOUT (a server that went away closes the socket,
-which fails at once)."""
+which fails at once).
+
+Replies are parsed by hiredis (a tile read at a tenth of the CPU of redis-py's Python
+parser); commands are packed by redis-py's own serializer, which sends a large argument
+(a tile's delta) as it is, where hiredis's packer copies it twice (a 1920 x 1080 push:
+0.03 against 0.11 CPU s)."""
 
 from __future__ import annotations
 
 import redis
+from redis.connection import PythonRespSerializer
 
 SOCKET_TIMEOUT = 120.0
 HEALTH_CHECK_SECONDS = 10
+PACK_CUTOFF = 6000  # bytes: smaller pieces of a command are joined into one write (redis-py's own cutoff)
 
 
 def connect(url: str) -> redis.Redis:
-    return redis.Redis.from_url(url, socket_timeout=SOCKET_TIMEOUT, health_check_interval=HEALTH_CHECK_SECONDS)
+    pool = redis.ConnectionPool.from_url(url, socket_timeout=SOCKET_TIMEOUT,
+                                         health_check_interval=HEALTH_CHECK_SECONDS)
+    pool.connection_kwargs["command_packer"] = PythonRespSerializer(PACK_CUTOFF, pool.get_encoder().encode)
+    return redis.Redis(connection_pool=pool)
