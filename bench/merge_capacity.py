@@ -67,6 +67,7 @@ from worker.store.tiles import encode_delta
 
 REFRESH_LIMIT = 10.0
 PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)
+PROJECTED_WORKERS = (1, 2, 5, 10, 20, 50, 100, 200)  # charted
 FULL = {"sizes": [(1920, 1080), (3840, 2160)], "workers": [1, 2, 5, 10, 20, 50, 100], "batches": 3}
 SMOKE = {"sizes": [(320, 180), (640, 360)], "workers": [1, 2], "batches": 2}
 
@@ -263,6 +264,7 @@ def project(runs: list[dict]) -> dict:
             capacity = n
         at_100, share_100 = loads(100)
         out[f"{w}x{h}, {nodes} node(s)"] = {
+            "busiest_part_by_workers": {n: max(loads(n)[0].values()) for n in PROJECTED_WORKERS},
             "from_workers": base["workers"], "cpu_seconds_per_batch": costs, "merge_alone_seconds": merge,
             "capacity": capacity, "limited_by": limit, "loads_at_100": at_100, "merge_share_at_100": share_100,
             "bytes_per_second_at_100": 100 / (batch_passes(pass_seconds, merge, None,
@@ -274,15 +276,19 @@ def project(runs: list[dict]) -> dict:
 def chart(report: dict, name: str) -> None:
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.5))
     for (w, h, nodes), runs in _series(report["runs"]).items():
         label = f"{w}x{h}, {nodes} node{'s' if nodes > 1 else ''}"
         xs = [r["workers"] for r in runs]
         axes[0].plot(xs, [r["needed_batch_passes"] for r in runs], "o-", label=label)
         axes[1].plot(xs, [r["refresh_max_seconds"] for r in runs], "o-", label=label)
+        busiest = report["projected"].get(f"{w}x{h}, {nodes} node(s)", {}).get("busiest_part_by_workers", {})
+        axes[2].plot([int(n) for n in busiest], list(busiest.values()), "o-", label=label)
     axes[0].axhline(MAX_BATCH_PASSES, color="grey", ls="--", label="the largest batch")
     axes[1].axhline(REFRESH_LIMIT, color="grey", ls="--", label="10 s")
-    for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)")):
+    axes[2].axhline(PROJECTED_LOAD, color="grey", ls="--", label="saturated")
+    for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)",
+                                "projected: the busiest server or folder, a core each")):
         ax.set_xscale("log")
         ax.set_xlabel("simulated workers")
         ax.set_title(title)
