@@ -320,3 +320,30 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
     _merge(store, job_id, made[2])
     assert store.fold_if_stale(job_id).checkpointed
     _assert_folded_once(store, job_id, made)
+
+
+def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedRedis], deltas: tuple,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The API's folder (scheduler.fold_active): a round that raises something other than a
+    Redis error (a bug, memory) is logged, the job's batches stay accepted for the next
+    round, and the other jobs fold on."""
+    from worker.scheduler import fold_active
+
+    store, broken, made = _fresh_job(servers, deltas, 2)
+    healthy = _job(store, *deltas[1:])
+    for job_id in (broken, healthy):
+        _merge(store, job_id, made[0])
+    real = Jobs.fold_if_due
+
+    def fold_if_due(self: Jobs, job_id: str, *args: object, **kwargs: object) -> object:
+        if job_id == broken:
+            raise ValueError("a bug in a round")
+        return real(self, job_id, *args, **kwargs)
+
+    monkeypatch.setattr(Jobs, "fold_if_due", fold_if_due)
+    assert fold_active(store) >= 1
+    assert store.get(healthy).image_passes == made[0].n_passes
+    assert store.get(broken).image_passes == 0 and store.get(broken).passes == made[0].n_passes
+    monkeypatch.setattr(Jobs, "fold_if_due", real)
+    fold_active(store)
+    assert store.get(broken).image_passes == made[0].n_passes  # the next round took it

@@ -128,10 +128,20 @@ def reap(jobs: Jobs) -> int:
 
 def fold_active(jobs: Jobs) -> int:
     """The reducer: a fold round for every active job with accepted batches waiting whose
-    round is due (a job another process is folding is skipped). Returns how many were folded."""
+    round is due (a job another process is folding is skipped). Returns how many were folded.
+    A round that fails other than by Redis is logged and the other jobs fold on (its
+    batches stay accepted; the next round tries again)."""
     active = jobs.active_ids()
     OVERLAYS.keep_only(set(active))  # an ended job's last round was a checkpoint
-    return sum(jobs.fold_if_due(job_id) is not None for job_id in active)
+    folded = 0
+    for job_id in active:
+        try:
+            folded += jobs.fold_if_due(job_id) is not None
+        except redis.RedisError:
+            raise
+        except Exception:  # noqa: BLE001 - one job's failing round must not stop the others'
+            log.exception("fold round failed", extra={"job": job_id})
+    return folded
 
 
 class Reaper:
@@ -151,6 +161,8 @@ class Reaper:
                 fold_active(self.jobs)
             except redis.RedisError as exc:
                 log.warning("folder: redis unavailable: %s", exc)
+            except Exception:  # noqa: BLE001 - the thread lives on: the next round may succeed
+                log.exception("folder: a pass over the jobs failed")
 
     def _run(self) -> None:
         last_prune = 0.0
@@ -163,6 +175,8 @@ class Reaper:
                     last_prune = time.monotonic()
             except redis.RedisError as exc:
                 log.warning("reaper: redis unavailable: %s", exc)
+            except Exception:  # noqa: BLE001 - the thread lives on: the next look may succeed
+                log.exception("reaper: a look failed")
 
     def start(self) -> "Reaper":
         for thread in self._threads:
