@@ -248,28 +248,27 @@ def project(runs: list[dict]) -> dict:
                  "folder": base["folder_cpu_per_batch"]}
         merge, pass_seconds = base["merge_alone_seconds"], base["pass_seconds"]
 
-        def loads(n: int) -> tuple[dict[str, float], float]:
+        def loads(n: int) -> tuple[dict[str, float], float, float]:
+            """Each part's load, the merge share and the batches a second, at N = n."""
             batch = batch_passes(pass_seconds, merge, None, base["fold_round_median_seconds"] or 0.0, n) * pass_seconds
             rate = n / (batch + merge)
             load = {part: rate * c for part, c in costs.items()}
             waited = merge / max(1e-9, 1.0 - max(load.values()))
-            return load, waited / (batch + waited)
+            return load, waited / (batch + waited), rate
 
         capacity, limit = 0, None
         for n in range(1, 1001):
-            load, share = loads(n)
+            load, share, _ = loads(n)
             if max(load.values()) > PROJECTED_LOAD or share > MERGE_SHARE:
                 limit = max(load, key=load.get) if max(load.values()) > PROJECTED_LOAD else "merge share"
                 break
             capacity = n
-        at_100, share_100 = loads(100)
+        at_100, share_100, rate_100 = loads(100)
         out[f"{w}x{h}, {nodes} node(s)"] = {
             "busiest_part_by_workers": {n: max(loads(n)[0].values()) for n in PROJECTED_WORKERS},
             "from_workers": base["workers"], "cpu_seconds_per_batch": costs, "merge_alone_seconds": merge,
             "capacity": capacity, "limited_by": limit, "loads_at_100": at_100, "merge_share_at_100": share_100,
-            "bytes_per_second_at_100": 100 / (batch_passes(pass_seconds, merge, None,
-                                                            base["fold_round_median_seconds"] or 0.0, 100)
-                                              * pass_seconds + merge) * base["delta_bytes"]}
+            "bytes_per_second_at_100": rate_100 * base["delta_bytes"]}
     return out
 
 
