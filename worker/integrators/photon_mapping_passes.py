@@ -50,7 +50,7 @@ class PhotonMappingPasses:
         self.mp_dist = device.buffer(4 * n)  # eye path length to the point
         self.mp_cut = device.buffer(16 * n)  # where the coverage rays cut the gather disc
         # Per pixel within a batch: the radius and the radius rule's count N, moving on pass by
-        # pass (shrink_radius, spatial_hash.cl), the radius the batch was given, and the bias.
+        # pass (shrink_radius, spatial_hash.cl), and the bias.
         self.radius = device.buffer(4 * n)
         self.radius_count = device.buffer(4 * n)
         self.bias = device.buffer(4 * n)

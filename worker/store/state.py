@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -137,13 +138,19 @@ class TiledState:
         return Tiling(n_pixels, shards, tile_pixels)
 
     def _per_node(self, tiling: Tiling, work: Callable[[int, list[int]], dict[int, Any]]) -> dict[int, Any]:
-        """`work(node, some of its tiles)` for every node's tiles, the nodes and parts of
-        each node's tiles at once (worker/host_threads.py: at least a thread a node)."""
+        """`work(node, some of its tiles)` for every node's tiles: the nodes at once (a thread
+        each, as many as there are nodes: each waits on its own server), and one node's tiles
+        in parts on the host threads (worker/host_threads.py: the client's CPU work)."""
         by_node = tiling.by_node()
         parts = max(1, -(-HOST_THREADS // len(by_node)))
+        pieces = [(node, tiles[i::parts]) for node, tiles in by_node.items() for i in range(parts) if tiles[i::parts]]
+        if len(by_node) == 1:
+            results = each(lambda item: work(*item), pieces)
+        else:
+            with ThreadPoolExecutor(len(pieces)) as pool:
+                results = list(pool.map(lambda item: work(*item), pieces))
         out: dict[int, Any] = {}
-        for part in each(lambda item: work(*item), [(node, tiles[i::parts]) for node, tiles in by_node.items()
-                                                    for i in range(parts) if tiles[i::parts]]):
+        for part in results:
             out |= part
         return out
 
