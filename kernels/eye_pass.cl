@@ -170,6 +170,7 @@ typedef struct {
 __kernel void eye_pass(
     SCENE_PARAMS,
     __global const CameraDesc* cam, int width, int height,
+    int stride,                    // the point at gid is pixel gid * stride's (a set-up probe: > 1)
     ulong seed, uint pass, int max_bounces,
     int nee,                       // 1: estimate direct light at the point (lights.cl)
     uint light_pass,               // the real pass index: seeds the light samples
@@ -181,12 +182,12 @@ __kernel void eye_pass(
     __global uint4* mp_cut,        // the coverage rays' cuts (disc_coverage, inside_cut)
     __global double* batch_sums)   // per-pixel sums (sums.cl); += directly seen emission
 {
-    int gid = get_global_id(0);
-    if (gid >= width * height) return;
+    int gid = get_global_id(0), pixel = gid * stride;
+    if (pixel >= width * height) return;
     SceneGeom g = SCENE_GEOM;
-    Rng rng = rng_make(seed, pass, (uint)gid, DOMAIN_EYE);
+    Rng rng = rng_make(seed, pass, (uint)pixel, DOMAIN_EYE);
 
-    int x = gid % width, y = gid / width;
+    int x = pixel % width, y = pixel / width;
     float sx = 2.0f * ((float)x + rng_float(&rng)) / (float)width - 1.0f;
     float sy = 1.0f - 2.0f * ((float)y + rng_float(&rng)) / (float)height;
     CameraDesc c = *cam;
@@ -222,7 +223,7 @@ __kernel void eye_pass(
             nrm = (float4)(n, cover.y);
             wgt = (float4)(thr * sa.xyz / PI_F, cover.x);
             if (nee) {
-                Rng light_rng = rng_make(seed, light_pass, (uint)gid, DOMAIN_NEE);
+                Rng light_rng = rng_make(seed, light_pass, (uint)pixel, DOMAIN_NEE);
                 float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
                 direct += thr * direct_light(&g, surf_b, emitters, emitter_cdf, n_emitters, p, n, ns, sa.xyz,
                                              &light_rng);

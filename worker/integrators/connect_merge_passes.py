@@ -148,7 +148,7 @@ class ConnectMergePasses:
 
         photon_mapping = PhotonMapping(self.settings.model_copy(update={"method": "sppm"}))
         probe = Device(dev.arrays, photon_mapping.sums, dev.ctx)
-        footprint = PhotonMappingPasses(photon_mapping, probe).pixel_footprint()
+        footprint, _ = PhotonMappingPasses(photon_mapping, probe).pixel_footprint()
         return {"R0": np.full(dev.arrays.n_pixels, R0_FOOTPRINTS * footprint)}
 
     # -------------------------------------------------------------------- batch
