@@ -12,6 +12,8 @@ import os
 import pickle
 import random
 import signal
+import threading
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -26,6 +28,7 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys, policy
+from worker.store.policy import Status
 from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.state import TiledState
@@ -63,8 +66,8 @@ def _store(urls: list[str]) -> Jobs:
     return Jobs(redis.Redis.from_url(urls[0]), [redis.Redis.from_url(u) for u in urls[1:]], tile_pixels=TILE)
 
 
-def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray) -> str:
-    job_id = store.create(scene, settings.model_copy(update={"max_passes": 1000, "max_seconds": None}), W, H,
+def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray, max_passes: int = 1000) -> str:
+    job_id = store.create(scene, settings.model_copy(update={"max_passes": max_passes, "max_seconds": None}), W, H,
                           "cornell-caustics")
     store.init_setup(store.get(job_id), {"R0": r0})
     store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
@@ -347,3 +350,47 @@ def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedR
     monkeypatch.setattr(Jobs, "fold_if_due", real)
     fold_active(store)
     assert store.get(broken).image_passes == made[0].n_passes  # the next round took it
+
+
+def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: list[EmbeddedRedis], deltas: tuple,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The batch that spends the budget leaves the final round to the API's folder, which
+    holds the image in memory (one delta to add, then the checkpoint): its merge returns as
+    soon as the folder has begun, and the job ends with every pass folded once. With no
+    folder running, the worker ends the job itself after END_HANDOFF_SECONDS."""
+    from worker.scheduler import fold_active
+
+    made = pickle.loads(deltas[0].read_bytes())[:3]
+    store = _store([s.url for s in servers])
+    budget = sum(d.n_passes for d in made)
+    # With the API's folder: the merge does not wait out the hand-off.
+    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 60.0)
+    job_id = _job(store, *deltas[1:], max_passes=budget)
+    stop = threading.Event()
+
+    def folder() -> None:
+        while not stop.wait(0.05):
+            fold_active(store)
+
+    thread = threading.Thread(target=folder, daemon=True)
+    thread.start()
+    try:
+        for d in made[:-1]:
+            _merge(store, job_id, d)
+        started = time.monotonic()
+        _merge(store, job_id, made[-1])
+        assert time.monotonic() - started < 30.0
+        while store.status(job_id) == Status.RUNNING and time.monotonic() - started < 60.0:
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        thread.join()
+    assert store.status(job_id) == Status.COMPLETED
+    _assert_folded_once(store, job_id, made)
+    # Without: the worker ends it.
+    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.2)
+    job_id = _job(store, *deltas[1:], max_passes=budget)
+    for d in made:
+        _merge(store, job_id, d)
+    assert store.status(job_id) == Status.COMPLETED
+    _assert_folded_once(store, job_id, made)

@@ -128,7 +128,8 @@ def reap(jobs: Jobs) -> int:
 
 def fold_active(jobs: Jobs) -> int:
     """The reducer: a fold round for every active job with accepted batches waiting whose
-    round is due (a job another process is folding is skipped). Returns how many were folded.
+    round is due (a job another process is folding is skipped), and at once the final round
+    of a job an accepted batch ended. Returns how many were folded.
     A round that fails other than by Redis is logged and the other jobs fold on (its
     batches stay accepted; the next round tries again)."""
     active = jobs.active_ids()
@@ -136,7 +137,7 @@ def fold_active(jobs: Jobs) -> int:
     folded = 0
     for job_id in active:
         try:
-            folded += jobs.fold_if_due(job_id) is not None
+            folded += jobs.end_if_decided(job_id) or jobs.fold_if_due(job_id) is not None
         except redis.RedisError:
             raise
         except Exception:  # noqa: BLE001 - one job's failing round must not stop the others'

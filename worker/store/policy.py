@@ -53,6 +53,11 @@ REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
 CHECKPOINT_SECONDS = 30.0
 CHECKPOINT_PENDING_SHARE = 1.0  # a job then holds at most about two states (README, "Limits")
 FOLD_STALE_SECONDS = 5.0
+# The batch that decides a job's end hands its final round to the API's folder, which holds
+# the image in memory (Jobs.end_if_decided); its worker, looking every END_HANDOFF_POLL_SECONDS,
+# ends the job itself if no process has begun to within END_HANDOFF_SECONDS.
+END_HANDOFF_SECONDS = 3.0
+END_HANDOFF_POLL_SECONDS = 0.05
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
 # not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
 ALIVE_SECONDS = 3 * LEASE_SECONDS

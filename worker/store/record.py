@@ -70,6 +70,7 @@ class JobRecord:
     fold_seconds: float  # the last fold round's
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
     stopping: bool  # a move to a final status is under way: no new batches
+    ending: Status | None  # the final status an accepted batch decided (Jobs.end_if_decided)
     shards: int  # state nodes the tiles are spread over
     tile_pixels: int
     next_pass: int  # first pass index not yet allocated
@@ -99,7 +100,7 @@ class JobRecord:
                    waiting_since=float(f.get("waiting_since", 0.0)),
                    folded_at=float(f.get("folded_at", 0.0)),
                    fold_seconds=float(f.get("fold_seconds", 0.0)), setup=f.get("setup") == "1",
-                   stopping=f.get("stopping") == "1",
+                   stopping=f.get("stopping") == "1", ending=Status(f["ending"]) if f.get("ending") else None,
                    shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
                    next_pass=int(f["next_pass"]),
                    pass_seconds=float(f["pass_seconds"]), render_seconds=float(f.get("render_seconds", 0.0)),
@@ -452,8 +453,29 @@ class Jobs:
         pipe.hincrbyfloat(key, "merge_cpu_seconds", time.process_time() - merge_cpu)
         pipe.execute()
         if final is not None:
-            self._end(batch.job_id, policy.MERGING, final)
+            self._hand_off_end(batch.job_id, final)
         return outcome
+
+    def _hand_off_end(self, job_id: str, final: Status) -> None:
+        """The batch that decided the job's end: the API's folder ends it (end_if_decided,
+        from the image it holds in memory: one delta to add, then the checkpoint); this
+        worker ends it itself if no process has begun to within END_HANDOFF_SECONDS (the
+        API down or busy), reading the state and every pending delta from the tiles."""
+        deadline = time.monotonic() + policy.END_HANDOFF_SECONDS
+        while time.monotonic() < deadline:
+            record = self.get(job_id)
+            if record is None or record.stopping or record.status not in policy.MERGING:
+                return
+            time.sleep(policy.END_HANDOFF_POLL_SECONDS)
+        self._end(job_id, policy.MERGING, final)
+
+    def end_if_decided(self, job_id: str) -> bool:
+        """End a job whose accepted batch decided its final status (the API's folder, at
+        once: no later batch can add to the round)."""
+        record = self.get(job_id)
+        if record is None or record.ending is None or record.stopping:
+            return False
+        return self._end(job_id, policy.MERGING, record.ending)
 
     def accept(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float,
                cpu_seconds: float = 0.0) -> tuple[str, Status | None]:
@@ -485,6 +507,8 @@ class Jobs:
                         "longest_batch_seconds": max(record.longest_batch_seconds, wall_seconds)}
                     if record.passes <= record.image_passes:  # the first batch the image lacks
                         fields["waiting_since"] = time.time()
+                    if status in policy.FINAL:  # whoever ends the job (merge: _hand_off_end) reads it here
+                        fields["ending"] = status.value
                     counters = delta.counters
                     # Write.
                     pipe.multi()
