@@ -3,6 +3,7 @@
     pf:jobs                        zset    job id -> creation time
     pf:active                      set     ids of jobs holding an active slot (queued, running, cancelling)
     pf:job:{id}                    hash    the job record (worker/store/record.py)
+    pf:job:{id}:scene              string  the job's scene, JSON (read once per engine; the record is read often)
     pf:job:{id}:merged             set     batch ids accepted (counted in the record, exactly once)
     pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet in the
                                            tiles' state (a checkpoint adds them to the record: folded_passes,
@@ -40,6 +41,10 @@ def job(job_id: str) -> str:
     return f"pf:job:{job_id}"
 
 
+def scene(job_id: str) -> str:
+    return f"pf:job:{job_id}:scene"
+
+
 def tofold(job_id: str) -> str:
     return f"pf:job:{job_id}:tofold"
 
@@ -73,8 +78,8 @@ def progress(job_id: str) -> str:
 
 def job_keys(job_id: str) -> list[str]:
     """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
-    return [job(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id), inflight(job_id),
-            progress(job_id)]
+    return [job(job_id), scene(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id),
+            inflight(job_id), progress(job_id)]
 
 
 def tile_keys(job_id: str, k: int) -> list[str]:

@@ -151,7 +151,7 @@ class Jobs:
         """A new queued job; raises JobLimitReached if `max_active` jobs are active."""
         job_id = uuid.uuid4().hex[:16]
         now = time.time()
-        fields = {"status": Status.QUEUED.value, "scene": json.dumps(scene), "settings": settings.model_dump_json(),
+        fields = {"status": Status.QUEUED.value, "settings": settings.model_dump_json(),
                   "scene_name": scene_name or "", "width": width, "height": height, "created": now,
                   "passes": 0, "emitted": 0, "next_pass": 0, "pass_seconds": 0.0, "attempts": "{}",
                   "shards": len(self.tiles.nodes), "tile_pixels": self.tile_pixels}
@@ -163,6 +163,7 @@ class Jobs:
                         raise JobLimitReached(f"at most {max_active} jobs may be active at once")
                     pipe.multi()
                     pipe.hset(keys.job(job_id), mapping=fields)
+                    pipe.set(keys.scene(job_id), json.dumps(scene))
                     pipe.zadd(keys.JOBS, {job_id: now})
                     pipe.sadd(keys.ACTIVE, job_id)
                     pipe.execute()
@@ -175,7 +176,7 @@ class Jobs:
         return JobRecord.parse(job_id, h) if h else None
 
     def scene(self, job_id: str) -> dict[str, Any]:
-        return json.loads(self.r.hget(keys.job(job_id), "scene"))
+        return json.loads(self.r.get(keys.scene(job_id)))
 
     def status(self, job_id: str) -> Status | None:
         s = self.r.hget(keys.job(job_id), "status")
