@@ -394,3 +394,43 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
         _merge(store, job_id, d)
     assert store.status(job_id) == Status.COMPLETED
     _assert_folded_once(store, job_id, made)
+
+
+def test_the_folder_wakes_for_a_jobs_first_and_ending_batches(servers: list[EmbeddedRedis], deltas: tuple,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """A job's first accepted batch and the batch that ends it are news (keys.FOLD_NEWS): a
+    folder waiting on it (Jobs.wait_for_news, the API's folder thread) starts their rounds
+    at once, however long it would otherwise wait between looks (here 30 s)."""
+    from worker.scheduler import fold_active
+
+    made = pickle.loads(deltas[0].read_bytes())[:2]
+    store = _store([s.url for s in servers])
+    store.r.delete(keys.FOLD_NEWS)
+    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 60.0)
+    job_id = _job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
+    stop = threading.Event()
+
+    def folder() -> None:
+        while not stop.is_set():
+            store.wait_for_news(30.0)
+            if not stop.is_set():
+                fold_active(store)
+
+    thread = threading.Thread(target=folder, daemon=True)
+    thread.start()
+    try:
+        started = time.monotonic()
+        _merge(store, job_id, made[0])
+        while store.get(job_id).image_passes == 0 and time.monotonic() - started < 30.0:
+            time.sleep(0.02)
+        assert store.get(job_id).image_passes == made[0].n_passes
+        assert time.monotonic() - started < 10.0
+        started = time.monotonic()
+        _merge(store, job_id, made[1])  # returns once the folder has begun to end the job
+        assert time.monotonic() - started < 10.0
+    finally:
+        stop.set()
+        store.r.lpush(keys.FOLD_NEWS, "")  # wake the folder to stop
+        thread.join()
+    assert store.status(job_id) == Status.COMPLETED
+    _assert_folded_once(store, job_id, made)

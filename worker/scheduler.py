@@ -34,7 +34,7 @@ from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
 REAP_SECONDS = 2.0
-FOLD_POLL_SECONDS = 0.5  # the folder thread looks this often (each job's rounds are paced by fold_if_due)
+FOLD_POLL_SECONDS = 0.5  # the folder thread looks this often, and at once on news (Jobs.wait_for_news)
 PRUNE_SECONDS = 60.0
 
 log = logging.getLogger("photonfarm.scheduler")
@@ -157,13 +157,16 @@ class Reaper:
                          threading.Thread(target=self._fold, name="folder", daemon=True)]
 
     def _fold(self) -> None:
-        while not self._stop.wait(FOLD_POLL_SECONDS):
+        while not self._stop.is_set():
             try:
+                self.jobs.wait_for_news(FOLD_POLL_SECONDS)
                 fold_active(self.jobs)
             except redis.RedisError as exc:
                 log.warning("folder: redis unavailable: %s", exc)
+                self._stop.wait(FOLD_POLL_SECONDS)
             except Exception:  # noqa: BLE001 - the thread lives on: the next round may succeed
                 log.exception("folder: a pass over the jobs failed")
+                self._stop.wait(FOLD_POLL_SECONDS)
 
     def _run(self) -> None:
         last_prune = 0.0

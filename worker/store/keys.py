@@ -15,6 +15,8 @@
     pf:leases                      zset    batch member "job/first/n" -> deadline
     pf:lease-owner                 hash    batch member -> worker name
     pf:batch-rq                    hash    batch member -> id of the RQ job that carries it
+    pf:fold-news                   list    ids of jobs whose first batch, or whose ending batch, was just
+                                           accepted: the API's folder thread waits on it (at most FOLD_NEWS_KEPT)
     pf:worker:{name}               hash    heartbeat: job, batch, passes, last_seen (expires)
     pf:workers                     zset    worker name -> last heartbeat (live workers: recent scores)
 
@@ -35,6 +37,8 @@ WORKER_SEEN = "pf:workers"
 LEASES = "pf:leases"
 LEASE_OWNER = "pf:lease-owner"
 BATCH_RQ = "pf:batch-rq"
+FOLD_NEWS = "pf:fold-news"
+FOLD_NEWS_KEPT = 64  # entries: with no API to take them, the list stays this short
 
 
 def job(job_id: str) -> str:
