@@ -15,8 +15,8 @@
     pf:leases                      zset    batch member "job/first/n" -> deadline
     pf:lease-owner                 hash    batch member -> worker name
     pf:batch-rq                    hash    batch member -> id of the RQ job that carries it
-    pf:fold-news                   list    ids of jobs whose first batch, or whose ending batch, was just
-                                           accepted: the API's folder thread waits on it (at most FOLD_NEWS_KEPT)
+    pf:fold-news                   list    ids of jobs whose ending batch was just accepted: the API's folder
+                                           thread waits on it between its looks (at most FOLD_NEWS_KEPT)
     pf:worker:{name}               hash    heartbeat: job, batch, passes, last_seen (expires)
     pf:workers                     zset    worker name -> last heartbeat (live workers: recent scores)
 

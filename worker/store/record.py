@@ -471,8 +471,8 @@ class Jobs:
         self._end(job_id, policy.MERGING, final)
 
     def wait_for_news(self, seconds: float) -> None:
-        """Block until a job's first or ending batch is accepted (keys.FOLD_NEWS), at most
-        `seconds`: the folder's round for it starts at once, not at its next look."""
+        """Block until a batch that ends its job is accepted (keys.FOLD_NEWS), at most
+        `seconds`: the folder's final round starts at once, not at its next look."""
         self.r.blpop([keys.FOLD_NEWS], timeout=seconds)
 
     def end_if_decided(self, job_id: str) -> bool:
@@ -515,7 +515,6 @@ class Jobs:
                         fields["waiting_since"] = time.time()
                     if status in policy.FINAL:  # whoever ends the job (merge: _hand_off_end) reads it here
                         fields["ending"] = status.value
-                    news = status in policy.FINAL or record.passes == 0  # a round the folder starts at once
                     counters = delta.counters
                     # Write.
                     pipe.multi()
@@ -524,7 +523,7 @@ class Jobs:
                     pipe.hset(keys.tofold(batch.job_id), batch.id,
                               json.dumps({"n": delta.n_passes, "e": delta.emitted, "c": counters}))
                     Leases.release(pipe, batch)
-                    if news:
+                    if status in policy.FINAL:  # news: the folder ends the job at once
                         pipe.lpush(keys.FOLD_NEWS, batch.job_id)
                         pipe.ltrim(keys.FOLD_NEWS, 0, keys.FOLD_NEWS_KEPT - 1)
                     pipe.execute()
