@@ -227,15 +227,52 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
 // with R^2. Returns this pass's own photons at its own place in that schedule, step `own`
 // (M (R_own / R)^2): N's increment from this pass is alpha times that, whenever and in
 // whatever group the batch is merged (sum M).
+//
+// Past SHRINK_LOOP_STEPS steps (many batches at once, or a long catch-up) the steps are
+// taken in closed form: with C_j = N_j / (R_j / R)^2 the rule reads C_{j+1} = C_j + M and
+// N_{j+1} = N_j (x_j + alpha) / x_j, x_j = C_j / M, so N_{j+k} = N_j G(x_j + k) / G(x_j),
+// G(x) = Gamma(x + alpha) / Gamma(x), and (R_j / R)^2 = N_j / C_j. Its log comes from
+// Stirling's series once x is past SHRINK_SERIES_FROM (the steps before it are looped): a
+// few logs in place of a loop whose length grew with the job's workers.
+#define SHRINK_LOOP_STEPS 16u
+#define SHRINK_SERIES_FROM 8.0
+
+// log(Gamma(x + a) / Gamma(x)), x >= SHRINK_SERIES_FROM: within 1e-6 for a in (0, 1].
+inline double log_gamma_ratio(double x, double a) {
+    double q = a * (a - 1.0);
+    return a * log(x) + q / (2.0 * x) - q * (2.0 * a - 1.0) / (12.0 * x * x) + q * q / (12.0 * x * x * x);
+}
+
 inline float shrink_radius(int gid, float m, float alpha, uint steps, uint own, __global float* radius,
                            __global float* radius_count, __global float* bias) {
     if (m <= 0.0f) return 0.0f;
     float n = radius_count[gid], r2 = 1.0f, own_m = m;  // r2: (R_j / R)^2
-    for (uint j = 0; j < steps; ++j) {
-        float mj = m * r2;
-        if (j == own) own_m = mj;
-        r2 *= (n + alpha * mj) / (n + mj);
-        n += alpha * mj;
+    if (steps <= SHRINK_LOOP_STEPS) {
+        for (uint j = 0; j < steps; ++j) {
+            float mj = m * r2;
+            if (j == own) own_m = mj;
+            r2 *= (n + alpha * mj) / (n + mj);
+            n += alpha * mj;
+        }
+    } else {
+        double md = m, al = alpha, nd = n, cd = n, own_d = md;  // C_0 = N_0 (R_0 = R)
+        uint j = 0;
+        for (; j < steps && cd < SHRINK_SERIES_FROM * md; ++j) {  // the first steps, to the series' range
+            double mj = j == 0 ? md : md * nd / cd;
+            if (j == own) own_d = mj;
+            nd += al * mj;
+            cd += md;
+        }
+        if (j < steps) {  // the rest in closed form
+            double x = cd / md, lx = log_gamma_ratio(x, al);
+            if (own >= j && own < steps)
+                own_d = md * nd * exp(log_gamma_ratio(x + (own - j), al) - lx) / (cd + (own - j) * md);
+            nd *= exp(log_gamma_ratio(x + (steps - j), al) - lx);
+            cd += (steps - j) * md;
+        }
+        own_m = (float)own_d;
+        n = (float)nd;
+        r2 = (float)(nd / cd);
     }
     radius_count[gid] = n;
     radius[gid] *= sqrt(r2);

@@ -127,20 +127,24 @@ def test_a_batch_moves_its_radius_on_as_sequential_passes_do(make_engine) -> Non
     np.testing.assert_allclose(batched.radiance().mean(axis=0), one_by_one.radiance().mean(axis=0), rtol=1e-3)
 
 
-@pytest.mark.parametrize("concurrency, order", [(1, 0), (3, 0), (3, 2)])
+@pytest.mark.parametrize("concurrency, order, after_a_pass", [
+    (1, 0, True), (3, 0, True), (3, 2, True), (40, 7, True), (300, 0, True), (300, 299, True), (40, 0, False),
+    (300, 150, False)])
 def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine, concurrency: int,
-                                                                     order: int) -> None:
+                                                                     order: int, after_a_pass: bool) -> None:
     """With W batches of the job rendering at once, a batch's pass takes the radius rule W
     times, each step with the photons it found scaled to the step's disc, M (R_j / R)^2:
     the host's float64 recursion gives the device's count and radius, and the radius keeps
     the rule's invariant R^2 = N / (pi (D + W dD)). The photons the pass adds to N (sum M)
-    are those of its own step, `order` (how many of the W start at an earlier pass)."""
+    are those of its own step, `order` (how many of the W start at an earlier pass). Past
+    16 steps the device takes them in closed form; also from a job's first pass (N = 0)."""
     import pyopencl as cl
 
     alpha = 0.7
     eng = make_engine("cornell-caustics", resolution=(48, 48), photons_per_pass=1 << 14, seed=15, alpha=alpha)
     state = eng.start()
-    state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
+    if after_a_pass:
+        state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
     inputs = eng.integrator.for_concurrent_batches(eng.integrator.batch_inputs(state), concurrency, order=order)
     delta = eng.run_batch(inputs, 1, 1)
     n = eng.arrays.n_pixels

@@ -27,9 +27,6 @@ R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
 PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
 PROBE_POINTS = 1 << 16  # ... at most at this many pixels, a regular subset of the frame (R0's medians)
-# A batch's first pass stands for at most this many of the passes its inputs lack
-# (GatherInputs.behind): the radius rule's steps cost a loop per pixel (shrink_radius).
-MAX_CATCH_UP = 32
 
 
 def _next_pow2(n: int) -> int:
@@ -310,7 +307,7 @@ class PhotonMappingPasses:
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
             # The passes of the job this one stands for in the radius rule (GatherInputs).
-            catch_up = min(inputs.behind, MAX_CATCH_UP) if k == first_pass else 0
+            catch_up = inputs.behind if k == first_pass else 0  # any number: shrink_radius's closed form
             self.steps, self.own = inputs.concurrency + catch_up, catch_up + inputs.order
             self._eye_pass(k)
             if inputs.chains is None:
