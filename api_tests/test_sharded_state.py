@@ -280,26 +280,20 @@ def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: lis
     _assert_folded_once(store, job_id, made)
 
 
-def test_a_batch_is_told_the_passes_its_inputs_lack(servers: list[EmbeddedRedis], deltas: tuple) -> None:
-    """GatherInputs.behind: the passes rendered so far by the job's other batches in flight
-    (their renewals) and those accepted since the last fold round; `concurrency` counts
-    the batches in flight, `order` those of them that start at an earlier pass."""
-    store, job_id, made = _fresh_job(servers, deltas, 6)
-    first, second = store.allocate(job_id), store.allocate(job_id)
-    assert store.start(first, "w1") and store.start(second, "w2")
-    for _ in range(3):
-        store.renew(first, "w1")
-    inputs = store.batch_inputs(store.get(job_id), second)
-    assert (inputs.behind, inputs.concurrency, inputs.order) == (3, 2, 1)
-    own = store.batch_inputs(store.get(job_id), first)
-    assert (own.behind, own.order) == (0, 0)  # its own passes are in its radius already; it starts first
-    d = made[5]
-    _merge(store, job_id, d)  # accepted, not yet folded
-    assert store.batch_inputs(store.get(job_id), second).behind == 3 + d.n_passes
+def test_a_batch_is_told_the_passes_its_inputs_hold(servers: list[EmbeddedRedis], deltas: tuple) -> None:
+    """GatherInputs.passes: the passes of the state the last fold round wrote the inputs
+    from (a round in memory, a checkpoint, none yet), whatever was accepted since; a batch's
+    first pass catches up the passes before it they lack (tests/test_progressive_stats.py)."""
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    assert store.batch_inputs(store.get(job_id)).passes == 0  # the set-up's inputs
+    _merge(store, job_id, made[0])
+    assert store.batch_inputs(store.get(job_id)).passes == 0  # accepted, not yet folded
     store.fold(job_id)
-    assert store.batch_inputs(store.get(job_id), second).behind == 3
-    store.drop(first)  # a dropped (or merged) batch's passes are no longer in flight
-    assert store.batch_inputs(store.get(job_id), second).behind == 0
+    assert store.batch_inputs(store.get(job_id)).passes == made[0].n_passes
+    _merge(store, job_id, made[1])
+    _merge(store, job_id, made[2])
+    store.fold(job_id, checkpoint=True)
+    assert store.batch_inputs(store.get(job_id)).passes == sum(d.n_passes for d in made)
 
 
 def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis], deltas: tuple,

@@ -218,17 +218,17 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
 // The radius rule within a batch (worker/stats.py, eqs. 6.5-6.6): after each pass the
 // pixel's count and radius move on as a sequential SPPM run's would, N' = N + alpha M and
 // R'^2 = R^2 (N + alpha M) / (N + M), so the batch's next pass gathers at the radius it
-// would have had, whatever the batch's length. The pass stands for `steps` passes of the
-// job (the batches rendering beside it; at a batch's first pass also the job's passes its
-// inputs lack, which come first): the rule is taken once per step, each with the photons
-// this pass found scaled to that step's disc, M (R_j / R)^2 (the others' photons, unseen
-// here, are of the same density in expectation), so the radius follows the schedule of
-// all the job's passes. The bias its per-pass samples subtract (0.5 R^2 c lap L) scales
-// with R^2. Returns this pass's own photons at its own place in that schedule, step `own`
-// (M (R_own / R)^2): N's increment from this pass is alpha times that, whenever and in
-// whatever group the batch is merged (sum M).
+// would have had, whatever the batch's length. A batch's first pass stands for `steps`
+// passes of the job: itself and, before it, the job's passes its inputs lack (other
+// batches', rendering or not yet folded; GatherInputs): the rule is taken once per step,
+// each with the photons this pass found scaled to that step's disc, M (R_j / R)^2 (the
+// others' photons, unseen here, are of the same density in expectation), so the pass
+// gathers at the radius of its place in the job's pass order. The bias its per-pass
+// samples subtract (0.5 R^2 c lap L) scales with R^2. Returns this pass's own photons at
+// its own step `own` (M (R_own / R)^2): N's increment from this pass is alpha times that,
+// whenever and in whatever group the batch is merged (sum M).
 //
-// Past SHRINK_LOOP_STEPS steps (many batches at once, or a long catch-up) the steps are
+// Past SHRINK_LOOP_STEPS steps (a long catch-up: many workers, or a slow folder) the steps are
 // taken in closed form: with C_j = N_j / (R_j / R)^2 the rule reads C_{j+1} = C_j + M and
 // N_{j+1} = N_j (x_j + alpha) / x_j, x_j = C_j / M, so N_{j+k} = N_j G(x_j + k) / G(x_j),
 // G(x) = Gamma(x + alpha) / Gamma(x), and (R_j / R)^2 = N_j / C_j. Its log comes from

@@ -127,17 +127,17 @@ def test_a_batch_moves_its_radius_on_as_sequential_passes_do(make_engine) -> Non
     np.testing.assert_allclose(batched.radiance().mean(axis=0), one_by_one.radiance().mean(axis=0), rtol=1e-3)
 
 
-@pytest.mark.parametrize("concurrency, order, after_a_pass", [
-    (1, 0, True), (3, 0, True), (3, 2, True), (40, 7, True), (300, 0, True), (300, 299, True), (40, 0, False),
-    (300, 150, False)])
-def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine, concurrency: int,
-                                                                     order: int, after_a_pass: bool) -> None:
-    """With W batches of the job rendering at once, a batch's pass takes the radius rule W
-    times, each step with the photons it found scaled to the step's disc, M (R_j / R)^2:
-    the host's float64 recursion gives the device's count and radius, and the radius keeps
-    the rule's invariant R^2 = N / (pi (D + W dD)). The photons the pass adds to N (sum M)
-    are those of its own step, `order` (how many of the W start at an earlier pass). Past
-    16 steps the device takes them in closed form; also from a job's first pass (N = 0)."""
+@pytest.mark.parametrize("lacking, after_a_pass", [(0, True), (2, True), (40, True), (300, True), (40, False),
+                                                    (300, False)])
+def test_a_batch_takes_the_rule_for_the_passes_its_inputs_lack(make_engine, lacking: int,
+                                                               after_a_pass: bool) -> None:
+    """A batch whose first pass is the job's k-th while its inputs hold fewer passes takes
+    the radius rule once for each pass they lack and once for itself, each step with the
+    photons it found scaled to the step's disc, M (R_j / R)^2: the host's float64 recursion
+    gives the device's count and radius, and the radius keeps the rule's invariant
+    R^2 = N / (pi (D + W dD)), W the steps. The photons the pass adds to N (sum M) are
+    those of its own step, the last. Past 16 steps the device takes them in closed form;
+    also from a job's first pass (N = 0)."""
     import pyopencl as cl
 
     alpha = 0.7
@@ -145,8 +145,9 @@ def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine
     state = eng.start()
     if after_a_pass:
         state.merge(eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))
-    inputs = eng.integrator.for_concurrent_batches(eng.integrator.batch_inputs(state), concurrency, order=order)
-    delta = eng.run_batch(inputs, 1, 1)
+    inputs = eng.integrator.batch_inputs(state)
+    assert inputs.passes == state.passes
+    delta = eng.run_batch(inputs, state.passes + lacking, 1)
     n = eng.arrays.n_pixels
     radius, count = np.empty(n, np.float32), np.empty(n, np.float32)
     cl.enqueue_copy(eng.device.queue, radius, eng.passes.radius)
@@ -156,23 +157,22 @@ def test_a_batch_counts_its_passes_for_the_batches_running_beside_it(make_engine
     assert lit.mean() > 0.5
     rb, m = rb[lit], (math.pi * rb ** 2 * delta.D)[lit]  # the photons the pass found, at its radius rb
     expected, r2 = inputs.count.astype(np.float32).astype(np.float64)[lit], np.ones(len(m))
-    for j in range(concurrency):
+    for j in range(lacking + 1):
         mj = m * r2
-        if j == order:
+        if j == lacking:
             np.testing.assert_allclose(delta.sums["M"][lit], mj, rtol=1e-5)
         r2 *= (expected + alpha * mj) / (expected + mj)
         expected = expected + alpha * mj
     np.testing.assert_allclose(count[lit], expected, rtol=1e-5)
     np.testing.assert_allclose(radius[lit].astype(np.float64) ** 2, rb ** 2 * r2, rtol=1e-5)
     np.testing.assert_allclose(radius[lit].astype(np.float64) ** 2,
-                               expected / (math.pi * (state.D[lit] + concurrency * delta.D[lit])), rtol=1e-4)
+                               expected / (math.pi * (state.D[lit] + (lacking + 1) * delta.D[lit])), rtol=1e-4)
 
 
-def test_a_batch_behind_the_job_counts_its_first_pass_for_the_passes_it_lacks(make_engine) -> None:
-    """A batch whose inputs lack `behind` of the job's passes counts its first pass
-    concurrency + behind times and the next ones concurrency times: a 3-pass batch ends
-    where a 1-pass batch with `behind` and then a 2-pass batch from its radius, count and
-    bias end (float32 on the device)."""
+def test_a_batch_catches_up_at_its_first_pass_only(make_engine) -> None:
+    """A batch whose inputs lack 5 of the passes before it: a 3-pass batch ends where a
+    1-pass batch and then a 2-pass batch from its radius, count and bias end (float32 on
+    the device), and without the catch-up the radius ends larger."""
     import pyopencl as cl
 
     eng = make_engine("cornell-caustics", resolution=(48, 48), photons_per_pass=1 << 14, seed=16, alpha=0.7)
@@ -187,68 +187,83 @@ def test_a_batch_behind_the_job_counts_its_first_pass_for_the_passes_it_lacks(ma
             cl.enqueue_copy(eng.device.queue, host, buf)
         return tuple(out)
 
-    whole = eng.run_batch(eng.integrator.for_concurrent_batches(start, 2, behind=5), 1, 3)
+    whole = eng.run_batch(start, 6, 3)
     whole_end = device()
-    first = eng.run_batch(eng.integrator.for_concurrent_batches(start, 2, behind=5), 1, 1)
+    first = eng.run_batch(start, 6, 1)
     radius, count, bias = device()
-    rest = eng.run_batch(eng.integrator.for_concurrent_batches(
-        dataclasses.replace(start, radius=radius, count=count, bias=bias), 2), 2, 2)
+    rest = eng.run_batch(dataclasses.replace(start, radius=radius, count=count, bias=bias, passes=7), 7, 2)
     split_end = device()
     lit = whole.D > 0
     assert lit.mean() > 0.5
     for a, b in zip(whole_end, split_end):
         np.testing.assert_allclose(a[lit], b[lit], rtol=1e-6)
     np.testing.assert_allclose(whole.D, first.D + rest.D, rtol=1e-5)
-    # ... and it did count: without `behind` the radius ends larger at most lit pixels (the
-    # later passes, gathering at other radii, find other photons: not at every one).
-    eng.run_batch(eng.integrator.for_concurrent_batches(start, 2), 1, 3)
+    # ... and it did count: without the catch-up the radius ends larger at most lit pixels
+    # (the later passes, gathering at other radii, find other photons: not at every one).
+    eng.run_batch(dataclasses.replace(start, passes=6), 6, 3)
     larger = device()[0][lit] > whole_end[0][lit]
     assert larger.mean() > 0.8, larger.mean()
 
 
-def _job_radius(eng, batches_at_once: int, rounds: int, n: int, pipelined: bool, ordered: bool = True):
-    """A job of `rounds` rounds of `batches_at_once` concurrent n-pass batches, as the
-    service runs it: each batch starts from the last folded state (the round before, when
-    `pipelined`: the previous round is folded only after this one started, its passes
-    `behind`), knows how many batches render beside it and, when `ordered`, how many of
-    them start at an earlier pass; each round folds its batches at once."""
-    state, pending, first = eng.start(), [], 0
-    for _ in range(rounds):
-        behind = sum(d.n_passes for d in pending)
-        new = []
-        for k in range(batches_at_once):
-            inputs = eng.integrator.for_concurrent_batches(eng.integrator.batch_inputs(state), batches_at_once,
-                                                           behind, k if ordered else 0)
-            new.append(eng.run_batch(inputs, first, n))
-            first += n
-        for done in (pending if pipelined else new):
-            state.merge(done)
-        pending = new if pipelined else []
-    for done in pending:
+def _job_radius(eng, workers: int, total: int, n: int, offsets: tuple[float, ...], rounds_every: float,
+                catch_up: bool = True):
+    """A job as the service runs it, by events: `workers` render batches of n passes (the
+    first of one pass), worker w a pass in 1 + offsets[w] time units; a batch takes the
+    next passes in the job's order and starts from the inputs of the last fold round, which
+    folds every accepted batch every `rounds_every` units (without `catch_up` the batch is
+    told its inputs hold every pass before it)."""
+    state, accepted, next_pass, busy = eng.start(), [], 0, {}
+
+    def start(w: int, now: float, size: int) -> None:
+        nonlocal next_pass
+        size = min(size, total - next_pass)
+        if size > 0:
+            inputs = eng.integrator.batch_inputs(state)
+            if not catch_up:
+                inputs = dataclasses.replace(inputs, passes=next_pass)
+            busy[w] = (now + size * (1 + offsets[w]), eng.run_batch(inputs, next_pass, size))
+            next_pass += size
+
+    for w in range(workers):
+        start(w, 0.0, 1)
+    next_round = rounds_every
+    while busy:
+        w = min(busy, key=lambda v: busy[v][0])
+        now, delta = busy.pop(w)
+        while next_round <= now:
+            for done in accepted:
+                state.merge(done)
+            accepted, next_round = [], next_round + rounds_every
+        accepted.append(delta)
+        start(w, now, n)
+    for done in accepted:
         state.merge(done)
     return state
 
 
-@pytest.mark.parametrize("batches_at_once, pipelined", [(3, False), (2, True), (1, True)])
-def test_a_job_follows_the_sequential_radius_schedule_whatever_its_batches(make_engine, batches_at_once: int,
-                                                                           pipelined: bool) -> None:
-    """Concurrent batches, batches that start before the last ones are folded, and rounds
-    that fold several batches at once leave the radius where one pass at a time would
-    (median over lit pixels within 2%): each pass's photons count for N at its own place
-    in the job's pass order (sum M), and N adds them whatever the grouping. Without the
-    batches' order among those rendering beside them, the first passes of concurrent
-    batches would all count at the round's first radius and the radius would stay larger."""
+@pytest.mark.parametrize("workers, n, offsets, rounds_every", [(2, 8, (0.0, 0.05), 6.0), (2, 8, (0.0, 0.6), 6.0),
+                                                               (4, 6, (0.0, 0.3, 0.5, 0.9), 6.0), (3, 4, (0, 0, 0), 2.5)])
+def test_a_job_follows_the_sequential_radius_schedule_whatever_its_batches(make_engine, workers: int, n: int,
+                                                                           offsets: tuple[float, ...],
+                                                                           rounds_every: float) -> None:
+    """Concurrent batches of workers of different speeds, batches that start before the last
+    ones are folded, and rounds that fold several batches at once leave the radius where
+    one pass at a time would (median over lit pixels within 2%): each pass gathers at the
+    radius of its place in the job's pass order and its photons count for N there (sum M),
+    whatever the grouping. Without the catch-up for the passes the inputs lack, the radius
+    would stay larger."""
     eng = make_engine("furnace", photons_per_pass=1 << 13, seed=12, alpha=0.7)
-    n, rounds = 4, 12 // batches_at_once
+    total = 48
     sequential = eng.start()
-    for k in range(n * batches_at_once * rounds):
+    for k in range(total):
         sequential.merge(eng.run_batch(eng.integrator.batch_inputs(sequential), k, 1))
     lit = sequential.D > 0
     assert lit.mean() > 0.5
-    ratio = np.median(_job_radius(eng, batches_at_once, rounds, n, pipelined).radius()[lit]
+    ratio = np.median(_job_radius(eng, workers, total, n, offsets, rounds_every).radius()[lit]
                       / sequential.radius()[lit])
     assert abs(ratio - 1.0) < 0.02, ratio
-    if batches_at_once > 1 and not pipelined:
-        unordered = np.median(_job_radius(eng, batches_at_once, rounds, n, pipelined, ordered=False).radius()[lit]
-                              / sequential.radius()[lit])
-        assert unordered > ratio + 0.03, (unordered, ratio)
+    without = np.median(_job_radius(eng, workers, total, n, offsets, rounds_every, catch_up=False).radius()[lit]
+                        / sequential.radius()[lit])
+    assert without > ratio + 0.03, (without, ratio)
+
+

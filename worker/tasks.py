@@ -70,7 +70,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
             if not jobs.has_setup(record):
                 jobs.init_setup(record, engine.passes.setup())
             start, cpu = time.perf_counter(), time.process_time()
-            delta = engine.run_batch(jobs.batch_inputs(record, batch), first, n,
+            delta = engine.run_batch(jobs.batch_inputs(record), first, n,
                                      keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
     except BatchAborted:
         jobs.drop(batch)

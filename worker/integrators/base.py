@@ -91,13 +91,6 @@ class Integrator(ABC):
     def batch_inputs(self, state: State) -> Any:
         """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
-    def for_concurrent_batches(self, inputs: Any, batches: int, behind: int = 0, order: int = 0) -> Any:
-        """A batch's inputs when `batches` of the job's batches render at once (this one
-        included, `order` of them starting at an earlier pass) and `behind` of the job's
-        passes are rendered or accepted but not in the inputs; the same inputs for a method
-        whose passes do not depend on each other."""
-        return inputs
-
     @abstractmethod
     def merge(self, state: State, delta: Delta) -> None:
         """Add a batch to the state: commutative in every sum."""

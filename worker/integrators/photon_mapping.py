@@ -11,7 +11,6 @@ Markov chains over photon paths (worker/adaptive.py, kernels/photon_chains.cl).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,23 +58,19 @@ class GatherInputs:
     """What a batch of photon-mapping passes reads: the radius per pixel and the radius
     rule's count N there (zero if not given: the batch's first pass then shrinks the radius
     as a job's first pass does), the bias estimate its per-pass variance samples subtract
-    (eq. 6.22; zero if not given), with the adaptive sampler its chains' inputs, how many
-    of the job's batches render at once, this one included (each pass then counts that
-    many times in the radius rule within the batch: kernels/spatial_hash.cl,
-    shrink_radius), and how many of the job's passes the radius lags when the batch starts
-    (rendered or accepted, not yet folded: the batch's first pass counts for them too),
-    and where its passes fall among the concurrent batches' in the job's pass order (how
-    many of those start at an earlier pass: its photons count for N at that step,
-    kernels/spatial_hash.cl, shrink_radius). The worker sets the last three when it starts
-    the batch."""
+    (eq. 6.22; zero if not given), with the adaptive sampler its chains' inputs, and how
+    many of the job's passes the state they come from holds (None: all those before the
+    batch's first pass, as in a sequential render). A batch's pass k is the job's
+    k-th in the radius rule whatever ran beside it: its first pass takes the rule also for
+    the k - passes before it that the inputs lack (other batches' passes, rendering or not
+    yet folded; kernels/spatial_hash.cl, shrink_radius), and its photons count for N at
+    that step, so N is the sum of each pass's own count (sum M) in any grouping and order."""
 
     radius: np.ndarray
     bias: np.ndarray | None = None
     chains: ChainInputs | None = None
     count: np.ndarray | None = None
-    concurrency: int = 1
-    behind: int = 0
-    order: int = 0
+    passes: int | None = None
 
 
 class PhotonMapping(Integrator):
@@ -120,13 +115,7 @@ class PhotonMapping(Integrator):
                                  iterations, mutate)
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
-        return GatherInputs(r, bias, chains, state.N)
-
-    def for_concurrent_batches(self, inputs: GatherInputs, batches: int, behind: int = 0,
-                               order: int = 0) -> GatherInputs:
-        batches = max(1, batches)
-        return dataclasses.replace(inputs, concurrency=batches, behind=max(0, behind),
-                                   order=min(max(0, order), batches - 1))
+        return GatherInputs(r, bias, chains, state.N, state.passes)
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

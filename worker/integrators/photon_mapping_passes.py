@@ -306,9 +306,10 @@ class PhotonMappingPasses:
         dev.zero_sums()
         totals: dict[str, int] = {}
         for k in range(first_pass, first_pass + n_passes):
-            # The passes of the job this one stands for in the radius rule (GatherInputs).
-            catch_up = inputs.behind if k == first_pass else 0  # any number: shrink_radius's closed form
-            self.steps, self.own = inputs.concurrency + catch_up, catch_up + inputs.order
+            # The job's passes before this one that the inputs lack: the first pass takes the
+            # radius rule for them too, any number (shrink_radius's closed form; GatherInputs).
+            catch_up = max(0, first_pass - inputs.passes) if k == first_pass and inputs.passes is not None else 0
+            self.steps, self.own = 1 + catch_up, catch_up
             self._eye_pass(k)
             if inputs.chains is None:
                 self.photons_stored = self._photon_pass(k)

@@ -11,7 +11,6 @@
     pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
     pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each fold round
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped
-    pf:job:{id}:progress           hash    batch id -> passes its worker has rendered so far (taken, not yet merged)
     pf:leases                      zset    batch member "job/first/n" -> deadline
     pf:lease-owner                 hash    batch member -> worker name
     pf:batch-rq                    hash    batch member -> id of the RQ job that carries it
@@ -76,14 +75,10 @@ def inflight(job_id: str) -> str:
     return f"pf:job:{job_id}:inflight"
 
 
-def progress(job_id: str) -> str:
-    return f"pf:job:{job_id}:progress"
-
-
 def job_keys(job_id: str) -> list[str]:
     """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
     return [job(job_id), scene(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id),
-            inflight(job_id), progress(job_id)]
+            inflight(job_id)]
 
 
 def tile_keys(job_id: str, k: int) -> list[str]:

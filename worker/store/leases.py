@@ -66,7 +66,6 @@ class Leases:
         pipe.zrem(keys.LEASES, batch.member)
         pipe.hdel(keys.LEASE_OWNER, batch.member)
         pipe.hdel(keys.BATCH_RQ, batch.member)
-        pipe.hdel(keys.progress(batch.job_id), batch.id)
 
     def drop(self, batch: Batch) -> None:
         pipe = self.r.pipeline()
@@ -78,11 +77,6 @@ class Leases:
 
     def inflight_batches(self, job_id: str) -> list[Batch]:
         return [Batch.from_id(job_id, b.decode()) for b in self.r.smembers(keys.inflight(job_id))]
-
-    def progress(self, job_id: str, excluding: Batch) -> int:
-        """Passes the job's batches in flight have rendered so far, but `excluding`'s."""
-        done = self.r.hgetall(keys.progress(job_id))
-        return sum(int(v) for b, v in done.items() if b.decode() != excluding.id)
 
     def is_inflight(self, batch: Batch) -> bool:
         return bool(self.r.sismember(keys.inflight(batch.job_id), batch.id))
@@ -112,7 +106,6 @@ class Leases:
     def renew(self, pipe: redis.client.Pipeline, batch: Batch, worker: str) -> None:
         """Queue a lease extension and a heartbeat (after every pass)."""
         pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS}, xx=True)
-        pipe.hincrby(keys.progress(batch.job_id), batch.id, 1)
         self._beat(pipe, worker, batch.job_id, batch.id, passes=1)
 
     def keep_alive(self, worker: str, batch: Batch | None) -> None:
@@ -140,7 +133,6 @@ class Leases:
         pipe = self.r.pipeline()
         pipe.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS})
         pipe.hdel(keys.LEASE_OWNER, batch.member)
-        pipe.hdel(keys.progress(batch.job_id), batch.id)  # its passes are rendered again
         pipe.execute()
 
     def owners(self, job_id: str) -> int:

@@ -262,17 +262,11 @@ class Jobs:
         return self.tiles.read(record.id, self.tiling(record), record.integrator, record.folded_emitted,
                                record.folded_passes, record.counters)
 
-    def batch_inputs(self, record: JobRecord, batch: Batch) -> Any:
-        """What `batch`, starting now, needs: the inputs the last fold round wrote to the
-        tiles, for as many concurrent batches as the job has in flight (and how many of them
-        start at an earlier pass), and the passes those inputs lack: accepted since that
-        round, and rendered so far by the other batches in flight (`record` read just
-        before: a round landing between makes it off by that round's passes)."""
-        inputs = self.tiles.inputs(record.id, self.tiling(record), record.integrator)
-        behind = max(0, record.passes - record.image_passes) + self.leases.progress(record.id, excluding=batch)
-        inflight = self.leases.inflight_batches(record.id)
-        earlier = sum(1 for b in inflight if b.first < batch.first)
-        return record.integrator.for_concurrent_batches(inputs, len(inflight), behind, earlier)
+    def batch_inputs(self, record: JobRecord) -> Any:
+        """What a batch starting now reads: the inputs the last fold round wrote to the
+        tiles (with the passes of the state they come from: a batch's first pass takes the
+        radius rule for the passes before it that they lack, GatherInputs)."""
+        return self.tiles.inputs(record.id, self.tiling(record), record.integrator)
 
     # ------------------------------------------------------------------ batches
     def allocate(self, job_id: str, pass_seconds: float | None = None, workers: int = 1) -> Batch | None:
