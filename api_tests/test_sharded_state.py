@@ -7,6 +7,7 @@ deltas carried (with N and R0). (The fault tests over HTTP run on sharded state 
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 import os
 import pickle
@@ -32,7 +33,7 @@ from worker.store.policy import Status
 from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.state import TiledState
-from worker.store.tiles import DELTA_DTYPE
+from worker.store.tiles import DELTA_DTYPE, encode_inputs
 
 SHARDS = 3
 TILE = 512  # pixels a tile: the 64 x 48 frame has 6 tiles, two on each node
@@ -294,6 +295,35 @@ def test_a_batch_is_told_the_passes_its_inputs_hold(servers: list[EmbeddedRedis]
     _merge(store, job_id, made[2])
     store.fold(job_id, checkpoint=True)
     assert store.batch_inputs(store.get(job_id)).passes == sum(d.n_passes for d in made)
+
+
+def test_a_batch_reads_every_tiles_inputs_from_one_round(servers: list[EmbeddedRedis], deltas: tuple,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A round writes its inputs a tile at a time; a batch reading meanwhile would take some
+    tiles' radius from it and the passes (its radius rule's catch-up) from tile 0's older
+    round. It reads again until every tile is of one round, and takes them as they are once
+    that fails INPUT_READS times (a folder killed mid-write: no hang)."""
+    monkeypatch.setattr(state_module, "INPUT_RETRY_SECONDS", 0.02)
+    store, job_id, made = _fresh_job(servers, deltas, 2)
+    _merge(store, job_id, made[0])
+    store.fold(job_id)
+    record = store.get(job_id)
+    whole = store.batch_inputs(record)
+    tiling = store.tiling(record)
+    node, key = store.tiles.nodes[tiling.node(3)], keys.tile(job_id, 3, "inputs")
+    this_round = node.get(key)
+    other_round = dataclasses.replace(whole, radius=whole.radius * 0.5, passes=whole.passes + 5)
+    node.set(key, encode_inputs(other_round, tiling.span(3)))
+    threading.Timer(0.2, node.set, (key, this_round)).start()  # the round's write reaches tile 3
+    read = store.batch_inputs(record)
+    assert read.passes == whole.passes
+    np.testing.assert_array_equal(read.radius, whole.radius)
+    node.set(key, encode_inputs(other_round, tiling.span(3)))  # and stays torn
+    started = time.monotonic()
+    read = store.batch_inputs(record)
+    assert time.monotonic() - started < 5.0
+    assert read.passes == whole.passes  # tile 0's
+    np.testing.assert_array_equal(read.radius[tiling.span(3)], other_round.radius[tiling.span(3)])
 
 
 def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis], deltas: tuple,

@@ -11,6 +11,7 @@ import pytest
 import worker.integrators.photon_mapping_passes as photon_mapping_passes
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs, sum_layout
+from worker import stats
 from worker.stats import Accumulators
 
 LAYOUT = sum_layout(error_estimation=True)
@@ -103,6 +104,29 @@ def test_unlit_pixels_keep_a_bounded_radius() -> None:
     assert r[0] == np.sqrt(0.5) * 2.0  # R1^2 = alpha R0^2
     assert r[1] == r[2] == r[0]
     assert np.array_equal(st.D[1:], zero[1:])
+
+
+@pytest.mark.parametrize("alpha", [0.3, 2.0 / 3.0, 1.0])
+def test_the_schedule_a_state_holds(alpha: float) -> None:
+    """The SCHEDULE counter sums a_k = prod_{i<k} (i + alpha) / (i + 1) (eq. 6.6 under a
+    uniform density) over a batch's passes, by the closed form A(K) = Gamma(K + alpha) /
+    (Gamma(1 + alpha) Gamma(K)); a state holding the passes 0 .. K-1 in any batches is a
+    prefix (scale exactly 1), one holding pass 1 alone is 1 / alpha below one pass, and one
+    missing its earliest passes below the prefix by the schedule's sums."""
+    total = 10 ** 6
+    a = np.cumprod(np.r_[1.0, (np.arange(total - 1) + alpha) / (np.arange(total - 1) + 1)])
+    cuts = np.unique(np.r_[0, np.random.default_rng(3).integers(1, total, 3000), total - 3, total - 1, total])
+    counts = [stats.schedule_count(alpha, int(lo), int(hi - lo)) for lo, hi in zip(cuts[:-1], cuts[1:])]
+    A = np.cumsum(a)
+    for (lo, hi), count in zip(zip(cuts[:-1], cuts[1:]), counts):  # to the quantum and 1e-13 of A (the reference's
+        assert abs(count * stats.SCHEDULE_QUANTUM - a[lo:hi].sum()) <= stats.SCHEDULE_QUANTUM + 1e-13 * A[hi - 1]  # own)
+    assert stats.prefix_scale(alpha, total, {stats.SCHEDULE: sum(counts)}) == 1.0
+    a = a[:5000]
+    assert stats.prefix_scale(alpha, 5000, {}) == 1.0  # a state of no counter (before it)
+    one = {stats.SCHEDULE: stats.schedule_count(alpha, 1, 1)}
+    assert stats.prefix_scale(alpha, 1, one) == pytest.approx(1.0 / alpha, rel=1e-9)
+    late = {stats.SCHEDULE: stats.schedule_count(alpha, 100, 400)}  # passes 100 .. 499, not 0 .. 99
+    assert stats.prefix_scale(alpha, 400, late) == pytest.approx(a[:400].sum() / a[100:500].sum(), rel=1e-9)
 
 
 def test_a_batch_moves_its_radius_on_as_sequential_passes_do(make_engine) -> None:
@@ -242,7 +266,8 @@ def _job_radius(eng, workers: int, total: int, n: int, offsets: tuple[float, ...
 
 
 @pytest.mark.parametrize("workers, n, offsets, rounds_every", [(2, 8, (0.0, 0.05), 6.0), (2, 8, (0.0, 0.6), 6.0),
-                                                               (4, 6, (0.0, 0.3, 0.5, 0.9), 6.0), (3, 4, (0, 0, 0), 2.5)])
+                                                               (4, 6, (0.0, 0.3, 0.5, 0.9), 6.0), (3, 4, (0, 0, 0), 2.5),
+                                                               (2, 8, (0.6, 0.0), 1.2), (3, 3, (0.9, 0.4, 0.0), 0.7)])
 def test_a_job_follows_the_sequential_radius_schedule_whatever_its_batches(make_engine, workers: int, n: int,
                                                                            offsets: tuple[float, ...],
                                                                            rounds_every: float) -> None:

@@ -38,6 +38,19 @@ pipelined batches). Before, the merge took N's increment at the radius of the me
 had already counted the passes before it. The others' photons on the device are assumed
 of the same density as the pass's own, the same assumption PPM's flux correction makes.
 All of it is float64 on the host.
+
+A state that holds passes out of the job's order (a later batch folded before an earlier
+one) is not where the job's first `passes` passes would leave it: N / (pi D) averages
+over the radii its passes used (eq. 6.6 keeps N / R^2 = sum M_k / R_k^2), and later
+passes used smaller ones. Under a uniform density (the catch-up's assumption) eq. 6.6
+gives N_k / M_k = k, so (R_k / R_0)^2 = a_k = prod_{i<k} (i + alpha) / (i + 1) whatever
+the density, and N is proportional to the sum of a_k over the passes held. The batch
+inputs (batch_start) scale N, and R^2 with it, by A(passes) / (sum of a_k held), with
+A(K) = sum_{k<K} a_k = Gamma(K + alpha) / (Gamma(1 + alpha) Gamma(K)): 1 for the passes
+0 .. passes-1, 1 / alpha for a state holding pass 1 alone (whose N / (pi D) is
+alpha^2 R_0^2 where one pass leaves alpha R_0^2). The sum held is a counter (SCHEDULE)
+each batch adds. Without it a two-worker 256x256 job whose first fold round saw pass 1
+before pass 0 ended with the radius 3-9% small, in about one run of three.
 """
 
 from __future__ import annotations
@@ -52,6 +65,50 @@ from kernels.contract import SumLayout
 
 if TYPE_CHECKING:
     from worker.integrators.base import Delta, State
+
+
+SCHEDULE = "radius_schedule"  # counter: sum of a_k over the passes a state holds, in SCHEDULE_QUANTUM
+SCHEDULE_QUANTUM = 2.0 ** -36  # a_k <= 1; 10^8 passes at alpha = 1 stay within int64
+PREFIX_TOLERANCE = 1e-8  # relative: a scale this close to 1 is the quantum's rounding (the passes are 0 .. passes-1)
+
+
+STIRLING_FROM = 64.0  # log_gamma_ratio's series: its first omitted term is below 1e-16 from here
+
+
+def log_gamma_ratio(x: float, alpha: float) -> float:
+    """log Gamma(x + alpha) - log Gamma(x) for x >= 1, 0 <= alpha <= 1, to about 1e-15
+    absolute (math.lgamma's difference loses eps * x log x): Stirling's series in the form
+    (x - 1/2) log1p(alpha / x) + alpha log(x + alpha) - alpha + ..., from x + shift >= 64."""
+    shift = 0.0
+    while x + shift < STIRLING_FROM:  # Gamma(z + 1) = z Gamma(z)
+        shift += 1.0
+    z = x + shift
+    out = (z - 0.5) * math.log1p(alpha / z) + alpha * math.log(z + alpha) - alpha
+    for power, divisor in ((1, 12.0), (3, -360.0), (5, 1260.0), (7, -1680.0)):
+        out += (1.0 / (z + alpha) ** power - 1.0 / z ** power) / divisor
+    return out - sum(math.log1p(alpha / (x + i)) for i in range(int(shift)))
+
+
+def _log_schedule_sum(alpha: float, passes: int) -> float:
+    """log A(passes), A(K) = sum_{k<K} a_k (passes > 0)."""
+    return log_gamma_ratio(passes, alpha) - math.lgamma(1.0 + alpha)
+
+
+def schedule_count(alpha: float, first: int, n: int) -> int:
+    """A batch's SCHEDULE counter: sum of a_k over passes first .. first+n-1."""
+    upper = _log_schedule_sum(alpha, first + n)
+    part = math.exp(upper) * (-math.expm1(_log_schedule_sum(alpha, first) - upper) if first > 0 else 1.0)
+    return round(part / SCHEDULE_QUANTUM)
+
+
+def prefix_scale(alpha: float, passes: int, counters: dict[str, int]) -> float:
+    """How much N (and R^2) of a state holding `passes` passes is below the job's first
+    `passes` passes' (>= 1; 1 for a state of no SCHEDULE counter, as before it)."""
+    held = counters.get(SCHEDULE, 0)
+    if passes <= 0 or held <= 0:
+        return 1.0
+    scale = math.exp(_log_schedule_sum(alpha, passes)) / (held * SCHEDULE_QUANTUM)
+    return 1.0 if scale < 1.0 + PREFIX_TOLERANCE else scale
 
 
 def add_delta(state: "State", delta: "Delta") -> None:
@@ -124,6 +181,15 @@ class Accumulators:
             self._radius = radius(self.R0, self.N, self.D)
             self._radius.flags.writeable = False
         return self._radius
+
+    def batch_start(self) -> tuple[np.ndarray, np.ndarray]:
+        """The radius and N a batch starts from: the job's first `passes` passes' (the state's
+        own when it holds those; else scaled by prefix_scale)."""
+        scale = prefix_scale(self.alpha, self.passes, self.counters)
+        if scale == 1.0:
+            return self.radius(), self.N
+        N = self.N * scale
+        return radius(self.R0, N, self.D), N
 
     def merge(self, delta: "Delta") -> None:
         """Add a batch (or a fold round's batches at once): every sum adds, and N takes alpha

@@ -105,7 +105,7 @@ class PhotonMapping(Integrator):
                             sums=sums, emitted=emitted, passes=passes, counters=dict(counters or {}))
 
     def batch_inputs(self, state: Accumulators) -> GatherInputs:
-        r = state.radius()
+        r, count = state.batch_start()
         chains = None
         if self.adaptive:
             photons, mutate = self.settings.photons_per_pass, adaptive.mutates(state.counters,
@@ -115,7 +115,7 @@ class PhotonMapping(Integrator):
                                  iterations, mutate)
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
-        return GatherInputs(r, bias, chains, state.N, state.passes)
+        return GatherInputs(r, bias, chains, count, state.passes)
 
     def merge(self, state: Accumulators, delta: Delta) -> None:
         state.merge(delta)

@@ -16,7 +16,7 @@ import numpy as np
 import pyopencl as cl
 
 from kernels.program import f32, i32, u32, u64
-from worker import adaptive
+from worker import adaptive, stats
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
 from worker.integrators.photon_mapping import ChainInputs, GatherInputs, PhotonMapping
 
@@ -304,7 +304,7 @@ class PhotonMappingPasses:
         self._set_radii(r32, np.zeros(n) if inputs.count is None else inputs.count,
                         np.zeros(n) if inputs.bias is None else inputs.bias)
         dev.zero_sums()
-        totals: dict[str, int] = {}
+        totals = {stats.SCHEDULE: stats.schedule_count(self.settings.alpha, first_pass, n_passes)}
         for k in range(first_pass, first_pass + n_passes):
             # The job's passes before this one that the inputs lack: the first pass takes the
             # radius rule for them too, any number (shrink_radius's closed form; GatherInputs).

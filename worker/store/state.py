@@ -32,8 +32,8 @@ from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
 from worker.store.overlay import OVERLAYS, Overlay
-from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, decode_delta, decode_inputs,
-                                decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
+from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, TornInputs, decode_delta,
+                                decode_inputs, decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
 
 # Applies a folded round to the job record once per batch, however many folders try.
 ACCOUNT = """
@@ -81,6 +81,10 @@ return 1
 
 # Tiles per round trip to a node: 4 tiles of state are 34 MB at 128 bytes a pixel.
 TILES_PER_TRIP = 4
+# A batch's inputs read while a fold round writes them (tiles of two rounds) are read again,
+# at most this many times in all, so far apart (a round writes them in milliseconds).
+INPUT_READS = 20
+INPUT_RETRY_SECONDS = 0.05
 
 
 class FoldContended(Exception):
@@ -189,10 +193,22 @@ class TiledState:
             pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)), nx=True)))
 
     def inputs(self, job_id: str, tiling: Tiling, integrator: Integrator) -> Any:
-        """What a batch starting now reads: the inputs the last fold wrote."""
-        blobs = self._each_node(tiling, lambda pipe, k: pipe.get(keys.tile(job_id, k, "inputs")))
-        return decode_inputs([blobs[k][0] for k in range(tiling.count)], [tiling.span(k) for k in range(tiling.count)],
-                             tiling.n_pixels, integrator.inputs_type)
+        """What a batch starting now reads: the inputs the last fold wrote, every tile's of
+        the same round (read again while a round writes them; after INPUT_READS reads, as
+        they are: a folder killed mid-write leaves them mixed until the next round)."""
+        spans = [tiling.span(k) for k in range(tiling.count)]
+
+        def read(whole: bool) -> Any:
+            blobs = self._each_node(tiling, lambda pipe, k: pipe.get(keys.tile(job_id, k, "inputs")))
+            return decode_inputs([blobs[k][0] for k in range(tiling.count)], spans, tiling.n_pixels,
+                                 integrator.inputs_type, whole)
+
+        for _ in range(INPUT_READS - 1):
+            try:
+                return read(whole=True)
+            except TornInputs:
+                time.sleep(INPUT_RETRY_SECONDS)
+        return read(whole=False)
 
     # ------------------------------------------------------------------- push
     def push(self, job_id: str, tiling: Tiling, batch_id: str, delta: Delta) -> None:

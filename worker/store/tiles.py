@@ -199,14 +199,25 @@ def _field_value(kind: type, name: str, value: Any) -> Any:
     return target(**value)
 
 
-def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: type | None) -> Any:
-    """The whole frame's batch inputs from its tiles' parts."""
+class TornInputs(ValueError):
+    """Tiles' inputs of different fold rounds: read while a round wrote them (or after a
+    folder was killed mid-write, until the next round)."""
+
+
+def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: type | None,
+                  whole: bool = True) -> Any:
+    """The whole frame's batch inputs from its tiles' parts; TornInputs if `whole` and the
+    tiles' scalars differ (a round writes the same in every tile: e.g. the passes their
+    state holds, from which a batch's radius rule takes its catch-up), else tile 0's."""
     header = _unpack(blobs[0], INPUTS_DTYPE)[0]
     if header is None:
         return None
     fields: dict[str, Any] = {name: np.empty(n_pixels, np.float32) for name in header["arrays"]}
     for blob, span in zip(blobs, spans):
-        body = _unpack(blob, INPUTS_DTYPE)[1]
+        own, body = _unpack(blob, INPUTS_DTYPE)
+        if whole and own != header:
+            raise TornInputs(f"tile inputs of passes {header['scalars'].get('passes')} and "
+                             f"{own['scalars'].get('passes') if own else None}")
         n = span.stop - span.start
         for i, name in enumerate(header["arrays"]):
             fields[name][span] = body[i * n:(i + 1) * n]
