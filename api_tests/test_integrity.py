@@ -19,6 +19,7 @@ from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.scheduler import QUEUE_NAMES
 from worker.settings import Settings
 from worker.store import Batch, Jobs, Status, keys
+from worker.store.policy import DELIVERY_SECONDS
 
 P = 1 << 12
 
@@ -231,3 +232,29 @@ def test_a_full_job_store_answers_507_not_500(tmp_path: Path) -> None:
         assert c.http.get("/healthz").status_code == 200
     finally:
         c.close()
+
+
+def test_batches_allocated_together_are_due_one_refresh_after_another(tmp_path: Path) -> None:
+    """Each allocation records when its batch is due; the next one, told, ends at most
+    DELIVERY_SECONDS after it (policy.batch_passes), not together with it. A merged or
+    dropped batch is no longer due."""
+    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
+    try:
+        conn = redis.Redis.from_url(server.url)
+        parsed, base = load_scene_file(bundled_scene_path("furnace"))
+        jobs = Jobs(conn)
+        job_id = jobs.create(inline_meshes(parsed, base), Settings(photons_per_pass=P, resolution=(8, 8)), 8, 8,
+                             "furnace")
+        conn.hset(keys.job(job_id), mapping={"merge_seconds": 1.0, "merges": 1, "fold_seconds": 1.0})
+        first = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
+        second = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
+        assert first is not None and second is not None
+        due = dict(conn.zrange(keys.due(job_id), 0, -1, withscores=True))
+        at_first, at_second = due[first.id.encode()], due[second.id.encode()]
+        assert at_first - time.time() <= DELIVERY_SECONDS
+        assert 0.0 < at_second - at_first <= DELIVERY_SECONDS + 0.5
+        assert second.n > first.n  # longer: its delivery falls between the first worker's
+        jobs.drop(first)
+        assert conn.zrange(keys.due(job_id), 0, -1) == [second.id.encode()]
+    finally:
+        server.stop()

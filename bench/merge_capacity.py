@@ -58,7 +58,7 @@ import redis
 from bench.common import cpu_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
-from worker.scheduler import FOLD_POLL_SECONDS
+from worker.store.policy import FOLD_POLL_SECONDS
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.overlay import OVERLAYS

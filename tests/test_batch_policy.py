@@ -1,11 +1,13 @@
-"""The batch-size rule (worker/store/policy.py, batch_passes): budgets first, then the merge share."""
+"""The batch-size rule (worker/store/policy.py, batch_passes): budgets first, then the merge share;
+the deliveries of a job's batches spread over the refresh interval."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from worker.store.policy import (BATCH_TARGET_SECONDS, MAX_BATCH_PASSES, MERGE_SHARE, REFRESH_SECONDS,
-                                 batch_passes)
+from worker.store.policy import (BATCH_TARGET_SECONDS, DELIVERY_SECONDS, FOLD_POLL_SECONDS, MAX_BATCH_PASSES,
+                                 MERGE_SHARE, REFRESH_SECONDS, batch_passes, fold_interval)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -28,7 +30,8 @@ def test_the_workers_deliver_a_batch_every_refresh_interval_merges_included(work
     """A slow merge (a 3840x2160 frame) does not stretch batches past the refresh: the job's
     workers, each rendering a batch and then merging it, deliver one every REFRESH_SECONDS."""
     pass_seconds, merge = 1.0, 3.0
-    n = batch_passes(pass_seconds, merge, fold_seconds=5.0, workers=workers)
+    in_step = [i * REFRESH_SECONDS for i in range(1, workers)]  # the others' deliveries, spread
+    n = batch_passes(pass_seconds, merge, fold_seconds=5.0, workers=workers, others_due=in_step)
     assert (n * pass_seconds + merge) / workers <= REFRESH_SECONDS + pass_seconds / 2
     assert n * pass_seconds >= workers * REFRESH_SECONDS - merge - pass_seconds  # and no shorter than that
 
@@ -52,3 +55,48 @@ def test_the_last_passes_are_split_among_the_workers(workers: int, left: int) ->
 
 def test_batches_never_exceed_the_cap() -> None:
     assert batch_passes(0.001, 1.0, fold_seconds=10.0, workers=8) == MAX_BATCH_PASSES
+
+
+def _deliveries(workers: int, pass_seconds: float, merge: float, fold: float,
+                horizon: float = 400.0) -> tuple[list[float], list[int]]:
+    """A job's deliveries and its batches' passes when its workers start together (the
+    feed's allocations, one after another) and each allocates its next batch on delivering
+    one, told when the others' batches are due."""
+    due: dict[int, float] = {}
+    sizes: list[int] = []
+
+    def allocate(w: int, now: float) -> None:
+        n = batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers,
+                         others_due=[at - now for v, at in due.items() if v != w])
+        due[w] = now + n * pass_seconds + merge
+        sizes.append(n)
+
+    for w in range(workers):
+        allocate(w, 0.0)
+    deliveries: list[float] = []
+    while (now := min(due.values())) < horizon:
+        deliveries.append(now)
+        allocate(min(due, key=lambda v: due[v]), now)
+    return deliveries, sizes
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3, 5])
+@pytest.mark.parametrize("pass_seconds, merge, fold", [(4.4, 1.0, 2.6), (1.1, 0.3, 0.6), (0.2, 0.05, 0.1),
+                                                       (2.9, 2.0, 7.0)])
+def test_workers_that_start_together_deliver_spread_over_the_refresh(workers: int, pass_seconds: float,
+                                                                     merge: float, fold: float) -> None:
+    """The job's deliveries are at most DELIVERY_SECONDS apart (workers that start together
+    would otherwise deliver together, a refresh of workers times the interval), and its
+    batches stay about as long as with the others' deliveries evenly spread (the merge share)."""
+    deliveries, sizes = _deliveries(workers, pass_seconds, merge, fold)
+    gaps = np.diff([0.0] + deliveries)
+    assert gaps.max() <= DELIVERY_SECONDS + 1e-9, gaps.max()
+    spread = [i * REFRESH_SECONDS for i in range(1, workers)]
+    assert np.mean(sizes[workers:]) >= 0.7 * batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers,
+                                                          others_due=spread)
+
+
+@pytest.mark.parametrize("fold", [0.05, 0.4, 2.6, 7.0])
+def test_fold_rounds_end_within_the_refresh_of_each_other(fold: float) -> None:
+    """A round starts at the folder's first look after fold_interval and takes `fold`."""
+    assert fold_interval(fold) + FOLD_POLL_SECONDS + fold <= REFRESH_SECONDS

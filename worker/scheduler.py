@@ -29,12 +29,11 @@ from rq.serializers import JSONSerializer
 from worker.settings import PRIORITIES, Priority
 from worker.store import Batch, Jobs, Status
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import ACTIVE, MAX_INFLIGHT_PER_JOB
+from worker.store.policy import ACTIVE, FOLD_POLL_SECONDS, MAX_INFLIGHT_PER_JOB
 
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
 REAP_SECONDS = 2.0
-FOLD_POLL_SECONDS = 0.5  # the folder thread looks this often, and at once on news (Jobs.wait_for_news)
 PRUNE_SECONDS = 60.0
 
 log = logging.getLogger("photonfarm.scheduler")

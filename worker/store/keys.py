@@ -75,10 +75,15 @@ def inflight(job_id: str) -> str:
     return f"pf:job:{job_id}:inflight"
 
 
+def due(job_id: str) -> str:
+    """Sorted set: in-flight batch id -> when it is expected to be delivered (policy.batch_passes)."""
+    return f"pf:job:{job_id}:due"
+
+
 def job_keys(job_id: str) -> list[str]:
     """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
     return [job(job_id), scene(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id),
-            inflight(job_id)]
+            inflight(job_id), due(job_id)]
 
 
 def tile_keys(job_id: str, k: int) -> list[str]:

@@ -54,15 +54,18 @@ class Leases:
 
     # --------------------------------------------------------------- registry
     @staticmethod
-    def register(pipe: redis.client.Pipeline, batch: Batch) -> None:
-        """Queue the commands that issue a batch (inside the allocating transaction)."""
+    def register(pipe: redis.client.Pipeline, batch: Batch, due: float) -> None:
+        """Queue the commands that issue a batch (inside the allocating transaction), expected
+        to be delivered at `due` (epoch seconds)."""
         pipe.sadd(keys.inflight(batch.job_id), batch.id)
+        pipe.zadd(keys.due(batch.job_id), {batch.id: due})
         pipe.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS})
 
     @staticmethod
     def release(pipe: redis.client.Pipeline, batch: Batch) -> None:
         """Queue the commands that forget a batch (merged or dropped)."""
         pipe.srem(keys.inflight(batch.job_id), batch.id)
+        pipe.zrem(keys.due(batch.job_id), batch.id)
         pipe.zrem(keys.LEASES, batch.member)
         pipe.hdel(keys.LEASE_OWNER, batch.member)
         pipe.hdel(keys.BATCH_RQ, batch.member)

@@ -6,7 +6,9 @@ and writes what they decide.
 
 from __future__ import annotations
 
+import math
 import os
+from collections.abc import Sequence
 from enum import StrEnum
 
 from worker.settings import Settings
@@ -46,6 +48,10 @@ FOLD_SECONDS = 2.0
 # rounds, as far as the refresh allows.
 FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
+FOLD_POLL_SECONDS = 0.5  # the API's folder thread looks this often, and at once on news (Jobs.wait_for_news)
+# A job's batches are delivered at most this far apart (batch_passes): an image change
+# follows each by the folder's next look and its round.
+DELIVERY_SECONDS = REFRESH_SECONDS - FOLD_POLL_SECONDS
 # A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes the
 # state to the tiles (a checkpoint) when its overlay is this old, or the deltas it keeps
 # pending on the state nodes reach CHECKPOINT_PENDING_SHARE of the state's bytes (at the
@@ -66,7 +72,8 @@ RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 *
 
 
 def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
-                 fold_seconds: float = 0.0, workers: int = 1, passes_left: int | None = None) -> int:
+                 fold_seconds: float = 0.0, workers: int = 1, passes_left: int | None = None,
+                 others_due: Sequence[float] = ()) -> int:
     """Passes for the next batch of a job whose `workers` render its batches at once.
 
     About BATCH_TARGET_SECONDS of rendering, and long enough that the batch's merge and the
@@ -78,14 +85,23 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
     plus one pass) and its passes (`passes_left`, split among the workers, so the last
     batches end together rather than one worker rendering the tail alone). One pass until a
-    pass was timed."""
+    pass was timed.
+
+    The refresh assumes the workers' deliveries spread over the interval; workers that
+    start together would deliver in pairs, and the image would wait twice as long between
+    pairs. So a batch is delivered (merge included) at most DELIVERY_SECONDS after the last
+    of the job's other in-flight batches due before it (`others_due`: seconds from now to
+    their expected deliveries), or after now: batches allocated together end one after
+    another, and workers in step fall out of step."""
     workers, n = max(1, workers), 1
     if pass_seconds > 0.0:
         refresh = max(pass_seconds, workers * REFRESH_SECONDS - mean_merge_seconds)
         target = max(BATCH_TARGET_SECONDS, min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, refresh))
         if seconds_left is not None:
             target = min(target, seconds_left)
-        n = max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds)))
+        last = max((due for due in others_due if due < target + mean_merge_seconds), default=0.0)
+        stagger = math.floor((max(0.0, last) + DELIVERY_SECONDS - mean_merge_seconds) / pass_seconds)
+        n = max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds), stagger))
     if passes_left is not None:
         n = min(n, -(-passes_left // workers))
     return n
@@ -105,8 +121,9 @@ def fold_interval(fold_seconds: float) -> float:
     """Seconds from one fold round's end to the next one's start, given how long the last
     round took: FOLD_SECONDS for a small state; for a large one long enough that rounds
     take at most FOLD_SHARE of the time (more batches folded per round), but short enough
-    that a round starts and ends within REFRESH_SECONDS of the last one's end."""
-    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, REFRESH_SECONDS - fold_seconds))
+    that a round starts (at the folder's next look) and ends within REFRESH_SECONDS of the
+    last one's end."""
+    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, DELIVERY_SECONDS - fold_seconds))
 
 
 def checkpoint_due(overlay_seconds: float, pending_bytes: int, state_bytes: int) -> bool:

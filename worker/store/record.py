@@ -282,15 +282,18 @@ class Jobs:
                     if record.status not in policy.RENDERING or record.stopping or \
                             policy.out_of_time(record.settings, elapsed):
                         return None
-                    n = policy.batch_passes(pass_seconds or record.pass_seconds, record.mean_merge_seconds,
+                    seconds = pass_seconds or record.pass_seconds
+                    now = time.time()
+                    others_due = [due - now for _, due in pipe.zrange(keys.due(job_id), 0, -1, withscores=True)]
+                    n = policy.batch_passes(seconds, record.mean_merge_seconds,
                                             policy.seconds_left(record.settings, elapsed), record.fold_seconds,
-                                            workers, policy.passes_left(record.settings, record.next_pass))
+                                            workers, policy.passes_left(record.settings, record.next_pass), others_due)
                     if n <= 0:
                         return None
                     batch = Batch(job_id, record.next_pass, n)
                     pipe.multi()
                     pipe.hset(key, "next_pass", batch.first + n)
-                    Leases.register(pipe, batch)
+                    Leases.register(pipe, batch, now + n * seconds + record.mean_merge_seconds)
                     pipe.execute()
                     return batch
             except redis.WatchError:
