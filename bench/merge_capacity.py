@@ -58,14 +58,13 @@ import redis
 from bench.common import cpu_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
-from worker.store.policy import FOLD_POLL_SECONDS
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import MAX_BATCH_PASSES, MERGE_SHARE, batch_passes
+from worker.store.policy import (FOLD_POLL_SECONDS, MAX_BATCH_PASSES, MERGE_SHARE, REFRESH_SECONDS, batch_passes,
+                                 fold_interval)
 from worker.store.tiles import encode_delta
 
-REFRESH_LIMIT = 10.0
 PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)
 PROJECTED_WORKERS = (1, 2, 5, 10, 20, 50, 100, 200)  # charted
 FULL = {"sizes": [(1920, 1080), (3840, 2160)], "workers": [1, 2, 5, 10, 20, 50, 100], "batches": 3}
@@ -95,9 +94,16 @@ def _merge(store: Jobs, job_id: str, batch: Batch, delta: Delta, payloads: dict[
     assert store.accept(batch, header, 1.0, 1.0)[0] == "merged"
 
 
+def _steady_batch(pass_seconds: float, mean_merge: float, fold_seconds: float, n_workers: int) -> float:
+    """Seconds of the scheduler's batch once the N workers' deliveries are spread (the
+    others due every REFRESH_SECONDS: Jobs.allocate's rule in its steady state)."""
+    spread = [i * REFRESH_SECONDS for i in range(1, n_workers)]
+    return batch_passes(pass_seconds, mean_merge, None, fold_seconds, n_workers, others_due=spread) * pass_seconds
+
+
 def _batch_seconds(store: Jobs, job_id: str, pass_seconds: float, mean_merge: float, n_workers: int) -> float:
-    """The scheduler's batch for these workers (Jobs.allocate's rule, with the job's last fold round)."""
-    return batch_passes(pass_seconds, mean_merge, None, store.get(job_id).fold_seconds, n_workers) * pass_seconds
+    """The scheduler's batch for these workers (with the job's last fold round)."""
+    return _steady_batch(pass_seconds, mean_merge, store.get(job_id).fold_seconds, n_workers)
 
 
 def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pass_seconds: float,
@@ -131,7 +137,7 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
     simulated workers are done (`pushed`) and everything they had accepted is folded. Each
     round's start and end, and the backlog when the workers stopped (did it keep up?)."""
     store = _store(urls)
-    rounds, backlog, cpu0 = [], None, time.process_time()
+    rounds, costs, backlog, cpu0 = [], [], None, time.process_time()
 
     def unfolded() -> int:  # accepted batches not in the image yet
         return len({b.decode() for b in store.r.hkeys(keys.tofold(job_id))} - OVERLAYS.batches(job_id))
@@ -139,11 +145,23 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
         t0 = time.time()
         if backlog is None and pushed.is_set():
             backlog = unfolded()
+        waiting, cpu = unfolded(), time.process_time()
         if store.fold_if_due(job_id) is not None:
             rounds.append((t0, time.time()))
+            costs.append((waiting, time.process_time() - cpu))
         time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
     store.fold(job_id, wait=True, checkpoint=True)  # as the job's end does
-    out.put({"rounds": rounds, "backlog": backlog, "cpu_seconds": time.process_time() - cpu0})
+    out.put({"rounds": rounds, "costs": costs, "backlog": backlog, "cpu_seconds": time.process_time() - cpu0})
+
+
+def _round_model(costs: list[tuple[int, float]]) -> tuple[float, float] | None:
+    """A round's CPU seconds as a + b * (batches it folds), least squares over the rounds
+    (a: the whole-state merge, estimate and checkpoint; b: reading and adding a delta);
+    None without two different batch counts."""
+    if len({n for n, _ in costs}) < 2:
+        return None
+    b, a = np.polyfit([n for n, _ in costs], [c for _, c in costs], 1)
+    return float(max(a, 0.0)), float(max(b, 0.0))
 
 
 def _image_lags(accepted: list[float], rounds: list[tuple[float, float]]) -> list[float]:
@@ -219,6 +237,7 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
               # (the record, the queue) and each state node, and the folder
               "node_cpu_per_batch": [c / len(latencies) for c in node_cpu] if latencies else None,
               "folder_cpu_per_batch": fold["cpu_seconds"] / len(latencies) if latencies else None,
+              "folder_round_costs": fold["costs"], "folder_round_model": _round_model(fold["costs"]),
               "delta_bytes": sum(len(p) for p in payloads.values())}
     report["sustained"] = bool(latencies and report["share"] <= MERGE_SHARE
                                and report["needed_batch_passes"] <= MAX_BATCH_PASSES
@@ -230,8 +249,12 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
 def project(runs: list[dict]) -> dict:
     """Beyond this machine: each server and the folder on a core of its own. From the
     largest N a series sustained here, the CPU seconds a batch costs the main Redis, each
-    state node and the folder (pushes, folds and checkpoints; a round's cost spread over more
-    batches at a larger N, so this overstates it there), and the merge alone. For each N
+    state node and the folder (pushes, folds and checkpoints), and the merge alone. The
+    folder's rounds come at most every fold_interval (plus the round), each folding every
+    batch accepted meanwhile: its load is the rounds a second times a round's fixed cost plus
+    the batches a second times a delta's (_round_model over every round of the series; the
+    CPU seconds a batch at the largest N sustained, which spread a round over that N's
+    batches, is kept as `folder_per_batch_load_at_100`). For each N
     the scheduler's batch gives the rate batches arrive, N / (batch + merge), and with it
     each part's load; the merge waits longer on a loaded node (as on a queue served at
     random: alone / (1 - load)). A part is saturated at PROJECTED_LOAD. Reported per
@@ -247,12 +270,17 @@ def project(runs: list[dict]) -> dict:
                  **{f"state node {i}": c for i, c in enumerate(base["node_cpu_per_batch"][1:], 1)},
                  "folder": base["folder_cpu_per_batch"]}
         merge, pass_seconds = base["merge_alone_seconds"], base["pass_seconds"]
+        round_seconds = base["fold_round_median_seconds"] or 0.0
+        model = _round_model([tuple(c) for r in series for c in r.get("folder_round_costs", [])])
 
         def loads(n: int) -> tuple[dict[str, float], float, float]:
             """Each part's load, the merge share and the batches a second, at N = n."""
-            batch = batch_passes(pass_seconds, merge, None, base["fold_round_median_seconds"] or 0.0, n) * pass_seconds
+            batch = _steady_batch(pass_seconds, merge, round_seconds, n)
             rate = n / (batch + merge)
             load = {part: rate * c for part, c in costs.items()}
+            if model is not None:
+                rounds = min(rate, 1.0 / (fold_interval(round_seconds) + FOLD_POLL_SECONDS / 2 + round_seconds))
+                load["folder"] = rounds * model[0] + rate * model[1]
             waited = merge / max(1e-9, 1.0 - max(load.values()))
             return load, waited / (batch + waited), rate
 
@@ -268,6 +296,7 @@ def project(runs: list[dict]) -> dict:
             "busiest_part_by_workers": {n: max(loads(n)[0].values()) for n in PROJECTED_WORKERS},
             "from_workers": base["workers"], "cpu_seconds_per_batch": costs, "merge_alone_seconds": merge,
             "capacity": capacity, "limited_by": limit, "loads_at_100": at_100, "merge_share_at_100": share_100,
+            "folder_round_model": model, "folder_per_batch_load_at_100": rate_100 * costs["folder"],
             "bytes_per_second_at_100": rate_100 * base["delta_bytes"]}
     return out
 
@@ -284,7 +313,7 @@ def chart(report: dict, name: str) -> None:
         busiest = report["projected"].get(f"{w}x{h}, {nodes} node(s)", {}).get("busiest_part_by_workers", {})
         axes[2].plot([int(n) for n in busiest], list(busiest.values()), "o-", label=label)
     axes[0].axhline(MAX_BATCH_PASSES, color="grey", ls="--", label="the largest batch")
-    axes[1].axhline(REFRESH_LIMIT, color="grey", ls="--", label="10 s")
+    axes[1].axhline(REFRESH_SECONDS, color="grey", ls="--", label="10 s")
     axes[2].axhline(PROJECTED_LOAD, color="grey", ls="--", label="saturated")
     for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)",
                                 "projected: the busiest server or folder, a core each")):
