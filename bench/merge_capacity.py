@@ -258,8 +258,8 @@ def project(runs: list[dict]) -> dict:
     the scheduler's batch gives the rate batches arrive, N / (batch + merge), and with it
     each part's load; the merge waits longer on a loaded node (as on a queue served at
     random: alone / (1 - load)). A part is saturated at PROJECTED_LOAD. Reported per
-    series: the largest N whose every part stays below that with the merge under 5%, which
-    part limits it, and the loads at N = 100."""
+    series: the largest N whose every part stays below that with the merge under 5%, what
+    limits the next N, and the loads at N = 100."""
     out = {}
     for (w, h, nodes), series in _series(runs).items():
         done = [r for r in series if r["sustained"]]
@@ -284,13 +284,16 @@ def project(runs: list[dict]) -> dict:
             waited = merge / max(1e-9, 1.0 - max(load.values()))
             return load, waited / (batch + waited), rate
 
-        capacity, limit = 0, None
-        for n in range(1, 1001):
+        def limit_at(n: int) -> str | None:
+            """What N = n overloads (None if nothing): a part, or the merge share (a few
+            workers' batches, held to the refresh, can give the merge more than 5%)."""
             load, share, _ = loads(n)
-            if max(load.values()) > PROJECTED_LOAD or share > MERGE_SHARE:
-                limit = max(load, key=load.get) if max(load.values()) > PROJECTED_LOAD else "merge share"
-                break
-            capacity = n
+            if max(load.values()) > PROJECTED_LOAD:
+                return max(load, key=load.get)
+            return "merge share" if share > MERGE_SHARE else None
+
+        capacity = max((n for n in range(1, 1001) if limit_at(n) is None), default=0)
+        limit = limit_at(capacity + 1)
         at_100, share_100, rate_100 = loads(100)
         out[f"{w}x{h}, {nodes} node(s)"] = {
             "busiest_part_by_workers": {n: max(loads(n)[0].values()) for n in PROJECTED_WORKERS},

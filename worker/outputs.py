@@ -26,7 +26,7 @@ def write_render(path: Path, integrator: Integrator, state: State, width: int, h
     settings = integrator.settings
     metadata: dict[str, object] = {"passes": state.passes, "photons": state.emitted, "seed": settings.seed,
                                    "method": settings.method, "settings": settings.model_dump_json()}
-    if state.counters:  # e.g. the adaptive sampler's uniform draws, visible draws, splats, mutations
+    if state.counters:  # SPPM's radius schedule held (worker/stats.py); the adaptive sampler's draws, splats, ...
         metadata["counters"] = json.dumps(state.counters, sort_keys=True)
     estimate = integrator.estimate(state) if state.passes > 0 else None
     pixels, channels = rgb, ("R", "G", "B")
