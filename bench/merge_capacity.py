@@ -320,7 +320,8 @@ def chart(report: dict, name: str) -> None:
     axes[2].axhline(PROJECTED_LOAD, color="grey", ls="--", label="saturated")
     for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)",
                                 "projected: the busiest server or folder, a core each")):
-        ax.set_xscale("log")
+        if any(min(line.get_xdata(), default=0) > 0 for line in ax.lines):  # (no projection: nothing sustained)
+            ax.set_xscale("log")
         ax.set_xlabel("simulated workers")
         ax.set_title(title)
         ax.legend(fontsize=8)
