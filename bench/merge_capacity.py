@@ -66,6 +66,7 @@ from worker.store.policy import (FOLD_POLL_SECONDS, MAX_BATCH_PASSES, MERGE_SHAR
 from worker.store.tiles import encode_delta
 
 PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)
+ROUND_MODEL_SPAN = 3  # _round_model needs rounds of at least this many times the fewest batches
 PROJECTED_WORKERS = (1, 2, 5, 10, 20, 50, 100, 200)  # charted
 FULL = {"sizes": [(1920, 1080), (3840, 2160)], "workers": [1, 2, 5, 10, 20, 50, 100], "batches": 3}
 SMOKE = {"sizes": [(320, 180), (640, 360)], "workers": [1, 2], "batches": 2}
@@ -157,8 +158,10 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
 def _round_model(costs: list[tuple[int, float]]) -> tuple[float, float] | None:
     """A round's CPU seconds as a + b * (batches it folds), least squares over the rounds
     (a: the whole-state merge, estimate and checkpoint; b: reading and adding a delta);
-    None without two different batch counts."""
-    if len({n for n, _ in costs}) < 2:
+    None unless the rounds' batch counts span a factor ROUND_MODEL_SPAN (rounds of one
+    or two batches each, as at 3840x2160 here, cannot tell a round's part from a delta's)."""
+    counts = [n for n, _ in costs]
+    if not counts or max(counts) < ROUND_MODEL_SPAN * min(counts):
         return None
     b, a = np.polyfit([n for n, _ in costs], [c for _, c in costs], 1)
     return float(max(a, 0.0)), float(max(b, 0.0))
