@@ -68,8 +68,10 @@ if TYPE_CHECKING:
 
 
 SCHEDULE = "radius_schedule"  # counter: sum of a_k over the passes a state holds, in SCHEDULE_QUANTUM
-SCHEDULE_QUANTUM = 2.0 ** -36  # a_k <= 1; 10^8 passes at alpha = 1 stay within int64
-PREFIX_TOLERANCE = 1e-8  # relative: a scale this close to 1 is the quantum's rounding (the passes are 0 .. passes-1)
+# a_k <= 1, so a job's counter stays below 2^50 up to Settings' 10^7 passes at alpha = 1:
+# exact through the record's Lua accounting (JSON numbers are doubles there) and HINCRBY.
+SCHEDULE_QUANTUM = 2.0 ** -26
+PREFIX_TOLERANCE = 1e-6  # relative: a scale this close to 1 is the quantum's rounding (the passes are 0 .. passes-1)
 STIRLING_FROM = 64.0  # log_gamma_ratio's series: its first omitted term is below 1e-16 from here
 
 
