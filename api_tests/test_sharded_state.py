@@ -23,6 +23,7 @@ import pytest
 import redis
 
 from service.redis_server import EmbeddedRedis
+from worker import stats
 from worker.engine import Engine
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs
@@ -295,6 +296,29 @@ def test_a_batch_is_told_the_passes_its_inputs_hold(servers: list[EmbeddedRedis]
     _merge(store, job_id, made[2])
     store.fold(job_id, checkpoint=True)
     assert store.batch_inputs(store.get(job_id)).passes == sum(d.n_passes for d in made)
+
+
+def test_a_state_holding_later_passes_alone_starts_batches_where_the_first_passes_would(
+        servers: list[EmbeddedRedis], deltas: tuple) -> None:
+    """The first round folds passes 2-3 before 0-1: the batch inputs' N is the state's
+    scaled by the radius schedule over passes 0-1 against 2-3 (worker/stats.py,
+    prefix_scale). The counter goes through the record: after a checkpoint, a round that
+    restores the state from the tiles and adds passes 0-1 holds a prefix (no scale)."""
+    store, job_id, made = _fresh_job(servers, deltas, 2)
+    _merge(store, job_id, made[1])
+    store.fold(job_id)
+    record = store.get(job_id)
+    scale = stats.prefix_scale(record.settings.alpha, 2, made[1].counters)
+    assert scale > 1.05
+    N = store.state(record).N
+    np.testing.assert_allclose(store.batch_inputs(record).count, N * scale, rtol=1e-6)
+    store.fold(job_id, wait=True, checkpoint=True)
+    _merge(store, job_id, made[0])
+    store.fold(job_id)
+    record = store.get(job_id)
+    state = store.state(record)
+    assert state.passes == 4 and stats.prefix_scale(record.settings.alpha, 4, state.counters) == 1.0
+    np.testing.assert_allclose(store.batch_inputs(record).count, state.N, rtol=1e-6)
 
 
 def test_a_batch_reads_every_tiles_inputs_from_one_round(servers: list[EmbeddedRedis], deltas: tuple,
