@@ -130,6 +130,45 @@ def test_the_schedule_a_state_holds(alpha: float) -> None:
     assert stats.prefix_scale(alpha, 400, late) == pytest.approx(a[:400].sum() / a[100:500].sum(), rel=1e-7)
 
 
+@pytest.mark.parametrize("alpha", [0.5, 0.7])
+def test_a_pass_before_the_passes_its_inputs_hold_gathers_where_the_job_would(make_engine, alpha: float) -> None:
+    """A job's first round holds pass 1 alone, and pass 0 starts from it (its worker was late):
+    pass 0 gathers at R0 with N = 0 (stats.rewind), so the state of passes 0 and 1 has the
+    sequential radius (median over lit pixels within 2%). Without the rewind pass 0 gathers
+    at pass 1's radius and the state ends about 9% small."""
+    eng = make_engine("furnace", photons_per_pass=1 << 13, seed=4, alpha=alpha)
+    sequential = eng.start()
+    for k in range(2):
+        sequential.merge(eng.run_batch(eng.integrator.batch_inputs(sequential), k, 1))
+    lit = sequential.D > 0
+
+    def late_pass_zero(rewound: bool) -> Accumulators:
+        state = eng.start()
+        state.merge(eng.run_batch(dataclasses.replace(eng.integrator.batch_inputs(state), passes=0), 1, 1))
+        inputs = eng.integrator.batch_inputs(state)  # holds pass 1
+        state.merge(eng.run_batch(inputs if rewound else dataclasses.replace(inputs, passes=0), 0, 1))
+        return state
+
+    ratio = np.median(late_pass_zero(True).radius()[lit] / sequential.radius()[lit])
+    assert abs(ratio - 1.0) < 0.02, ratio
+    assert np.median(late_pass_zero(False).radius()[lit] / sequential.radius()[lit]) < 0.95
+
+
+@pytest.mark.parametrize("alpha", [0.3, 0.7, 1.0])
+def test_rewind_follows_the_schedule_back(alpha: float) -> None:
+    """rewind's factors are the uniform-density schedule's: R_k^2 / R_P^2 = a_k / a_P and
+    N_k / N_P = A(k) / A(P), with pass 0 at N = 0."""
+    a = np.cumprod(np.r_[1.0, (np.arange(99) + alpha) / (np.arange(99) + 1)])
+    A = np.r_[0.0, np.cumsum(a)]
+    for first, passes in [(0, 1), (0, 7), (3, 10), (40, 41), (1, 99), (9, 9)]:
+        n_factor, r2_factor = stats.rewind(alpha, passes, first)
+        if first == passes:
+            assert (n_factor, r2_factor) == (1.0, 1.0)
+            continue
+        assert n_factor == pytest.approx(A[first] / A[passes], rel=1e-12, abs=0.0)
+        assert r2_factor == pytest.approx(a[first] / a[passes], rel=1e-12)
+
+
 def test_a_batch_moves_its_radius_on_as_sequential_passes_do(make_engine) -> None:
     """A batch of several passes gathers each pass at the radius the sequential update
     would give (shrink_radius on the device), so folding it lands N and R where merging its

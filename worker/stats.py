@@ -49,7 +49,9 @@ inputs (batch_start) scale N, and R^2 with it, by A(passes) / (sum of a_k held),
 A(K) = sum_{k<K} a_k = Gamma(K + alpha) / (Gamma(1 + alpha) Gamma(K)): 1 for the passes
 0 .. passes-1, 1 / alpha for a state holding pass 1 alone (whose N / (pi D) is
 alpha^2 R_0^2 where one pass leaves alpha R_0^2). The sum held is a counter (SCHEDULE)
-each batch adds. Without it a two-worker 256x256 job whose first fold round saw pass 1
+each batch adds. A batch whose first pass comes before the passes its inputs hold (they
+were folded before it started) goes back along the same schedule (rewind): pass 0 of a
+job whose first round held pass 1 gathers at R_0 with N = 0, not at pass 1's radius. Without it a two-worker 256x256 job whose first fold round saw pass 1
 before pass 0 ended with the radius 3-9% small, in about one run of three.
 """
 
@@ -109,6 +111,22 @@ def prefix_scale(alpha: float, passes: int, counters: dict[str, int]) -> float:
         return 1.0
     scale = math.exp(_log_schedule_sum(alpha, passes)) / (held * SCHEDULE_QUANTUM)
     return 1.0 if scale < 1.0 + PREFIX_TOLERANCE else scale
+
+
+def rewind(alpha: float, passes: int, first: int) -> tuple[float, float]:
+    """The factors on N and on R^2 (and the bias) that take the job's first `passes` passes'
+    radius back to its first `first` passes' (first < passes: a batch whose inputs' state
+    already holds later passes, folded before it started), under the uniform density of
+    prefix_scale: N_k = N_P A(k) / A(P), R_k^2 = R_P^2 a_k / a_P, a_k = A(k) alpha / k
+    (a_0 = 1, N_0 = 0)."""
+    if first >= passes:
+        return 1.0, 1.0
+    log_p = _log_schedule_sum(alpha, passes)
+    a_p = math.exp(log_p) * alpha / passes
+    if first == 0:
+        return 0.0, 1.0 / a_p
+    ratio = math.exp(_log_schedule_sum(alpha, first) - log_p)
+    return ratio, ratio * passes / first
 
 
 def add_delta(state: "State", delta: "Delta") -> None:

@@ -295,14 +295,22 @@ class PhotonMappingPasses:
     def run_batch(self, inputs: GatherInputs, first_pass: int, n_passes: int,
                   keep_going: KeepGoing | None = None) -> Delta:
         """Run passes first_pass .. first_pass+n_passes-1, the first gathering at `inputs.radius`
+        (taken back along the radius schedule if the inputs hold later passes, stats.rewind)
         and each next one at the radius the pass before left (shrink_radius, spatial_hash.cl)."""
         dev = self.dev
         n = dev.arrays.n_pixels
         r32 = np.ascontiguousarray(inputs.radius, np.float32)
         if r32.shape != (n,) or not np.all(r32 > 0.0) or not np.all(np.isfinite(r32)):
             raise ValueError("radius must hold one positive finite value per pixel")
-        self._set_radii(r32, np.zeros(n) if inputs.count is None else inputs.count,
-                        np.zeros(n) if inputs.bias is None else inputs.bias)
+        count = np.zeros(n) if inputs.count is None else inputs.count
+        bias = np.zeros(n) if inputs.bias is None else inputs.bias
+        if inputs.passes is not None and first_pass < inputs.passes:
+            # The inputs hold passes after this batch's first: back to where the job's first
+            # `first_pass` passes leave the radius (stats.rewind).
+            n_factor, r2_factor = stats.rewind(self.settings.alpha, inputs.passes, first_pass)
+            r32 = (r32 * np.float32(math.sqrt(r2_factor))).astype(np.float32)
+            count, bias = count * n_factor, bias * r2_factor
+        self._set_radii(r32, count, bias)
         dev.zero_sums()
         totals = {stats.SCHEDULE: stats.schedule_count(self.settings.alpha, first_pass, n_passes)}
         for k in range(first_pass, first_pass + n_passes):
