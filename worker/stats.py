@@ -49,10 +49,11 @@ inputs (batch_start) scale N, and R^2 with it, by A(passes) / (sum of a_k held),
 A(K) = sum_{k<K} a_k = Gamma(K + alpha) / (Gamma(1 + alpha) Gamma(K)): 1 for the passes
 0 .. passes-1, 1 / alpha for a state holding pass 1 alone (whose N / (pi D) is
 alpha^2 R_0^2 where one pass leaves alpha R_0^2). The sum held is a counter (SCHEDULE)
-each batch adds. A batch whose first pass comes before the passes its inputs hold (they
-were folded before it started) goes back along the same schedule (rewind): pass 0 of a
-job whose first round held pass 1 gathers at R_0 with N = 0, not at pass 1's radius. Without it a two-worker 256x256 job whose first fold round saw pass 1
-before pass 0 ended with the radius 3-9% small, in about one run of three.
+each batch adds. Without the scale a two-worker 256x256 job whose first fold round saw
+pass 1 before pass 0 ended with the radius 3-9% small, in about one run of three. A batch
+whose first pass comes before the passes its inputs hold (they were folded before it
+started) goes back along the same schedule (rewind): pass 0 of a job whose first round
+held pass 1 gathers at R_0 with N = 0, not at pass 1's radius.
 """
 
 from __future__ import annotations

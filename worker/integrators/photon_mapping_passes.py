@@ -308,7 +308,7 @@ class PhotonMappingPasses:
             # The inputs hold passes after this batch's first: back to where the job's first
             # `first_pass` passes leave the radius (stats.rewind).
             n_factor, r2_factor = stats.rewind(self.settings.alpha, inputs.passes, first_pass)
-            r32 = (r32 * np.float32(math.sqrt(r2_factor))).astype(np.float32)
+            r32 = r32 * np.float32(math.sqrt(r2_factor))
             count, bias = count * n_factor, bias * r2_factor
         self._set_radii(r32, count, bias)
         dev.zero_sums()
