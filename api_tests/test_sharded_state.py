@@ -187,18 +187,19 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
 
 
 def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpoint: bool) -> None:
-    """One fold round, SIGKILLed as it encodes its (tiles_before_kill + 1)-th tile's inputs,
-    inside that tile's transaction."""
-    encoded = []
-    real = state_module.encode_inputs
+    """One fold round, SIGKILLed as it encodes its (tiles_before_kill + 1)-th tile: that
+    tile's state in the checkpoint (after every tile's inputs), else its inputs."""
+    name = "encode_state" if checkpoint else "encode_inputs"
+    real, spans = getattr(state_module, name), []
 
-    def encode_inputs(inputs, span):  # noqa: ANN001, ANN202
-        encoded.append(span)
-        if len(encoded) == tiles_before_kill + 1:
-            os.kill(os.getpid(), signal.SIGKILL)
-        return real(inputs, span)
+    def encode(*args):  # noqa: ANN002, ANN202
+        if args[-1] not in spans:  # a tile's span (its state is encoded twice: written, cached)
+            spans.append(args[-1])
+            if len(spans) == tiles_before_kill + 1:
+                os.kill(os.getpid(), signal.SIGKILL)
+        return real(*args)
 
-    state_module.encode_inputs = encode_inputs
+    setattr(state_module, name, encode)
     policy.CHECKPOINT_PENDING_SHARE = float("inf")  # a round in memory unless told to checkpoint
     _store(urls).fold(job_id, checkpoint=checkpoint)
 
@@ -279,6 +280,45 @@ def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: lis
     monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # any delta kept pending is too much
     _merge(store, job_id, made[2])
     assert store.fold(job_id).checkpointed
+    _assert_folded_once(store, job_id, made)
+
+
+def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: list[EmbeddedRedis], deltas: tuple,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The long part of a big frame's round, the checkpoint, comes after the image: the
+    record already names the round's passes, and this process's readers keep the overlay
+    while the tiles' versions move (never a mix of written and unwritten tiles with the
+    last checkpoint's counters). After it the overlay goes on, on the new versions, and
+    the next read needs no tile."""
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    _merge(store, job_id, made[0])
+    assert not store.fold(job_id).checkpointed
+    seen: list[tuple[int, int, float]] = []  # during the write: the record's image passes, a read's passes and sum
+    real = state_module.encode_state
+
+    def encode_state(arrays, names, span):  # noqa: ANN001, ANN202
+        record = store.get(job_id)
+        state = store.state(record)
+        seen.append((record.image_passes, state.passes, float(sum(a.sum() for a in state.arrays().values()))))
+        return real(arrays, names, span)
+
+    monkeypatch.setattr(state_module, "encode_state", encode_state)
+    monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # this round checkpoints
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id)
+    assert folded is not None and folded.checkpointed
+    passes = made[0].n_passes + made[1].n_passes
+    total = float(sum(a.sum() for a in folded.state.arrays().values()))
+    assert len(seen) == 2 * 6  # each tile's state: written, then cached
+    assert all(s == (passes, passes, total) for s in seen), seen
+    monkeypatch.setattr(state_module, "encode_state", real)
+    record = store.get(job_id)
+    assert record.folded_passes == passes and not store.r.exists(keys.tofold(job_id))
+    monkeypatch.setattr(state_module.TiledState, "_blobs", lambda *args: pytest.fail("read the tiles"))
+    assert store.state(record) is folded.state  # the overlay, on the tiles' new versions
+    _merge(store, job_id, made[2])
+    assert store.fold(job_id).state.passes == passes + made[2].n_passes
+    monkeypatch.undo()
     _assert_folded_once(store, job_id, made)
 
 

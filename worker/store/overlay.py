@@ -10,13 +10,18 @@ the tiles' folded sets stay as the last checkpoint left them. So a folder that d
 only work; the next folder folds the same batches again from the last checkpoint.
 
 An overlay is valid while every tile still has the version it was built on: a checkpoint
-by any folder bumps them, and the overlay is then dropped. Its state is never changed once
-published (a round copies it before adding to it), so readers may use it as it is."""
+by another folder bumps them, and the overlay is then dropped. This process's own
+checkpoint writes the overlay's state, so readers keep it while the versions move
+(`Overlays.writing`), and it goes on, on the new versions, with no batch pending. Its state
+is never changed once published (a round copies it before adding to it), so readers may use
+it as it is."""
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from worker.integrators import Integrator
@@ -50,16 +55,37 @@ class Overlays:
 
     def __init__(self) -> None:
         self._items: dict[str, Overlay] = {}
+        self._writing: set[str] = set()  # jobs whose overlay this process is writing to the tiles
         self._lock = threading.Lock()
 
     def valid(self, job_id: str, versions: dict[int, int]) -> Overlay | None:
-        """The job's overlay if it was built on these tile versions; a stale one is dropped."""
+        """The job's overlay if it was built on these tile versions, or this process is
+        writing it to the tiles; a stale one is dropped."""
         with self._lock:
             overlay = self._items.get(job_id)
-            if overlay is not None and overlay.versions != versions:
+            if overlay is not None and overlay.versions != versions and job_id not in self._writing:
                 del self._items[job_id]
                 return None
             return overlay
+
+    def current(self, job_id: str) -> Overlay | None:
+        return self._items.get(job_id)
+
+    @contextmanager
+    def writing(self, job_id: str) -> Iterator[None]:
+        """While this process writes the job's overlay to the tiles (and counts what it
+        wrote): its readers keep the overlay though the tiles' versions move; dropped if the
+        writing fails."""
+        with self._lock:
+            self._writing.add(job_id)
+        try:
+            yield
+        except BaseException:
+            self.drop(job_id)
+            raise
+        finally:
+            with self._lock:
+                self._writing.discard(job_id)
 
     def batches(self, job_id: str) -> frozenset[str]:
         overlay = self._items.get(job_id)

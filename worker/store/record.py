@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -548,19 +548,38 @@ class Jobs:
             if accepted.keys() <= OVERLAYS.batches(job_id) and not checkpoint:
                 return None  # all in this process's image already (a due checkpoint waits for news or the end)
             fold_start = time.perf_counter()
+            tiling = self.tiling(record)
             try:
-                folded = self.tiles.fold_round(job_id, self.tiling(record), record.integrator, record.folded_emitted,
-                                               record.folded_passes, record.counters, accepted, checkpoint)
+                folded, write = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
+                                                      record.folded_passes, record.counters, accepted, checkpoint)
             except FoldContended:
                 return None  # another folder holds the tiles now; its round counts
             except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
                 self.r.hdel(keys.tofold(job_id), exc.batch_id)
                 self.fail(job_id, f"cannot fold {exc}")
                 return None
-            self.tiles.account(job_id, folded, list(accepted), {
+            # Show the image first, then write the state to the tiles if due (a checkpoint:
+            # the long part of a big frame's round) and count its batches in the record. A
+            # forced checkpoint (a worker's: it serves no image; the job's last) keeps no overlay.
+            self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
                 time.perf_counter() - fold_start, read_at)
+            if write:
+                cpu = time.process_time()
+                with OVERLAYS.writing(job_id):
+                    try:
+                        written = self.tiles.checkpoint(job_id, tiling, record.integrator)
+                    except FoldContended:
+                        OVERLAYS.drop(job_id)
+                        return folded  # another folder holds the tiles now; its round counts
+                    self.tiles.settle(job_id, list(accepted))
+                    if checkpoint:
+                        OVERLAYS.drop(job_id)
+                    else:
+                        OVERLAYS.put(job_id, written)
+                folded = replace(folded, checkpointed=True,
+                                 stages=folded.stages | {"write state": time.process_time() - cpu})
         status = self.status(job_id)
         if status in policy.FINAL:
             self._expire_tiles(job_id)  # a fold racing the final move rewrote tiles

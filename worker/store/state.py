@@ -104,7 +104,7 @@ class UnreadableDelta(Exception):
 class Folded:
     """What a fold round made of the job: its state, the image's error after it, this
     process's CPU seconds per stage of the round (logged; bench/fold_round.py), and whether
-    the round wrote the state to the tiles (a checkpoint) or kept it in memory."""
+    the round then wrote the state to the tiles (a checkpoint) or kept it in memory."""
 
     state: State
     error: float | None
@@ -292,15 +292,16 @@ class TiledState:
 
     # ------------------------------------------------------------------- fold
     def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
-                   counters: dict[str, int], accepted: dict[str, dict[str, Any]], checkpoint: bool = False) -> Folded:
+                   counters: dict[str, int], accepted: dict[str, dict[str, Any]],
+                   checkpoint: bool = False) -> tuple[Folded, bool]:
         """Fold the accepted batches (id -> {n, e, c}; at least one) not yet in this process's
-        overlay into it, and write the state to every tile that lacks some of them when the
-        round checkpoints (`checkpoint`, or policy.checkpoint_due). `emitted`, `passes` and
-        `counters` are the record's folded counters (the last checkpoint's). Raises
-        FoldContended if another folder got to a tile first (this round's other tiles stay
-        valid)."""
+        overlay into it, write every tile's batch inputs and show the new overlay to this
+        process's readers. `emitted`, `passes` and `counters` are the record's folded counters
+        (the last checkpoint's). Returns the round and whether the state is to be written to
+        the tiles now (`checkpoint`, or policy.checkpoint_due: the caller runs `checkpoint`
+        once the image is shown). Raises FoldContended if another folder got to a tile first."""
         batch_ids = sorted(accepted)
-        widths, delta_widths = integrator.state_widths, dict(integrator.sums.widths)
+        delta_widths = dict(integrator.sums.widths)
         stages = Stages()
         # Read: versions, which tiles already hold which batch, the state (the overlay's if
         # it was built on these versions, else the last checkpoint's).
@@ -377,62 +378,94 @@ class TiledState:
         now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
                            {k: frozenset(names) for k, names in sent.items()},
                            (overlay.pending_bytes if overlay is not None else 0) + read_bytes,
-                           overlay.since if overlay is not None else time.monotonic())
-        checkpoint = checkpoint or now_held.checkpoint_due()
-        arrays = state.arrays()
-        # What each tile writes at a checkpoint: the arrays its deltas carried and what the
-        # merge derives from them (e.g. N); a merge changes nothing where a delta is zero, and
-        # the setup arrays (e.g. R0) never change. Between checkpoints only the inputs.
-        derived = [name for name in widths if name not in integrator.sums.names and name not in integrator.setup_arrays]
+                           overlay.since if overlay is not None and overlay.batches else time.monotonic())
 
-        # Write each tile in a transaction on its version (the nodes at once).
+        # Write each tile's batch inputs in a transaction on its version (the nodes at once),
+        # then show the image: this process's readers take the overlay.
         def write(node: int, tiles: list[int]) -> dict[int, None]:
             for k in tiles:
-                span, meta = tiling.span(k), keys.tile(job_id, k, "meta")
-                changed = [name for name in widths if name in sent.get(k, ())] + (derived if sent.get(k) else [])
-                fields = encode_state(arrays, changed, span) if checkpoint and k in todo else None
+                meta = keys.tile(job_id, k, "meta")
                 with self.nodes[node].pipeline() as pipe:
                     try:
                         pipe.watch(meta)
                         if int(pipe.hget(meta, "version") or 0) != versions[k]:
                             raise FoldContended(f"tile {k} was folded by another folder")
                         pipe.multi()
-                        if fields is not None:
-                            if fields:
-                                pipe.hset(keys.tile(job_id, k, "state"), mapping=fields)
-                            pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
-                            pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
-                            pipe.hincrby(meta, "version", 1)
-                        pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, span))
+                        pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)))
                         pipe.execute()
                     except redis.WatchError as exc:
                         raise FoldContended(f"tile {k} was folded by another folder") from exc
-                if fields is not None:
-                    CACHE.put(job_id, k, versions[k] + 1, encode_state(arrays, list(widths), span))
             return {}
 
         try:
             self._per_node(tiling, write)
-        finally:
-            if checkpoint:
-                OVERLAYS.drop(job_id)  # the tiles hold it now (or another folder's round)
-        if not checkpoint:
-            OVERLAYS.put(job_id, now_held)
-        stages.lap("write")
-        return Folded(state, error, stages.seconds, checkpoint)
+        except FoldContended:
+            OVERLAYS.drop(job_id)
+            raise
+        OVERLAYS.put(job_id, now_held)
+        stages.lap("write inputs")
+        return Folded(state, error, stages.seconds, False), checkpoint or now_held.checkpoint_due()
 
-    def account(self, job_id: str, folded: Folded, batch_ids: list[str], history: dict[str, Any],
-                seconds: float, read_at: float) -> None:
-        """After a round: count the batches a checkpoint wrote in the record (once each), log
-        the error after the round, and when and how long the round took, the passes its
-        image holds and since when batches it did not see (accepted after `read_at`) wait."""
+    def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator) -> Overlay:
+        """Write this process's overlay of the job (the round just made it) to every tile that
+        lacks some of its batches, each tile in one transaction on the version the overlay was
+        built on: its state, its folded set, its pending entries gone, its version bumped.
+        Returns the overlay on the tiles' new versions (no batch pending). Run inside
+        OVERLAYS.writing (readers keep the overlay while the versions move); raises
+        FoldContended if another folder got to a tile first."""
+        overlay = OVERLAYS.current(job_id)
+        if overlay is None:
+            raise FoldContended("this process holds no overlay of the job")
+        batch_ids = sorted(overlay.batches)
+        todo: dict[int, list[str]] = {}
+        if batch_ids:
+            got = self._each_node(tiling, lambda pipe, k: pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids))
+            todo = {k: [b for b, done in zip(batch_ids, g[0]) if not done] for k, g in got.items()}
+            todo = {k: ids for k, ids in todo.items() if ids}
+        widths, arrays = integrator.state_widths, overlay.state.arrays()
+        # What each tile writes: the arrays its deltas carried and what the merge derives from
+        # them (e.g. N); a merge changes nothing where a delta is zero, and the setup arrays
+        # (e.g. R0) never change.
+        derived = [name for name in widths if name not in integrator.sums.names and name not in integrator.setup_arrays]
+
+        def write(node: int, tiles: list[int]) -> dict[int, None]:
+            for k in (k for k in tiles if k in todo):
+                span, meta, sent = tiling.span(k), keys.tile(job_id, k, "meta"), overlay.sent.get(k, frozenset())
+                fields = encode_state(arrays, [name for name in widths if name in sent] + (derived if sent else []), span)
+                with self.nodes[node].pipeline() as pipe:
+                    try:
+                        pipe.watch(meta)
+                        if int(pipe.hget(meta, "version") or 0) != overlay.versions[k]:
+                            raise FoldContended(f"tile {k} was folded by another folder")
+                        pipe.multi()
+                        if fields:
+                            pipe.hset(keys.tile(job_id, k, "state"), mapping=fields)
+                        pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
+                        pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
+                        pipe.hincrby(meta, "version", 1)
+                        pipe.execute()
+                    except redis.WatchError as exc:
+                        raise FoldContended(f"tile {k} was folded by another folder") from exc
+                CACHE.put(job_id, k, overlay.versions[k] + 1, encode_state(arrays, list(widths), span))
+            return {}
+
+        self._per_node(tiling, write)
+        versions = {k: v + (k in todo) for k, v in overlay.versions.items()}
+        return Overlay(versions, frozenset(), overlay.state, overlay.error, {}, 0, time.monotonic())
+
+    def publish(self, job_id: str, folded: Folded, history: dict[str, Any], seconds: float, read_at: float) -> None:
+        """After a round: log the error after it, and when and how long it took, the passes
+        its image holds and since when batches it did not see (accepted after `read_at`) wait."""
         pipe = self.main.pipeline()
-        if folded.checkpointed:
-            self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids, client=pipe)
         pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds,
                                              "image_passes": folded.state.passes, "waiting_since": read_at})
         pipe.rpush(keys.history(job_id), json.dumps(history))
         pipe.execute()
+
+    def settle(self, job_id: str, batch_ids: list[str]) -> None:
+        """After a checkpoint: count the batches it wrote in the record's folded counters,
+        once each, and take them off the batches to fold."""
+        self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids)
 
     # --------------------------------------------------------------- lifetime
     def expire(self, job_id: str, tiling: Tiling, seconds: int) -> None:
