@@ -25,12 +25,13 @@ import redis
 from service.redis_server import EmbeddedRedis
 from worker import stats
 from worker.engine import Engine
-from worker.integrators.base import Delta
+from worker.integrators.base import Delta, State
 from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys, policy
 from worker.store.policy import Status
+from worker.store import overlay as overlay_module
 from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.state import TiledState
@@ -320,6 +321,44 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     assert store.fold(job_id).state.passes == passes + made[2].n_passes
     monkeypatch.undo()
     _assert_folded_once(store, job_id, made)
+
+
+def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_same_state(
+        servers: list[EmbeddedRedis], deltas: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """policy.checkpoint_tiles makes a round write a part of the tiles: the record counts a
+    batch only once every tile has written it, the overlay goes on with what the others
+    lack, and a process without the overlay (here: this one after dropping it) reads the
+    same state from the tiles, their pending deltas and the accepted batches' counts."""
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    chosen: list[list[int]] = [[0, 2, 4], [1, 3]]  # the tiles each round writes
+    monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: chosen.pop(0))
+    _merge(store, job_id, made[0])
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id)
+    assert folded is not None and not folded.checkpointed
+    record = store.get(job_id)
+    tiling = store.tiling(record)
+    versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
+                for k in range(tiling.count)]
+    assert versions == [1, 0, 1, 0, 1, 0]
+    assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 2  # no batch on every tile yet
+    overlay_module.OVERLAYS.drop(job_id)  # as a process that never folded the job
+    _assert_same_state(store.state(record), folded.state)
+    # The next round folds a third batch and writes tiles 1 and 3: the first two batches are
+    # now on every tile but 5; the third on tiles 1 and 3 only.
+    _merge(store, job_id, made[2])
+    folded = store.fold(job_id)
+    assert folded is not None and not folded.checkpointed and store.r.hlen(keys.tofold(job_id)) == 3
+    overlay_module.OVERLAYS.drop(job_id)
+    _assert_same_state(store.state(store.get(job_id)), folded.state)
+    monkeypatch.undo()
+    _assert_folded_once(store, job_id, made)
+
+
+def _assert_same_state(got: State, want: State) -> None:
+    assert (got.passes, got.emitted, got.counters) == (want.passes, want.emitted, want.counters)
+    for name, a in want.arrays().items():
+        np.testing.assert_allclose(got.arrays()[name], a, rtol=1e-12, atol=0, err_msg=name)
 
 
 def test_a_batch_is_told_the_passes_its_inputs_hold(servers: list[EmbeddedRedis], deltas: tuple) -> None:

@@ -1,13 +1,15 @@
 """The batch-size rule (worker/store/policy.py, batch_passes): budgets first, then the merge share;
-the deliveries of a job's batches spread over the refresh interval."""
+the deliveries of a job's batches spread over the refresh interval; the tiles a fold round
+writes (checkpoint_tiles)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from worker.store.policy import (BATCH_TARGET_SECONDS, DELIVERY_SECONDS, FOLD_POLL_SECONDS, MAX_BATCH_PASSES,
-                                 MERGE_SHARE, REFRESH_SECONDS, batch_passes, fold_interval)
+from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
+                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, MAX_BATCH_PASSES, MERGE_SHARE, REFRESH_SECONDS,
+                                 batch_passes, checkpoint_tiles, fold_interval)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -100,3 +102,32 @@ def test_workers_that_start_together_deliver_spread_over_the_refresh(workers: in
 def test_fold_rounds_end_within_the_refresh_of_each_other(fold: float) -> None:
     """A round starts at the folder's first look after fold_interval and takes `fold`."""
     assert fold_interval(fold) + FOLD_POLL_SECONDS + fold <= REFRESH_SECONDS
+
+
+def test_a_checkpoint_writes_a_part_of_the_state_each_round_and_keeps_the_pending_deltas_bounded() -> None:
+    """policy.checkpoint_tiles under a big frame's load: each round adds a delta of about
+    half the state's bytes to every tile. The deltas left pending stay within the share, each
+    round writes a part of the state (never all of it, as one checkpoint every few rounds
+    did), and every tile is written within a few rounds."""
+    tiles, state, delta = 100, 128, 60
+    state_bytes = {k: state for k in range(tiles)}
+    pending = {k: 0 for k in range(tiles)}
+    last_written = {k: 0 for k in range(tiles)}
+    written_per_round = []
+    for r in range(1, 41):
+        pending = {k: p + delta for k, p in pending.items()}
+        chosen = checkpoint_tiles(0.0, pending, state_bytes)
+        assert len(set(chosen)) == len(chosen)
+        for k in chosen:
+            pending[k], last_written[k] = 0, r
+        assert sum(pending.values()) <= CHECKPOINT_PENDING_SHARE * state * tiles
+        assert all(r - last_written[k] <= 4 for k in range(tiles) if r > 4)
+        written_per_round.append(len(chosen))
+    steady = written_per_round[4:]
+    assert max(steady) <= 0.6 * tiles and min(steady) >= 0.2 * tiles, written_per_round
+
+
+def test_every_tile_with_a_pending_delta_is_written_once_a_batch_waited_too_long() -> None:
+    pending, state_bytes = {0: 5, 1: 0, 2: 7}, {0: 100, 1: 100, 2: 100}
+    assert checkpoint_tiles(0.0, pending, state_bytes) == []  # within the share
+    assert sorted(checkpoint_tiles(CHECKPOINT_SECONDS, pending, state_bytes)) == [0, 2]

@@ -1,20 +1,21 @@
 """A job's fold held in the folder's memory between checkpoints.
 
 A fold round adds the accepted batches' deltas to the state in the folder process's memory
-and writes the state back to the tiles only now and then (a checkpoint: policy.
-checkpoint_due), because writing the whole state is most of what a round costs the state
-node (its bytes in, its append-only file, that file's rewrites). Between checkpoints
-nothing durable changes but the batch inputs: the folded batches stay accepted and not
-folded (`tofold`), their deltas stay pending on the tiles, the record's folded counters and
-the tiles' folded sets stay as the last checkpoint left them. So a folder that dies loses
-only work; the next folder folds the same batches again from the last checkpoint.
+and writes the state back to the tiles only now and then, a part at a time (a checkpoint
+of some tiles: policy.checkpoint_tiles), because writing the state is most of what a round
+costs the state node (its bytes in, its append-only file, that file's rewrites). Between
+checkpoints nothing durable changes but the batch inputs: the folded batches stay accepted
+and not folded (`tofold`) until every tile has written them, their deltas stay pending on
+the tiles that have not, the record's folded counters stay as the last complete batch left
+them. So a folder that dies loses only work; the next folder folds the same batches again
+from the tiles (TiledState.fold_round: a tile that wrote a batch skips it).
 
 An overlay is valid while every tile still has the version it was built on: a checkpoint
 by another folder bumps them, and the overlay is then dropped. This process's own
 checkpoint writes the overlay's state, so readers keep it while the versions move
-(`Overlays.writing`), and it goes on, on the new versions, with no batch pending. Its state
-is never changed once published (a round copies it before adding to it), so readers may use
-it as it is."""
+(`Overlays.writing`), and it goes on, on the new versions, with the batches some tile still
+lacks. Its state is never changed once published (a round copies it before adding to it),
+so readers may use it as it is."""
 
 from __future__ import annotations
 
@@ -27,21 +28,25 @@ from dataclasses import dataclass
 from worker.integrators import Integrator
 from worker.integrators.base import State
 from worker.store import policy
+from worker.store.tiles import Tiling
 
 
 @dataclass(frozen=True)
 class Overlay:
     versions: dict[int, int]  # tile -> version the overlay was built on (its last checkpoint)
-    batches: frozenset[str]  # accepted batches folded here since then
-    state: State  # the checkpoint's state with those batches added
+    batches: frozenset[str]  # accepted batches folded here that some tile has not written
+    state: State  # the tiles' states with those batches added
     error: float | None  # the image's estimated error in `state`
-    sent: dict[int, frozenset[str]]  # per tile, the arrays those batches' deltas carried
-    pending_bytes: int  # their deltas' bytes the tiles still hold
-    since: float  # time.monotonic() when the first of them was folded
+    sent: dict[int, frozenset[str]]  # per tile, the arrays its pending deltas of them carried
+    pending: dict[int, int]  # per tile, the bytes of those deltas it still holds
+    folded_at: dict[str, float]  # per batch of them, time.monotonic() when it was folded here
 
-    def checkpoint_due(self) -> bool:
-        return policy.checkpoint_due(time.monotonic() - self.since, self.pending_bytes,
-                                     sum(a.nbytes for a in self.state.arrays().values()))
+    def checkpoint_tiles(self, tiling: Tiling) -> list[int]:
+        """The tiles a round that made this overlay writes (policy.checkpoint_tiles)."""
+        per_pixel = sum(a.nbytes // len(a) for a in self.state.arrays().values())
+        state_bytes = {k: per_pixel * (tiling.span(k).stop - tiling.span(k).start) for k in range(tiling.count)}
+        oldest = min(self.folded_at.values(), default=time.monotonic())
+        return policy.checkpoint_tiles(time.monotonic() - oldest, self.pending, state_bytes)
 
     def copy_state(self, integrator: Integrator) -> State:
         """A state to add the next round to (this one stays as readers saw it)."""

@@ -52,12 +52,14 @@ FOLD_POLL_SECONDS = 0.5  # the API's folder thread looks this often, and at once
 # A job's batches are delivered at most this far apart (batch_passes): an image change
 # follows each by the folder's next look and its round.
 DELIVERY_SECONDS = REFRESH_SECONDS - FOLD_POLL_SECONDS
-# A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes the
-# state to the tiles (a checkpoint) when its overlay is this old, or the deltas it keeps
-# pending on the state nodes reach CHECKPOINT_PENDING_SHARE of the state's bytes (at the
-# next round that folds a new batch: a checkpoint alone changes no image), or the job ends.
+# A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes
+# tiles of the state (a checkpoint of those tiles) so that the deltas it keeps pending on
+# the state nodes stay within CHECKPOINT_PENDING_SHARE of the state's bytes: each round the
+# tiles that free the most, so a big frame writes a part of its state every round rather
+# than all of it every few rounds. Every tile once a batch has waited CHECKPOINT_SECONDS, or
+# the job ends (at the next round that folds a new batch: a checkpoint alone changes no image).
 CHECKPOINT_SECONDS = 30.0
-CHECKPOINT_PENDING_SHARE = 1.0  # a job then holds at most about two states (README, "Limits")
+CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (README, "Limits")
 FOLD_STALE_SECONDS = 5.0
 # The batch that decides a job's end hands its final round to the API's folder, which holds
 # the image in memory (Jobs.end_if_decided); its worker, looking every END_HANDOFF_POLL_SECONDS,
@@ -126,11 +128,23 @@ def fold_interval(fold_seconds: float) -> float:
     return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, DELIVERY_SECONDS - fold_seconds))
 
 
-def checkpoint_due(overlay_seconds: float, pending_bytes: int, state_bytes: int) -> bool:
-    """Whether a fold round writes the state to the tiles: its overlay is CHECKPOINT_SECONDS
-    old, or keeping the folded batches' deltas pending costs the state nodes more memory than
-    CHECKPOINT_PENDING_SHARE states (each checkpoint costs them one state's bytes in)."""
-    return overlay_seconds >= CHECKPOINT_SECONDS or pending_bytes >= CHECKPOINT_PENDING_SHARE * state_bytes
+def checkpoint_tiles(oldest_seconds: float, pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
+    """The tiles a fold round writes, given the bytes of the deltas each keeps pending and
+    its state's bytes: every tile with a delta pending once the oldest pending batch was
+    folded CHECKPOINT_SECONDS ago; else the tiles that free the most bytes per byte written
+    (a tile's checkpoint writes its state and drops its deltas) until the deltas left are
+    within CHECKPOINT_PENDING_SHARE of the state's bytes."""
+    held = [k for k, p in pending.items() if p > 0]
+    if oldest_seconds >= CHECKPOINT_SECONDS:
+        return held
+    left, cap = sum(pending.values()), CHECKPOINT_PENDING_SHARE * sum(state_bytes.values())
+    out = []
+    for k in sorted(held, key=lambda k: pending[k] / state_bytes[k], reverse=True):
+        if left <= cap:
+            break
+        out.append(k)
+        left -= pending[k]
+    return out
 
 
 def seconds_left(settings: Settings, elapsed: float) -> float | None:

@@ -36,7 +36,7 @@ from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
 from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
-from worker.store.state import Folded, FoldContended, TiledState, UnreadableDelta
+from worker.store.state import Folded, FoldContended, Snapshot, TiledState, UnreadableDelta
 from worker.store.tiles import TILE_PIXELS, Tiling
 
 
@@ -259,8 +259,17 @@ class Jobs:
         record = self.get(record.id) or record
         if not record.setup:
             return None
-        return self.tiles.read(record.id, self.tiling(record), record.integrator, record.folded_emitted,
-                               record.folded_passes, record.counters)
+
+        def snapshot() -> Snapshot:
+            pipe = self.r.pipeline()  # one transaction: a checkpoint's count moves both at once
+            pipe.hgetall(keys.job(record.id))
+            pipe.hgetall(keys.tofold(record.id))
+            h, tofold = pipe.execute()
+            now = JobRecord.parse(record.id, h) if h else record
+            return Snapshot(now.folded_emitted, now.folded_passes, now.counters,
+                            {b.decode(): json.loads(v) for b, v in tofold.items()})
+
+        return self.tiles.read(record.id, self.tiling(record), record.integrator, snapshot)
 
     def batch_inputs(self, record: JobRecord) -> Any:
         """What a batch starting now reads: the inputs the last fold round wrote to the
@@ -550,7 +559,7 @@ class Jobs:
             fold_start = time.perf_counter()
             tiling = self.tiling(record)
             try:
-                folded, write = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
+                folded, tiles = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
                                                       record.folded_passes, record.counters, accepted, checkpoint)
             except FoldContended:
                 return None  # another folder holds the tiles now; its round counts
@@ -558,27 +567,29 @@ class Jobs:
                 self.r.hdel(keys.tofold(job_id), exc.batch_id)
                 self.fail(job_id, f"cannot fold {exc}")
                 return None
-            # Show the image first, then write the state to the tiles if due (a checkpoint:
-            # the long part of a big frame's round) and count its batches in the record. A
-            # forced checkpoint (a worker's: it serves no image; the job's last) keeps no overlay.
+            # Show the image first, then write the tiles that are due (a checkpoint: the long
+            # part of a big frame's round) and count in the record the batches every tile has
+            # now written. A forced checkpoint (a worker's: it serves no image; the job's last)
+            # writes every tile and keeps no overlay.
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
                 time.perf_counter() - fold_start, read_at)
-            if write:
+            if tiles:
                 cpu = time.process_time()
                 with OVERLAYS.writing(job_id):
                     try:
-                        written = self.tiles.checkpoint(job_id, tiling, record.integrator)
+                        written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles)
                     except FoldContended:
                         OVERLAYS.drop(job_id)
                         return folded  # another folder holds the tiles now; its round counts
-                    self.tiles.settle(job_id, list(accepted))
+                    if complete:
+                        self.tiles.settle(job_id, complete)
                     if checkpoint:
                         OVERLAYS.drop(job_id)
                     else:
                         OVERLAYS.put(job_id, written)
-                folded = replace(folded, checkpointed=True,
+                folded = replace(folded, checkpointed=not written.batches,
                                  stages=folded.stages | {"write state": time.process_time() - cpu})
         status = self.status(job_id)
         if status in policy.FINAL:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -104,12 +105,24 @@ class UnreadableDelta(Exception):
 class Folded:
     """What a fold round made of the job: its state, the image's error after it, this
     process's CPU seconds per stage of the round (logged; bench/fold_round.py), and whether
-    the round then wrote the state to the tiles (a checkpoint) or kept it in memory."""
+    every batch it holds is now written on every tile (a checkpoint: the record counts them)
+    or some stay in the folder's memory."""
 
     state: State
     error: float | None
     stages: dict[str, float]
     checkpointed: bool
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The record's folded counters (of the batches every tile has written) and the accepted
+    batches not yet counted there (id -> {n, e, c}), read at one moment."""
+
+    emitted: int
+    passes: int
+    counters: dict[str, int]
+    accepted: dict[str, dict[str, Any]]
 
 
 class Stages:
@@ -232,9 +245,15 @@ class TiledState:
             pipe.execute()
 
     # ------------------------------------------------------------------- read
-    def _versions(self, job_id: str, tiling: Tiling) -> dict[int, int]:
-        got = self._each_node(tiling, lambda pipe, k: pipe.hget(keys.tile(job_id, k, "meta"), "version"))
-        return {k: int(v[0] or 0) for k, v in got.items()}
+    def _versions(self, job_id: str, tiling: Tiling,
+                  batch_ids: Sequence[str] = ()) -> tuple[dict[int, int], dict[int, list[str]]]:
+        """Each tile's version, and the batches of `batch_ids` it has not written (tiles that
+        lack none left out)."""
+        got = self._each_node(tiling, lambda pipe, k: (
+            pipe.hget(keys.tile(job_id, k, "meta"), "version"),
+            batch_ids and pipe.smismember(keys.tile(job_id, k, "folded"), list(batch_ids))))
+        lacking = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items() if batch_ids}
+        return {k: int(g[0] or 0) for k, g in got.items()}, {k: ids for k, ids in lacking.items() if ids}
 
     def _blobs(self, job_id: str, tiling: Tiling, integrator: Integrator,
                versions: dict[int, int]) -> dict[int, dict[str, Any]]:
@@ -274,62 +293,48 @@ class TiledState:
                 arrays[name][span] = part
         return arrays
 
-    def read(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
-             counters: dict[str, int]) -> State:
+    def read(self, job_id: str, tiling: Tiling, integrator: Integrator, snapshot: Callable[[], Snapshot]) -> State:
         """The folded state: this process's overlay if it is on the tiles' versions, else the
-        last checkpoint, whose counters the record gives (a tile a folder writes meanwhile is
-        read again)."""
+        tiles' states with the record's folded counters (`snapshot`, read after the
+        versions), plus the accepted batches some tiles have written and others not (a
+        checkpoint writes some of the tiles each round, or a folder died mid-checkpoint):
+        their counts once, and their pending deltas on the tiles that lack them. A tile that a
+        folder writes meanwhile makes the read start again."""
         while True:
             try:
-                versions = self._versions(job_id, tiling)
+                versions, _ = self._versions(job_id, tiling)
                 if (overlay := OVERLAYS.valid(job_id, versions)) is not None:
                     return overlay.state
-                blobs = self._blobs(job_id, tiling, integrator, versions)
-                break
+                snap = snapshot()
+                accepted, batch_ids = snap.accepted, sorted(snap.accepted)
+                now, lacking = self._versions(job_id, tiling, batch_ids)
+                if now != versions:
+                    continue
+                state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
+                                           snap.emitted, snap.passes, snap.counters)
+                written = [b for b in batch_ids if sum(b in ids for ids in lacking.values()) < tiling.count]
+                if written:
+                    fresh = {k: [b for b in ids if b in written] for k, ids in lacking.items()}
+                    delta, _, _ = self._pending_deltas(job_id, tiling, integrator, versions,
+                                                       {k: ids for k, ids in fresh.items() if ids},
+                                                       [accepted[b] for b in written])
+                    integrator.merge(state, delta)
+                return state
             except FoldContended:
                 continue
-        return integrator.restore(self._arrays(tiling, integrator, blobs), emitted, passes, counters)
 
-    # ------------------------------------------------------------------- fold
-    def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
-                   counters: dict[str, int], accepted: dict[str, dict[str, Any]],
-                   checkpoint: bool = False) -> tuple[Folded, bool]:
-        """Fold the accepted batches (id -> {n, e, c}; at least one) not yet in this process's
-        overlay into it, write every tile's batch inputs and show the new overlay to this
-        process's readers. `emitted`, `passes` and `counters` are the record's folded counters
-        (the last checkpoint's). Returns the round and whether the state is to be written to
-        the tiles now (`checkpoint`, or policy.checkpoint_due: the caller runs `checkpoint`
-        once the image is shown). Raises FoldContended if another folder got to a tile first."""
-        batch_ids = sorted(accepted)
+    def _pending_deltas(self, job_id: str, tiling: Tiling, integrator: Integrator, versions: dict[int, int],
+                        fresh: dict[int, list[str]], headers: list[dict[str, Any]]
+                        ) -> tuple[Delta, dict[int, int], dict[int, set[str]]]:
+        """The delta of some accepted batches: each tile's pending deltas of them (`fresh`:
+        tile -> batch ids it has not written), read a tile at a time (a tile's first delta of
+        an array is copied in, the rest added: the same sums as adding each to zero), and
+        their headers' passes, photons and counters. Also, per tile, the bytes read and the
+        arrays its deltas carried. Every delta is checked readable (UnreadableDelta); a delta
+        gone because its tile was written meanwhile raises FoldContended."""
         delta_widths = dict(integrator.sums.widths)
-        stages = Stages()
-        # Read: versions, which tiles already hold which batch, the state (the overlay's if
-        # it was built on these versions, else the last checkpoint's).
-        got = self._each_node(tiling, lambda pipe, k: (
-            pipe.hget(keys.tile(job_id, k, "meta"), "version"),
-            pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids)))
-        versions = {k: int(g[0] or 0) for k, g in got.items()}
-        todo = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items()}
-        todo = {k: ids for k, ids in todo.items() if ids}
-        overlay = OVERLAYS.valid(job_id, versions)
-        if overlay is not None and not overlay.batches <= accepted.keys():
-            overlay = None  # cannot happen while the versions hold (only a checkpoint ends an accepted batch)
-        held = overlay.batches if overlay is not None else frozenset()
-        fresh = {k: [b for b in ids if b not in held] for k, ids in todo.items()}
-        fresh = {k: ids for k, ids in fresh.items() if ids}
-        fresh_ids = [b for b in batch_ids if b not in held]
-        if overlay is None:
-            state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
-                                       emitted, passes, counters)
-        else:
-            state = overlay.copy_state(integrator) if fresh_ids else overlay.state
-        stages.lap("read state")
-        # The round's delta: each tile's batches it has not folded yet, read a tile at a time
-        # (a tile's first delta of an array is copied in, the rest added: the same sums as
-        # adding each to zero). Every delta is checked readable before anything is written.
         sums = {name: integrator.sums.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
-        sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
-        carried: dict[int, set[str]] = {}  # per tile, the arrays this round's deltas carried
+        carried: dict[int, set[str]] = {}
 
         def add(node: int, tiles: list[int]) -> dict[int, int]:
             read = {}
@@ -339,6 +344,8 @@ class TiledState:
                 names = carried.setdefault(k, set())
                 for batch_id, payload in zip(fresh[k], payloads):
                     if payload is None:
+                        if int(self.nodes[node].hget(keys.tile(job_id, k, "meta"), "version") or 0) != versions[k]:
+                            raise FoldContended(f"tile {k} was written by another folder")
                         raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
                     try:
                         parts = decode_delta(payload, delta_widths, span.stop - span.start)
@@ -353,16 +360,48 @@ class TiledState:
                 read[k] = sum(len(p) for p in payloads)
             return read
 
-        read_bytes = sum(self._per_node(tiling, add).values())
-        for k, names in carried.items():
-            sent.setdefault(k, set()).update(names)
-        stages.lap("read deltas")
+        read = self._per_node(tiling, add)
         added: dict[str, int] = {}
-        for header in (accepted[b] for b in fresh_ids):
+        for header in headers:
             for name, value in header["c"].items():
                 added[name] = added.get(name, 0) + int(value)
-        delta = Delta(first_pass=-1, n_passes=sum(accepted[b]["n"] for b in fresh_ids),
-                      emitted=sum(accepted[b]["e"] for b in fresh_ids), sums=sums, counters=added)
+        delta = Delta(first_pass=-1, n_passes=sum(h["n"] for h in headers), emitted=sum(h["e"] for h in headers),
+                      sums=sums, counters=added)
+        return delta, read, carried
+
+    # ------------------------------------------------------------------- fold
+    def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
+                   counters: dict[str, int], accepted: dict[str, dict[str, Any]],
+                   checkpoint: bool = False) -> tuple[Folded, list[int]]:
+        """Fold the accepted batches (id -> {n, e, c}; at least one) not yet in this process's
+        overlay into it, write every tile's batch inputs and show the new overlay to this
+        process's readers. `emitted`, `passes` and `counters` are the record's folded counters
+        (of the batches every tile has written). Returns the round and the tiles whose state
+        is to be written now (every tile with `checkpoint`, else policy.checkpoint_tiles: the
+        caller runs `checkpoint` once the image is shown). Raises FoldContended if another
+        folder got to a tile first."""
+        batch_ids = sorted(accepted)
+        stages = Stages()
+        # Read: versions, which tiles have not written which batch, the state (the overlay's
+        # if it was built on these versions, else the tiles').
+        versions, todo = self._versions(job_id, tiling, batch_ids)
+        overlay = OVERLAYS.valid(job_id, versions)
+        if overlay is not None and not overlay.batches <= accepted.keys():
+            overlay = None  # cannot happen while the versions hold (a batch is settled once every tile wrote it)
+        held = overlay.batches if overlay is not None else frozenset()
+        fresh = {k: [b for b in ids if b not in held] for k, ids in todo.items()}
+        fresh = {k: ids for k, ids in fresh.items() if ids}
+        fresh_ids = [b for b in batch_ids if b not in held]
+        if overlay is None:
+            state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
+                                       emitted, passes, counters)
+        else:
+            state = overlay.copy_state(integrator) if fresh_ids else overlay.state
+        stages.lap("read state")
+        # The round's delta: each tile's batches it has not written and the overlay lacks.
+        delta, read, carried = self._pending_deltas(job_id, tiling, integrator, versions, fresh,
+                                                    [accepted[b] for b in fresh_ids])
+        stages.lap("read deltas")
         # Merge, then what the next batches read and the error.
         if fresh_ids:
             integrator.merge(state, delta)
@@ -375,10 +414,15 @@ class TiledState:
         else:  # a checkpoint of the overlay as it was (without an overlay every batch is fresh)
             error = overlay.error
         stages.lap("estimate")
+        sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
+        pending = dict(overlay.pending) if overlay is not None else {}
+        for k, n in read.items():
+            sent.setdefault(k, set()).update(carried[k])
+            pending[k] = pending.get(k, 0) + n
+        now = time.monotonic()
         now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
-                           {k: frozenset(names) for k, names in sent.items()},
-                           (overlay.pending_bytes if overlay is not None else 0) + read_bytes,
-                           overlay.since if overlay is not None and overlay.batches else time.monotonic())
+                           {k: frozenset(names) for k, names in sent.items()}, pending,
+                           (overlay.folded_at if overlay is not None else {}) | {b: now for b in fresh_ids})
 
         # Write each tile's batch inputs in a transaction on its version (the nodes at once),
         # then show the image: this process's readers take the overlay.
@@ -404,32 +448,34 @@ class TiledState:
             raise
         OVERLAYS.put(job_id, now_held)
         stages.lap("write inputs")
-        return Folded(state, error, stages.seconds, False), checkpoint or now_held.checkpoint_due()
+        return (Folded(state, error, stages.seconds, False),
+                list(range(tiling.count)) if checkpoint else now_held.checkpoint_tiles(tiling))
 
-    def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator) -> Overlay:
-        """Write this process's overlay of the job (the round just made it) to every tile that
-        lacks some of its batches, each tile in one transaction on the version the overlay was
-        built on: its state, its folded set, its pending entries gone, its version bumped.
-        Returns the overlay on the tiles' new versions (no batch pending). Run inside
-        OVERLAYS.writing (readers keep the overlay while the versions move); raises
-        FoldContended if another folder got to a tile first."""
+    def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator,
+                   tiles: list[int]) -> tuple[Overlay, list[str]]:
+        """Write this process's overlay of the job (the round just made it) to those of
+        `tiles` that lack some of its batches, each tile in one transaction on the version
+        the overlay was built on: its state, its folded set, its pending entries gone, its
+        version bumped. Returns the overlay on the tiles' new versions (with the batches some
+        tile still lacks) and the batches every tile has now written (for the record to
+        count). Run inside OVERLAYS.writing (readers keep the overlay while the versions
+        move); raises FoldContended if another folder got to a tile first."""
         overlay = OVERLAYS.current(job_id)
         if overlay is None:
             raise FoldContended("this process holds no overlay of the job")
         batch_ids = sorted(overlay.batches)
-        todo: dict[int, list[str]] = {}
-        if batch_ids:
-            got = self._each_node(tiling, lambda pipe, k: pipe.smismember(keys.tile(job_id, k, "folded"), batch_ids))
-            todo = {k: [b for b, done in zip(batch_ids, g[0]) if not done] for k, g in got.items()}
-            todo = {k: ids for k, ids in todo.items() if ids}
+        if not batch_ids:
+            return overlay, []
+        _, todo = self._versions(job_id, tiling, batch_ids)
+        chosen = {k for k in tiles if k in todo}
         widths, arrays = integrator.state_widths, overlay.state.arrays()
         # What each tile writes: the arrays its deltas carried and what the merge derives from
         # them (e.g. N); a merge changes nothing where a delta is zero, and the setup arrays
         # (e.g. R0) never change.
         derived = [name for name in widths if name not in integrator.sums.names and name not in integrator.setup_arrays]
 
-        def write(node: int, tiles: list[int]) -> dict[int, None]:
-            for k in (k for k in tiles if k in todo):
+        def write(node: int, node_tiles: list[int]) -> dict[int, None]:
+            for k in (k for k in node_tiles if k in chosen):
                 span, meta, sent = tiling.span(k), keys.tile(job_id, k, "meta"), overlay.sent.get(k, frozenset())
                 fields = encode_state(arrays, [name for name in widths if name in sent] + (derived if sent else []), span)
                 with self.nodes[node].pipeline() as pipe:
@@ -450,8 +496,13 @@ class TiledState:
             return {}
 
         self._per_node(tiling, write)
-        versions = {k: v + (k in todo) for k, v in overlay.versions.items()}
-        return Overlay(versions, frozenset(), overlay.state, overlay.error, {}, 0, time.monotonic())
+        left = {k: ids for k, ids in todo.items() if k not in chosen}
+        complete = [b for b in batch_ids if not any(b in ids for ids in left.values())]
+        versions = {k: v + (k in chosen) for k, v in overlay.versions.items()}
+        return Overlay(versions, overlay.batches - frozenset(complete), overlay.state, overlay.error,
+                       {k: v for k, v in overlay.sent.items() if k in left},
+                       {k: v for k, v in overlay.pending.items() if k in left},
+                       {b: t for b, t in overlay.folded_at.items() if b not in complete}), complete
 
     def publish(self, job_id: str, folded: Folded, history: dict[str, Any], seconds: float, read_at: float) -> None:
         """After a round: log the error after it, and when and how long it took, the passes
@@ -463,8 +514,8 @@ class TiledState:
         pipe.execute()
 
     def settle(self, job_id: str, batch_ids: list[str]) -> None:
-        """After a checkpoint: count the batches it wrote in the record's folded counters,
-        once each, and take them off the batches to fold."""
+        """After a checkpoint: count the batches every tile has now written in the record's
+        folded counters, once each, and take them off the batches to fold."""
         self._account(keys=[keys.tofold(job_id), keys.job(job_id)], args=batch_ids)
 
     # --------------------------------------------------------------- lifetime
