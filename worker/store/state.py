@@ -370,6 +370,22 @@ class TiledState:
         return delta, read, carried
 
     # ------------------------------------------------------------------- fold
+    def _on_version(self, node: int, job_id: str, k: int, version: int,
+                    queue: Callable[[redis.client.Pipeline], Any]) -> None:
+        """One transaction on tile k: the commands `queue` adds, if the tile is still at
+        `version` (a WATCH on it); FoldContended if another folder wrote it first."""
+        meta = keys.tile(job_id, k, "meta")
+        with self.nodes[node].pipeline() as pipe:
+            try:
+                pipe.watch(meta)
+                if int(pipe.hget(meta, "version") or 0) != version:
+                    raise FoldContended(f"tile {k} was folded by another folder")
+                pipe.multi()
+                queue(pipe)
+                pipe.execute()
+            except redis.WatchError as exc:
+                raise FoldContended(f"tile {k} was folded by another folder") from exc
+
     def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
                    counters: dict[str, int], accepted: dict[str, dict[str, Any]],
                    checkpoint: bool = False) -> tuple[Folded, list[int]]:
@@ -428,17 +444,8 @@ class TiledState:
         # then show the image: this process's readers take the overlay.
         def write(node: int, tiles: list[int]) -> dict[int, None]:
             for k in tiles:
-                meta = keys.tile(job_id, k, "meta")
-                with self.nodes[node].pipeline() as pipe:
-                    try:
-                        pipe.watch(meta)
-                        if int(pipe.hget(meta, "version") or 0) != versions[k]:
-                            raise FoldContended(f"tile {k} was folded by another folder")
-                        pipe.multi()
-                        pipe.set(keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k)))
-                        pipe.execute()
-                    except redis.WatchError as exc:
-                        raise FoldContended(f"tile {k} was folded by another folder") from exc
+                self._on_version(node, job_id, k, versions[k], lambda pipe: pipe.set(
+                    keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k))))
             return {}
 
         try:
@@ -478,20 +485,15 @@ class TiledState:
             for k in (k for k in node_tiles if k in chosen):
                 span, meta, sent = tiling.span(k), keys.tile(job_id, k, "meta"), overlay.sent.get(k, frozenset())
                 fields = encode_state(arrays, [name for name in widths if name in sent] + (derived if sent else []), span)
-                with self.nodes[node].pipeline() as pipe:
-                    try:
-                        pipe.watch(meta)
-                        if int(pipe.hget(meta, "version") or 0) != overlay.versions[k]:
-                            raise FoldContended(f"tile {k} was folded by another folder")
-                        pipe.multi()
-                        if fields:
-                            pipe.hset(keys.tile(job_id, k, "state"), mapping=fields)
-                        pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
-                        pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
-                        pipe.hincrby(meta, "version", 1)
-                        pipe.execute()
-                    except redis.WatchError as exc:
-                        raise FoldContended(f"tile {k} was folded by another folder") from exc
+
+                def queue(pipe: redis.client.Pipeline) -> None:
+                    if fields:
+                        pipe.hset(keys.tile(job_id, k, "state"), mapping=fields)
+                    pipe.sadd(keys.tile(job_id, k, "folded"), *todo[k])
+                    pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
+                    pipe.hincrby(meta, "version", 1)
+
+                self._on_version(node, job_id, k, overlay.versions[k], queue)
                 CACHE.put(job_id, k, overlay.versions[k] + 1, encode_state(arrays, list(widths), span))
             return {}
 
