@@ -577,18 +577,17 @@ class Jobs:
                 time.perf_counter() - fold_start, read_at)
             if tiles:
                 cpu = time.process_time()
-                with OVERLAYS.writing(job_id):
-                    try:
+                try:
+                    with OVERLAYS.writing(job_id):  # a failed write drops the overlay
                         written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles)
-                    except FoldContended:
-                        OVERLAYS.drop(job_id)
-                        return folded  # another folder holds the tiles now; its round counts
-                    if complete:
-                        self.tiles.settle(job_id, complete)
-                    if checkpoint:
-                        OVERLAYS.drop(job_id)
-                    else:
-                        OVERLAYS.put(job_id, written)
+                        if complete:
+                            self.tiles.settle(job_id, complete)
+                        if checkpoint:
+                            OVERLAYS.drop(job_id)
+                        else:
+                            OVERLAYS.put(job_id, written)
+                except FoldContended:
+                    return folded  # another folder holds the tiles now; its round counts
                 folded = replace(folded, checkpointed=not written.batches,
                                  stages=folded.stages | {"write state": time.process_time() - cpu})
         status = self.status(job_id)
