@@ -14,6 +14,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from worker.allocator import retain_large_allocations
 from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_any_scene
 from worker.settings import Settings
 
@@ -193,6 +194,7 @@ def convert(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    retain_large_allocations()
     args = build_parser().parse_args(argv)
     if args.command == "serve":
         from service.serve import serve  # the HTTP stack is only needed here

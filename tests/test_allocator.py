@@ -1,0 +1,98 @@
+"""The C heap settings (worker/allocator.py): a freed frame-sized array's memory is reused by
+the next one, in the process's threads too, rather than mapped and faulted in afresh; the
+embedded redis-server gets the same settings. Page faults are counted by the kernel
+(minor faults), so the tests do not depend on the machine's speed."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+import redis
+
+from service.redis_server import EmbeddedRedis
+from worker import allocator
+
+FRAME = 3840 * 2160  # float64 pixels: 66 MB, above glibc's largest default mmap threshold
+PAGES = FRAME * 8 // 4096
+
+# In a fresh process: one frame-sized array made and freed (its first touch faults in any
+# case), then the faults of making and using the next one, on the main thread and on
+# another. NumPy's huge-page advice is off so that a fault is a 4 KiB page.
+SCRIPT = f"""
+import resource, sys, threading
+import numpy as np
+from numpy._core import multiarray
+from worker.allocator import retain_large_allocations
+multiarray._set_madvise_hugepage(False)
+if sys.argv[1] == "retain":
+    assert retain_large_allocations()
+def faults():
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    (np.ones({FRAME}) * 2.0).sum()
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+np.ones({FRAME}).sum()
+out = [faults()]
+t = threading.Thread(target=lambda: out.append(faults()))
+t.start(); t.join()
+print(*out)
+"""
+
+
+def _faults(mode: str) -> list[int]:
+    run = subprocess.run([sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    return [int(x) for x in run.stdout.split()]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc settings")
+def test_a_freed_frame_is_reused_without_page_faults_on_every_thread() -> None:
+    default, retained = _faults("default"), _faults("retain")
+    # Without the settings each array (and the product's temporary) is mapped afresh: every page faults.
+    assert min(default) > PAGES, default
+    # With them the heap's freed memory is reused: a few pages (Python's own), not the frame.
+    assert max(retained) < PAGES // 20, retained
+
+
+def _redis_faults(env: dict[str, str]) -> int:
+    """Minor faults of an embedded redis-server while it stores, serves and drops four 64 MB
+    values (a worker's push, the folder's read, the fold's drop)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        server = EmbeddedRedis(Path(tmp))
+        server_env = allocator.environment
+        allocator.environment = lambda: env  # the settings the server is started with
+        try:
+            server.start(supervise=False)
+        finally:
+            allocator.environment = server_env
+        try:
+            client = redis.Redis.from_url(server.url)
+            blob = os.urandom(64 << 20)
+            client.set("x", blob)
+            client.delete("x")
+            before = _minflt(server.proc.pid)
+            for _ in range(4):
+                client.set("x", blob)
+                client.get("x")
+                client.delete("x")
+            return _minflt(server.proc.pid) - before
+        finally:
+            server.stop()
+
+
+def _minflt(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[7])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc settings, /proc")
+def test_the_embedded_redis_reuses_a_dropped_value() -> None:
+    """Each value a worker pushes is held, read, then dropped once folded: with the settings,
+    the next one takes its memory."""
+    pages = 4 * (64 << 20) // 4096
+    default, retained = _redis_faults({}), _redis_faults(allocator.environment())
+    assert default > 2 * pages, default
+    assert retained < default / 2, (retained, default)
