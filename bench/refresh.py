@@ -48,8 +48,10 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
             job_id = c.submit(scene_name=SCENE, settings={"max_seconds": seconds, "resolution": [w, h],
                                                           "seed": 1})["id"]
             rounds: list[dict] = []
+            accepted: list[float] = []  # when each batch was accepted (to a sample)
             while True:
                 record = jobs.get(job_id)
+                accepted += [time.time()] * (record.merges - len(accepted))
                 if record.folded_at and (not rounds or record.folded_at != rounds[-1]["end"]):
                     rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
                                    "passes": record.image_passes})
@@ -75,7 +77,7 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
             "api_cpu_seconds_per_round": cpu["api"] / max(1, len(rounds)),
             "redis_cpu_seconds_per_round": cpu["redis"] / max(1, len(rounds)),
             "load_average_before": load, "load_average_after": os.getloadavg()[0],
-            "rounds": rounds, "intervals": intervals, "target_seconds": REFRESH_SECONDS}
+            "rounds": rounds, "intervals": intervals, "accepted": accepted, "target_seconds": REFRESH_SECONDS}
 
 
 def main() -> None:

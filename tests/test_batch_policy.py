@@ -1,6 +1,6 @@
 """The batch-size rule (worker/store/policy.py, batch_passes): budgets first, then the merge share;
-the deliveries of a job's batches spread over the refresh interval; the tiles a fold round
-writes (checkpoint_tiles)."""
+the deliveries of a job's batches spread over the refresh interval; when a fold round starts
+(fold_interval, round_seconds); the tiles a fold round writes (checkpoint_tiles)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, MAX_BATCH_PASSES, MERGE_SHARE, REFRESH_SECONDS,
-                                 batch_passes, checkpoint_tiles, fold_interval)
+                                 ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, round_seconds)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -102,6 +102,39 @@ def test_workers_that_start_together_deliver_spread_over_the_refresh(workers: in
 def test_fold_rounds_end_within_the_refresh_of_each_other(fold: float) -> None:
     """A round starts at the folder's first look after fold_interval and takes `fold`."""
     assert fold_interval(fold) + FOLD_POLL_SECONDS + fold <= REFRESH_SECONDS
+
+
+def test_a_round_longer_than_the_last_still_ends_within_the_refresh() -> None:
+    """A big frame's rounds: a fixed part and a part per new batch, 1 to 5 batches a round,
+    each within 15% of that (the machine's load). Started at the folder's last look after
+    fold_interval with the length round_seconds expects from the rounds before, at most 5%
+    of them end later than REFRESH_SECONDS after the last (about 3% expected); with the last
+    round's length in its place, a round that takes in more batches than the last ends late
+    (about half of them)."""
+    rng = np.random.default_rng(7)
+    rounds: list[tuple[int, float]] = []
+    late, late_by_last, timed = 0, 0, 0
+    for _ in range(500):
+        batches = int(rng.integers(1, 6))
+        seconds = (1.5 + 0.8 * batches) * rng.uniform(0.85, 1.15)
+        if len(rounds) >= ROUNDS_KEPT:
+            last, timed = rounds[-1][1], timed + 1
+            expected = round_seconds(rounds[-ROUNDS_KEPT:], batches)
+            late += fold_interval(last, expected) + FOLD_POLL_SECONDS + seconds > REFRESH_SECONDS
+            late_by_last += fold_interval(last) + FOLD_POLL_SECONDS + seconds > REFRESH_SECONDS
+        rounds.append((batches, seconds))
+    assert late <= 0.05 * timed, late
+    assert late_by_last >= 0.3 * timed, late_by_last
+
+
+def test_the_expected_round_follows_its_batches() -> None:
+    """round_seconds recovers a fixed part and a part per batch from rounds that fit them
+    exactly, takes a round as one batch's worth more than its batches with no spread in
+    them, and expects nothing before the first round."""
+    assert round_seconds([], 3) is None
+    exact = [(b, 2.0 + 0.5 * b) for b in (1, 3, 2, 4)]
+    assert round_seconds(exact, 6) == pytest.approx(5.0)
+    assert round_seconds([(2, 3.0), (2, 3.0)], 5) == pytest.approx(6.0)
 
 
 def test_a_checkpoint_writes_a_part_of_the_state_each_round_and_keeps_the_pending_deltas_bounded() -> None:

@@ -68,6 +68,7 @@ class JobRecord:
     waiting_since: float  # accepted passes beyond the image have waited since (fold_if_stale)
     folded_at: float
     fold_seconds: float  # the last fold round's
+    fold_rounds: tuple[tuple[int, float], ...]  # the recent rounds' new batches and seconds (policy.round_seconds)
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
     stopping: bool  # a move to a final status is under way: no new batches
     ending: Status | None  # the final status an accepted batch decided (Jobs.end_if_decided)
@@ -99,7 +100,9 @@ class JobRecord:
                    image_passes=int(f.get("image_passes", f.get("folded_passes", 0))),
                    waiting_since=float(f.get("waiting_since", 0.0)),
                    folded_at=float(f.get("folded_at", 0.0)),
-                   fold_seconds=float(f.get("fold_seconds", 0.0)), setup=f.get("setup") == "1",
+                   fold_seconds=float(f.get("fold_seconds", 0.0)),
+                   fold_rounds=tuple((int(b), float(t)) for b, t in json.loads(f.get("fold_rounds", "[]"))),
+                   setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1", ending=Status(f["ending"]) if f.get("ending") else None,
                    shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
                    next_pass=int(f["next_pass"]),
@@ -557,6 +560,7 @@ class Jobs:
             if accepted.keys() <= OVERLAYS.batches(job_id) and not checkpoint:
                 return None  # all in this process's image already (a due checkpoint waits for news or the end)
             fold_start = time.perf_counter()
+            fresh = len(accepted.keys() - OVERLAYS.batches(job_id))
             tiling = self.tiling(record)
             try:
                 folded, tiles = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
@@ -574,7 +578,7 @@ class Jobs:
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
-                time.perf_counter() - fold_start, read_at)
+                (*record.fold_rounds, (fresh, time.perf_counter() - fold_start))[-policy.ROUNDS_KEPT:], read_at)
             if tiles:
                 cpu = time.process_time()
                 try:
@@ -605,9 +609,13 @@ class Jobs:
 
     def fold_if_due(self, job_id: str) -> Folded | None:
         """The API's fold (its folder thread, and before a read): once `fold_interval`
-        has passed since the last round."""
+        has passed since the last round, for a round of the batches waiting now."""
         record = self.get(job_id)
-        if record is None or self._since_fold(record) < policy.fold_interval(record.fold_seconds):
+        if record is None or self._since_fold(record) < policy.FOLD_SECONDS:
+            return None
+        fresh = {b.decode() for b in self.r.hkeys(keys.tofold(job_id))} - OVERLAYS.batches(job_id)
+        expected = policy.round_seconds(record.fold_rounds, max(1, len(fresh)))
+        if self._since_fold(record) < policy.fold_interval(record.fold_seconds, expected):
             return None
         return self.fold(job_id)
 

@@ -506,11 +506,14 @@ class TiledState:
                        {k: v for k, v in overlay.pending.items() if k in left},
                        {b: t for b, t in overlay.folded_at.items() if b not in complete}), complete
 
-    def publish(self, job_id: str, folded: Folded, history: dict[str, Any], seconds: float, read_at: float) -> None:
-        """After a round: log the error after it, and when and how long it took, the passes
-        its image holds and since when batches it did not see (accepted after `read_at`) wait."""
+    def publish(self, job_id: str, folded: Folded, history: dict[str, Any], rounds: Sequence[tuple[int, float]],
+                read_at: float) -> None:
+        """After a round: log the error after it, and when it ended, the job's recent rounds
+        (new batches, seconds; this one last), the passes its image holds and since when
+        batches it did not see (accepted after `read_at`) wait."""
         pipe = self.main.pipeline()
-        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": seconds,
+        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": rounds[-1][1],
+                                             "fold_rounds": json.dumps(rounds),
                                              "image_passes": folded.state.passes, "waiting_since": read_at})
         pipe.rpush(keys.history(job_id), json.dumps(history))
         pipe.execute()
