@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import cpu_seconds, write_json
+from worker.allocator import retain_large_allocations
 from service.redis_server import EmbeddedRedis
 from worker.error_estimate import bias_estimate, blocks, discontinuity_bias, edge_quantiles, unlit_bound, unlit_scale
 from worker.integrators.base import Delta
@@ -167,7 +168,11 @@ def main() -> None:
     parser.add_argument("--checkpoint-every", type=int, default=3,
                         help="every K-th round writes the state to the tiles (1: every round, as before overlays)")
     parser.add_argument("--name", default="fold_round", help="bench/out/NAME.json")
+    parser.add_argument("--malloc", choices=("retain", "default"), default="retain",
+                        help="this process's C heap as the API's (worker/allocator.py), or glibc's defaults")
     args = parser.parse_args()
+    if args.malloc == "retain":
+        retain_large_allocations()
     try:
         sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
     except ValueError:

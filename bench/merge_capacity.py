@@ -57,6 +57,7 @@ import redis
 
 from bench.common import cpu_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
+from worker.allocator import retain_large_allocations
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
@@ -111,6 +112,7 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pa
             first_merge: float, start: float, end: float, first_batch: int, out: mp.Queue) -> None:
     """Simulated workers `workers` (of n_workers): render a batch (wait), push, accept,
     repeat; each batch sized by the scheduler's rule from the mean merge so far."""
+    retain_large_allocations()  # as `photonfarm worker` does
     store = _store(urls)
     delta, payloads, encode = _delta(store, job_id)
     first = _batch_seconds(store, job_id, pass_seconds, first_merge, n_workers)
@@ -137,6 +139,7 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
     """The API's folder thread: every FOLD_POLL_SECONDS, a round if one is due, until the
     simulated workers are done (`pushed`) and everything they had accepted is folded. Each
     round's start and end, and the backlog when the workers stopped (did it keep up?)."""
+    retain_large_allocations()  # as `photonfarm serve` does
     store = _store(urls)
     rounds, costs, backlog, cpu0 = [], [], None, time.process_time()
 
