@@ -618,7 +618,10 @@ class Converter:
         center = p.vector("center", "point")
         radius = p.number("radius", 1.0)
         r = m[:3, :3]
-        s = np.cbrt(abs(np.linalg.det(r)))
+        # The scale: each column's length, if uniform (exact for an exact scale; the cube
+        # root of the determinant is not: 3.0000000000000004 for 27 with NumPy's scalar cbrt
+        # on some CPUs).
+        s = float(np.linalg.norm(r, axis=0).mean())
         if not np.allclose(r.T @ r, s * s * np.eye(3), rtol=1e-6, atol=1e-9 * max(s * s, 1e-300)):
             raise _error(p.owner, "a sphere's to_world may only scale uniformly, rotate and translate")
         c = _apply(m, (center if center is not None else np.zeros(3))[None])[0]
