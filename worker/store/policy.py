@@ -139,8 +139,8 @@ def round_seconds(rounds: Sequence[tuple[int, float]], batches: int) -> float | 
     batch and a fixed part, fit to those rounds by least squares (with no spread in their
     batches, the fixed part taken as one batch's), plus ROUND_MARGIN times the most any of
     them ran over the fit, so that a round longer than the last one still ends in time: of
-    rounds that vary at random about the fit, about 1 in 30 runs over (1 in 9 with the
-    margin once: a round's chance to be the largest of nine). None before any."""
+    rounds that vary 15% at random about a fit, 1 in 33 ran over in a simulation (1 in 7
+    with the margin once; tests/test_batch_policy.py). None before any."""
     if not rounds:
         return None
     n = [float(b) for b, _ in rounds]
