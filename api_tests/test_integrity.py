@@ -245,7 +245,7 @@ def test_batches_allocated_together_are_due_one_refresh_after_another(tmp_path: 
         jobs = Jobs(conn)
         job_id = jobs.create(inline_meshes(parsed, base), Settings(photons_per_pass=P, resolution=(8, 8)), 8, 8,
                              "furnace")
-        conn.hset(keys.job(job_id), mapping={"merge_seconds": 1.0, "merges": 1, "fold_seconds": 1.0})
+        conn.hset(keys.job(job_id), mapping={"merge_seconds": 1.0, "merges": 1, "fold_rounds": "[[1, 1.0]]"})
         first = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
         second = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
         assert first is not None and second is not None

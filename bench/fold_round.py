@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import cpu_seconds, write_json
-from worker.allocator import retain_large_allocations
 from service.redis_server import EmbeddedRedis
+from worker.allocator import retain_large_allocations
 from worker.error_estimate import bias_estimate, blocks, discontinuity_bias, edge_quantiles, unlit_bound, unlit_scale
 from worker.integrators.base import Delta
 from worker.settings import Settings

@@ -67,7 +67,6 @@ class JobRecord:
     image_passes: int  # in the image after the last fold round (checkpoint or overlay, worker/store/overlay.py)
     waiting_since: float  # accepted passes beyond the image have waited since (fold_if_stale)
     folded_at: float
-    fold_seconds: float  # the last fold round's
     fold_rounds: tuple[tuple[int, float], ...]  # the recent rounds' new batches and seconds (policy.round_seconds)
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
     stopping: bool  # a move to a final status is under way: no new batches
@@ -100,7 +99,6 @@ class JobRecord:
                    image_passes=int(f.get("image_passes", f.get("folded_passes", 0))),
                    waiting_since=float(f.get("waiting_since", 0.0)),
                    folded_at=float(f.get("folded_at", 0.0)),
-                   fold_seconds=float(f.get("fold_seconds", 0.0)),
                    fold_rounds=tuple((int(b), float(t)) for b, t in json.loads(f.get("fold_rounds", "[]"))),
                    setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1", ending=Status(f["ending"]) if f.get("ending") else None,
@@ -113,6 +111,11 @@ class JobRecord:
                    merge_cpu_seconds=float(f.get("merge_cpu_seconds", 0.0)),
                    failure=f.get("error") or None,
                    counters={k[len(COUNTER):]: int(v) for k, v in f.items() if k.startswith(COUNTER)})
+
+    @property
+    def fold_seconds(self) -> float:
+        """The last fold round's length (0 before the first)."""
+        return self.fold_rounds[-1][1] if self.fold_rounds else 0.0
 
     @property
     def n_pixels(self) -> int:
@@ -557,10 +560,10 @@ class Jobs:
             if record is None or not record.setup or not accepted:
                 return None
             checkpoint = checkpoint or record.stopping or record.status in policy.FINAL  # no later round
-            if accepted.keys() <= OVERLAYS.batches(job_id) and not checkpoint:
+            fresh = accepted.keys() - OVERLAYS.batches(job_id)
+            if not fresh and not checkpoint:
                 return None  # all in this process's image already (a due checkpoint waits for news or the end)
             fold_start = time.perf_counter()
-            fresh = len(accepted.keys() - OVERLAYS.batches(job_id))
             tiling = self.tiling(record)
             try:
                 folded, tiles = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
@@ -578,7 +581,7 @@ class Jobs:
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
-                (*record.fold_rounds, (fresh, time.perf_counter() - fold_start))[-policy.ROUNDS_KEPT:], read_at)
+                (*record.fold_rounds, (len(fresh), time.perf_counter() - fold_start))[-policy.ROUNDS_KEPT:], read_at)
             if tiles:
                 cpu = time.process_time()
                 try:

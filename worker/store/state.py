@@ -512,8 +512,7 @@ class TiledState:
         (new batches, seconds; this one last), the passes its image holds and since when
         batches it did not see (accepted after `read_at`) wait."""
         pipe = self.main.pipeline()
-        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_seconds": rounds[-1][1],
-                                             "fold_rounds": json.dumps(rounds),
+        pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_rounds": json.dumps(rounds),
                                              "image_passes": folded.state.passes, "waiting_since": read_at})
         pipe.rpush(keys.history(job_id), json.dumps(history))
         pipe.execute()
