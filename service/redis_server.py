@@ -31,6 +31,13 @@ PASSWORD_FILE = "password"
 # estimation), and its batches' deltas up to as much again between checkpoints (README, "Limits").
 MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
 AOF_REWRITE_PERCENTAGE = 400  # the append-only file's growth, in % of the data set, that starts a rewrite
+AOF_FILE = "appendonly.aof"
+# The append-only file is written once and read only by a restart, so the page cache need
+# not keep it: this often its cached pages are dropped (posix_fadvise), and the memory is
+# written again at once rather than taken fresh. On this machine kind (a VM) fresh memory
+# cost about 4.5 s a GB to touch, and a 3840x2160 job's batch passes about 1 GB through the
+# file: the embedded Redis took 25% less CPU pushing such deltas (README, "Limits").
+AOF_PAGE_DROP_SECONDS = 1.0
 # Commands no photonfarm process uses and that give an attacker a way out of the data.
 DISABLED_COMMANDS = ("CONFIG", "DEBUG", "MODULE", "SLAVEOF", "REPLICAOF", "SYNC", "PSYNC", "MIGRATE", "ACL",
                      "SHUTDOWN")
@@ -53,6 +60,19 @@ def stored_password(data_dir: Path) -> str:
     with os.fdopen(fd, "w") as f:
         f.write(secrets.token_urlsafe(32))  # URL-safe: it goes into redis://:PASSWORD@host
     return path.read_text().strip()
+
+
+def drop_cached_pages(path: Path) -> None:
+    """Ask the kernel to drop a file's cached pages (those written back; the rest follow
+    once they are). Nothing if the file is not there."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return
+    try:
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
 
 
 def make_private(data_dir: Path) -> None:
@@ -92,7 +112,7 @@ class EmbeddedRedis:
 
     def _config(self) -> str:
         lines = [f"port {self.port}", f"bind {self.bind}", f'dir "{self.data_dir.resolve()}"',
-                 "appendonly yes", "appendfsync always", 'save ""', "protected-mode yes", "daemonize no",
+                 "appendonly yes", f'appendfilename "{AOF_FILE}"', "appendfsync always", 'save ""', "protected-mode yes", "daemonize no",
                  "loglevel warning", f"requirepass {self.password}", f"maxmemory {self.maxmemory}",
                  "maxmemory-policy noeviction",
                  # An append-only-file rewrite writes the data set with an RDB preamble; LZF on
@@ -129,7 +149,12 @@ class EmbeddedRedis:
         if supervise:
             self._watch = threading.Thread(target=self._supervise, name="redis-supervisor", daemon=True)
             self._watch.start()
+        threading.Thread(target=self._drop_aof_pages, name="redis-aof-pages", daemon=True).start()
         return self
+
+    def _drop_aof_pages(self) -> None:
+        while not self._stopping.wait(AOF_PAGE_DROP_SECONDS):
+            drop_cached_pages(self.data_dir / AOF_FILE)
 
     def _supervise(self) -> None:
         while not self._stopping.wait(0.5):

@@ -1,11 +1,15 @@
 """The C heap settings (worker/allocator.py): a freed frame-sized array's memory is reused by
 the next one, in the process's threads too, rather than mapped and faulted in afresh; the
-embedded redis-server gets the same settings. Page faults are counted by the kernel
-(minor faults), so the tests do not depend on the machine's speed."""
+embedded redis-server gets the same settings, and its append-only file's pages leave the
+page cache once written. Page faults and cached pages are counted by the kernel (minor
+faults, mincore), so the tests do not depend on the machine's speed."""
 
 from __future__ import annotations
 
+import ctypes
+import mmap
 import os
+import time
 import subprocess
 import sys
 import tempfile
@@ -14,7 +18,7 @@ from pathlib import Path
 import pytest
 import redis
 
-from service.redis_server import EmbeddedRedis
+from service.redis_server import AOF_FILE, AOF_PAGE_DROP_SECONDS, EmbeddedRedis
 from worker import allocator
 
 FRAME = 3840 * 2160  # float64 pixels: 66 MB, above glibc's largest default mmap threshold
@@ -106,3 +110,44 @@ def test_the_embedded_redis_reuses_a_dropped_value() -> None:
     default, retained = _redis_faults({}), _redis_faults(allocator.environment())
     assert default > 2 * pages, default
     assert retained < default / 2, (retained, default)
+
+
+def _cached_share(path: Path) -> float:
+    """The share of a file's pages in the page cache (mincore of a mapping, which reads none)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.mmap.restype = ctypes.c_void_p
+    libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long]
+    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p]
+    libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    size = path.stat().st_size
+    pages = -(-size // mmap.PAGESIZE)
+    with open(path, "rb") as f:
+        addr = libc.mmap(None, size, mmap.PROT_READ, mmap.MAP_SHARED, f.fileno(), 0)
+    assert addr not in (None, ctypes.c_void_p(-1).value), os.strerror(ctypes.get_errno())
+    try:
+        vec = (ctypes.c_ubyte * pages)()
+        assert libc.mincore(addr, size, vec) == 0, os.strerror(ctypes.get_errno())
+        return sum(v & 1 for v in vec) / pages
+    finally:
+        libc.munmap(addr, size)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="posix_fadvise and mincore as Linux has them")
+def test_the_append_only_file_leaves_the_page_cache(tmp_path: Path) -> None:
+    """128 MB of values go through the embedded Redis's append-only file; within a few
+    drop intervals at most a tenth of the file is still cached (a file just written is
+    cached whole)."""
+    server = EmbeddedRedis(tmp_path).start(supervise=False)
+    try:
+        client = redis.Redis.from_url(server.url)
+        blob = os.urandom(16 << 20)
+        for k in range(8):
+            client.set(f"x{k}", blob)
+        aof = tmp_path / AOF_FILE
+        assert aof.stat().st_size >= 8 * len(blob)
+        deadline = time.monotonic() + 5 * AOF_PAGE_DROP_SECONDS
+        while _cached_share(aof) > 0.1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _cached_share(aof) <= 0.1, _cached_share(aof)
+    finally:
+        server.stop()
