@@ -1,6 +1,7 @@
 """The batch-size rule (worker/store/policy.py, batch_passes): budgets first, then the merge share;
 the deliveries of a job's batches spread over the refresh interval; when a fold round starts
-(fold_interval, round_seconds); the tiles a fold round writes (checkpoint_tiles)."""
+(fold_interval, round_seconds) and which waiting batches it takes in (paced_batches); the
+tiles a fold round writes (checkpoint_tiles)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pytest
 
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, MAX_BATCH_PASSES, MERGE_SHARE, REFRESH_SECONDS,
-                                 ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, round_seconds)
+                                 ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, paced_batches,
+                                 round_seconds)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -135,6 +137,57 @@ def test_the_expected_round_follows_its_batches() -> None:
     exact = [(b, 2.0 + 0.5 * b) for b in (1, 3, 2, 4)]
     assert round_seconds(exact, 6) == pytest.approx(5.0)
     assert round_seconds([(2, 3.0), (2, 3.0)], 5) == pytest.approx(6.0)
+
+
+def test_a_round_takes_every_waiting_batch_unless_the_next_delivery_is_far() -> None:
+    """paced_batches: one waiting batch, nothing in flight, a delivery due already or soon
+    enough for the image to change within DELIVERY_SECONDS: all of them; a far delivery:
+    an even share over the rounds that fit before it, at least one."""
+    assert paced_batches(1, 60.0, 3.0) == 1
+    assert paced_batches(2, None, 3.0) == 2
+    assert paced_batches(2, -4.0, 3.0) == 2
+    assert paced_batches(100, 0.2, 3.0) == 100  # many workers: deliveries come all the time
+    assert paced_batches(2, DELIVERY_SECONDS - 3.0, 3.0) == 2
+    assert paced_batches(2, 15.0, 3.0) == 1
+    assert paced_batches(5, 15.0, 3.0) == 3  # 2 rounds fit: 3, then 2
+    assert paced_batches(3, 100.0, 3.0) == 1
+
+
+def _image_gaps(cycle: float, round_length: float, paced: bool, workers: int = 2, apart: float = 0.05,
+                cycles: int = 30) -> np.ndarray:
+    """The folder's loop against workers that each deliver a batch every `cycle` s, `apart`
+    s after one another (in step: all between two looks of the folder), with the next
+    deliveries due then (the store's `due`). The folder looks every FOLD_POLL_SECONDS and
+    starts a round once fold_interval has passed since the last one ended and a batch
+    waits; the round takes `round_length` and the image changes at its end. Returns the
+    intervals between image changes."""
+    deliveries = sorted(0.1 + c * cycle + apart * w for c in range(cycles) for w in range(workers))
+    waiting, images, free_at, t = 0, [], -np.inf, 0.0
+    while t < cycles * cycle:
+        waiting += sum(1 for d in deliveries if t - FOLD_POLL_SECONDS < d <= t)
+        if waiting and t >= free_at and (not images or t - images[-1] >= fold_interval(round_length, round_length)):
+            next_due = min((d - t for d in deliveries if d > t), default=None)
+            take = paced_batches(waiting, next_due, round_length) if paced else waiting
+            waiting -= take
+            images.append(t + round_length)
+            free_at = images[-1]
+        t += FOLD_POLL_SECONDS
+    return np.diff(images)
+
+
+@pytest.mark.parametrize("cycle", [12.0, 16.0, 19.0])
+def test_paced_rounds_refresh_the_image_of_workers_in_step(cycle: float) -> None:
+    """Two workers in step, a batch each every 12-19 s (a 3840x2160 pass on one core and its
+    push), rounds of 3 s: taking in both batches at once leaves the image unchanged for the
+    whole cycle; paced, it changes at most REFRESH_SECONDS apart."""
+    assert _image_gaps(cycle, 3.0, paced=False).max() >= cycle - FOLD_POLL_SECONDS
+    assert _image_gaps(cycle, 3.0, paced=True).max() <= REFRESH_SECONDS
+
+
+def test_pacing_leaves_a_busy_job_alone() -> None:
+    """Eight workers out of step, a delivery every 1.5 s: every round takes in all that wait."""
+    assert np.array_equal(_image_gaps(12.0, 3.0, paced=True, workers=8, apart=1.5),
+                          _image_gaps(12.0, 3.0, paced=False, workers=8, apart=1.5))
 
 
 def test_a_checkpoint_writes_a_part_of_the_state_each_round_and_keeps_the_pending_deltas_bounded() -> None:

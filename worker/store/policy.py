@@ -154,6 +154,25 @@ def round_seconds(rounds: Sequence[tuple[int, float]], batches: int) -> float | 
     return fixed + per_batch * batches + ROUND_MARGIN * max(0.0, over)
 
 
+# Pacing. Workers that render one long pass per batch deliver together (a 3840x2160 pass
+# took longer than the refresh on one core: two workers in step delivered in pairs 15-20 s
+# apart). A round that folds a pair shows both at once and then nothing until the next pair;
+# rounds that fold them one at a time (fold_interval apart) show a new image each round
+# instead. Pacing applies only when folding everything now would leave the image unchanged
+# for longer than DELIVERY_SECONDS (batches that arrive often enough, from many workers or
+# short passes, are all folded at once), and not with nothing in flight or a delivery overdue.
+def paced_batches(waiting: int, next_delivery: float | None, round_length: float) -> int:
+    """How many of the `waiting` batches new to the image a regular fold round takes in
+    (the oldest first; the rest wait for the next rounds), given when the job's next batch
+    is due (`next_delivery`, seconds from now; None with none in flight) and the round's
+    expected length: an even share of the rounds, DELIVERY_SECONDS apart, that fit before
+    the next delivery's."""
+    if next_delivery is None or next_delivery <= 0.0:
+        return waiting
+    rounds = max(1, min(waiting, math.ceil((next_delivery + round_length) / DELIVERY_SECONDS)))
+    return -(-waiting // rounds)
+
+
 def checkpoint_tiles(oldest_seconds: float, pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
     """The tiles a fold round writes, given the bytes of the deltas each keeps pending and
     its state's bytes: every tile with a delta pending once the oldest pending batch was

@@ -563,6 +563,8 @@ class Jobs:
             fresh = accepted.keys() - OVERLAYS.batches(job_id)
             if not fresh and not checkpoint:
                 return None  # all in this process's image already (a due checkpoint waits for news or the end)
+            if not checkpoint:  # paced: the batches that came together, over the rounds before the next
+                fresh, accepted = self._paced(record, fresh, accepted)
             fold_start = time.perf_counter()
             tiling = self.tiling(record)
             try:
@@ -603,6 +605,17 @@ class Jobs:
         elif decide and status == Status.RUNNING and policy.converged(record.settings, folded.error):
             self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
         return folded
+
+    def _paced(self, record: JobRecord, fresh: set[str],
+               accepted: dict[str, Any]) -> tuple[set[str], dict[str, Any]]:
+        """The batches new to the image a regular round takes in (policy.paced_batches, given
+        when the next in-flight batch is due: the oldest passes first), and the accepted
+        batches less those it leaves for later."""
+        due = self.r.zrange(keys.due(record.id), 0, 0, withscores=True)
+        take = policy.paced_batches(len(fresh), due[0][1] - time.time() if due else None,
+                                    policy.round_seconds(record.fold_rounds, 1) or record.fold_seconds)
+        later = sorted(fresh, key=lambda b: Batch.from_id(record.id, b).first)[take:]
+        return fresh.difference(later), {b: v for b, v in accepted.items() if b not in later}
 
     @staticmethod
     def _since_fold(record: JobRecord) -> float:

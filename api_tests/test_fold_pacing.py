@@ -1,0 +1,78 @@
+"""Paced fold rounds on the real store (worker/store/record.py, Jobs.fold; the rule:
+policy.paced_batches). Two batches accepted together while the job's next batch is due far
+off: a regular round shows the lower passes, the next round the rest, so the image changes
+twice; with the next batch due soon, or in a checkpoint round, one round takes both. The
+totals are exact either way. Real Redis, real store."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import redis
+
+from service.redis_server import EmbeddedRedis
+from worker.integrators.base import Delta
+from worker.settings import Settings
+from worker.store import Batch, Jobs, keys
+from worker.store.leases import Leases
+from worker.store.tiles import DELTA_DTYPE
+
+W, H = 32, 16
+TILE = 128  # 4 tiles
+PHOTONS = 4096
+
+
+@pytest.fixture()
+def store(tmp_path: Path):
+    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
+    try:
+        yield Jobs(redis.Redis.from_url(server.url), tile_pixels=TILE)
+    finally:
+        server.stop()
+
+
+def _job_with_two_batches_waiting(store: Jobs, next_due_in: float) -> tuple[str, list[Delta]]:
+    """A running job with batches 0+2 and 2+2 accepted and not folded, and batch 4+2 in
+    flight, due `next_due_in` seconds from now."""
+    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
+    record = store.get(job_id)
+    n, widths = W * H, dict(record.integrator.sums.widths)
+    store.init_setup(record, {"R0": np.full(n, 0.05)})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": time.time()})
+    rng = np.random.default_rng(3)
+    deltas = [Delta(2 * b, 2, PHOTONS, {name: rng.uniform(0.5, 1.5, (n, w) if w > 1 else n)
+                                        for name, w in widths.items()}) for b in range(2)]
+    for d in deltas:
+        assert store.merge(Batch(job_id, d.first_pass, 2), d, 0.01) == "merged"
+    pipe = store.r.pipeline()
+    Leases.register(pipe, Batch(job_id, 4, 2), time.time() + next_due_in)
+    pipe.execute()
+    return job_id, deltas
+
+
+def _sum_of(deltas: list[Delta]) -> np.ndarray:
+    return sum(d.sums["S"].astype(DELTA_DTYPE).astype(np.float64) for d in deltas)
+
+
+def test_batches_that_came_together_show_over_two_rounds_when_the_next_is_far(store: Jobs) -> None:
+    job_id, deltas = _job_with_two_batches_waiting(store, next_due_in=60.0)
+    first = store.fold(job_id)
+    assert first is not None and first.state.passes == 2 and store.get(job_id).image_passes == 2
+    np.testing.assert_allclose(first.state.S, _sum_of(deltas[:1]), rtol=1e-12)  # the lower passes first
+    second = store.fold(job_id)
+    assert second is not None and second.state.passes == 4 and store.get(job_id).image_passes == 4
+    np.testing.assert_allclose(second.state.S, _sum_of(deltas), rtol=1e-12)
+    assert store.fold(job_id) is None  # nothing left to show
+    assert [batches for batches, _ in store.get(job_id).fold_rounds] == [1, 1]
+
+
+@pytest.mark.parametrize("next_due_in, checkpoint", [(1.0, False), (60.0, True)])
+def test_one_round_takes_both_when_the_next_is_near_or_at_a_checkpoint(store: Jobs, next_due_in: float,
+                                                                       checkpoint: bool) -> None:
+    job_id, deltas = _job_with_two_batches_waiting(store, next_due_in)
+    folded = store.fold(job_id, checkpoint=checkpoint)
+    assert folded is not None and folded.state.passes == 4 and store.get(job_id).image_passes == 4
+    np.testing.assert_allclose(folded.state.S, _sum_of(deltas), rtol=1e-12)
