@@ -77,6 +77,27 @@ __kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell
     sorted[atomic_inc(&cell_fill[h])] = i;
 }
 
+// The photons' grid: grid_scatter with the photon records moved to their slots, read in
+// trace order (each slot's index into `sorted` is the slot itself). grid_sort and
+// grid_permute then reach only the slots of one entry, which lie together, where indices
+// into the trace's order sent every read of the permute, and every key the sort compared,
+// to a random photon (a third of a 256 x 256 pass went to those reads).
+__kernel void grid_scatter_photons(uint n, __global const float4* ph_pos, __global const float4* ph_flux,
+                                   __global const uint2* ph_dirs, __global const ulong* ph_key, float inv_cell,
+                                   uint mask, __global volatile uint* cell_fill, __global uint* sorted,
+                                   __global float4* slot_pos, __global float4* slot_flux, __global uint2* slot_dirs,
+                                   __global ulong* slot_key) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    float4 pos = ph_pos[i];
+    uint j = atomic_inc(&cell_fill[cell_hash(cell_of(pos.xyz, inv_cell), mask)]);
+    sorted[j] = j;
+    slot_pos[j] = pos;
+    slot_flux[j] = ph_flux[i];
+    slot_dirs[j] = ph_dirs[i];
+    slot_key[j] = ph_key[i];
+}
+
 // The scatter fills each entry in whatever order the atomics ran (and photon slots came
 // from an atomic counter too), so the float sums of a gather would differ in the last bits
 // from run to run. Heap-sorting each entry by the photons' keys, which are a function of
