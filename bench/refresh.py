@@ -6,7 +6,8 @@ workers with one PoCL thread each) renders one furnace job of the given size for
 `--seconds` (the service's default photons per pass, error estimation on). The job record
 is read every 0.25 s; each fold round's end (`folded_at`, when the image a client reads
 changes if it folded new passes) and length (`fold_seconds`) are noted. Reported: the
-intervals between image changes from the first image to the job's end (largest, median), the rounds' lengths, and
+intervals between image changes from the first image to the job's end (largest, median), the rounds' lengths, when
+each batch was accepted and when a Redis server rewrote its append-only file (to a sample), and
 the API's (folder) and Redis's CPU seconds per round (every redis-server's: with
 `--shards N` the job's state lies on N more servers, PHOTONFARM_STATE_URLS). Wall time on
 a shared machine: the load average before and after is in the report.
@@ -24,6 +25,8 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+
+import redis
 
 from api_tests.cluster import Cluster, finished
 from bench.common import cpu_seconds, write_json
@@ -49,9 +52,16 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
                                                           "seed": 1})["id"]
             rounds: list[dict] = []
             accepted: list[float] = []  # when each batch was accepted (to a sample)
+            servers = [redis.Redis.from_url(s.url) for s in (c.redis, *c.shards)]
+            rewriting: list[list[float]] = []  # append-only-file rewrites (any server): [start, end]
             while True:
                 record = jobs.get(job_id)
-                accepted += [time.time()] * (record.merges - len(accepted))
+                now = time.time()
+                accepted += [now] * (record.merges - len(accepted))
+                if any(s.info("persistence")["aof_rewrite_in_progress"] for s in servers):
+                    if not rewriting or rewriting[-1][1] < now - 1.5 * SAMPLE_SECONDS:
+                        rewriting.append([now, now])
+                    rewriting[-1][1] = now
                 if record.folded_at and (not rounds or record.folded_at != rounds[-1]["end"]):
                     rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
                                    "passes": record.image_passes})
@@ -77,7 +87,8 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
             "api_cpu_seconds_per_round": cpu["api"] / max(1, len(rounds)),
             "redis_cpu_seconds_per_round": cpu["redis"] / max(1, len(rounds)),
             "load_average_before": load, "load_average_after": os.getloadavg()[0],
-            "rounds": rounds, "intervals": intervals, "accepted": accepted, "target_seconds": REFRESH_SECONDS}
+            "rounds": rounds, "intervals": intervals, "accepted": accepted, "aof_rewrites": rewriting,
+            "target_seconds": REFRESH_SECONDS}
 
 
 def main() -> None:
