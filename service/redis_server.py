@@ -35,9 +35,10 @@ AOF_FILE = "appendonly.aof"
 # The append-only file is written once and read only by a restart, so the page cache need
 # not keep it: this often the cached pages of every *.aof file in the data directory (the
 # file, and a rewrite's temporary file as the rewrite writes it) are dropped
-# (posix_fadvise), and the memory is written again at once rather than taken fresh. On this machine kind (a VM) fresh memory
-# cost about 4.5 s a GB to touch, and a 3840x2160 job's batch passes about 1 GB through the
-# file: the embedded Redis took 25% less CPU pushing such deltas (README, "Limits").
+# (posix_fadvise), and the memory is written again at once rather than taken fresh. On
+# this machine kind (a VM) fresh memory cost about 4.5 s a GB to touch, and a 3840x2160
+# job's batch passes about 1 GB through the file: the embedded Redis took a quarter less
+# CPU pushing such deltas (README, "Limits"; bench/RESULTS.md, the 4K refresh).
 AOF_PAGE_DROP_SECONDS = 1.0
 # Commands no photonfarm process uses and that give an attacker a way out of the data.
 DISABLED_COMMANDS = ("CONFIG", "DEBUG", "MODULE", "SLAVEOF", "REPLICAOF", "SYNC", "PSYNC", "MIGRATE", "ACL",
