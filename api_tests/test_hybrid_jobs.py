@@ -36,7 +36,11 @@ def test_vcm_threshold_job_converges_below_its_threshold(cluster: Cluster) -> No
     done = cluster.wait(job["id"], finished, timeout=300)
     assert done["status"] == "converged", done
     assert done["error_estimate"]["error"] <= threshold
-    assert merged_passes(cluster.redis_client, job["id"]) == list(range(done["passes"]))
+    # Each pass merged once and counted. Not a prefix of the pass order: the fold that
+    # converges the job drops a batch still in flight, and a later one may have come first.
+    passes = merged_passes(cluster.redis_client, job["id"])
+    assert sorted(set(passes)) == passes and len(passes) == done["passes"]
+    assert done["photons"] == done["passes"] * 4096
     lum = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr").reshape(-1, 3) @ LUMINANCE
     actual = np.mean(np.abs(lum - FURNACE_L) / np.maximum(FURNACE_L, FLOOR_FRACTION * FURNACE_L))
     assert actual <= threshold, (actual, done["error_estimate"])
