@@ -9,10 +9,12 @@ from __future__ import annotations
 import ctypes
 import mmap
 import os
-import time
 import subprocess
 import sys
 import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -26,13 +28,11 @@ PAGES = FRAME * 8 // 4096
 
 # In a fresh process: one frame-sized array made and freed (its first touch faults in any
 # case), then the faults of making and using the next one, on the main thread and on
-# another. NumPy's huge-page advice is off so that a fault is a 4 KiB page.
+# another.
 SCRIPT = f"""
 import resource, sys, threading
 import numpy as np
-from numpy._core import multiarray
 from worker.allocator import retain_large_allocations
-multiarray._set_madvise_hugepage(False)
 if sys.argv[1] == "retain":
     assert retain_large_allocations()
 def faults():
@@ -47,23 +47,33 @@ print(*out)
 """
 
 
-def _huge_pages_always() -> bool:
-    path = Path("/sys/kernel/mm/transparent_hugepage/enabled")
-    return path.exists() and "[always]" in path.read_text()
+LINUX = pytest.mark.skipif(not sys.platform.startswith("linux"),
+                           reason="the kernel's own counts as Linux gives them (minor faults, prctl, mincore)")
+PR_SET_THP_DISABLE, PR_GET_THP_DISABLE = 41, 42  # linux/prctl.h
 
 
-COUNTED_PER_PAGE = pytest.mark.skipif(
-    not sys.platform.startswith("linux") or _huge_pages_always(),
-    reason="counts 4 KiB page faults of glibc's heap: Linux, transparent huge pages not forced on every mapping")
+@contextmanager
+def _small_pages() -> Iterator[None]:
+    """Transparent huge pages off for this process and the processes it starts meanwhile
+    (the flag is inherited across fork and exec, and overrides madvise), so that a fault
+    is a 4 KiB page whatever the machine's huge-page mode."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    before = libc.prctl(PR_GET_THP_DISABLE, 0, 0, 0, 0)
+    assert libc.prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0, os.strerror(ctypes.get_errno())
+    try:
+        yield
+    finally:
+        libc.prctl(PR_SET_THP_DISABLE, before, 0, 0, 0)
 
 
 def _faults(mode: str) -> list[int]:
-    run = subprocess.run([sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[1])
+    with _small_pages():
+        run = subprocess.run([sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, check=True,
+                             cwd=Path(__file__).resolve().parents[1])
     return [int(x) for x in run.stdout.split()]
 
 
-@COUNTED_PER_PAGE
+@LINUX
 def test_a_freed_frame_is_reused_without_page_faults_on_every_thread() -> None:
     default, retained = _faults("default"), _faults("retain")
     # Without the settings each array (and the product's temporary) is mapped afresh: every page faults.
@@ -80,7 +90,8 @@ def _redis_faults(env: dict[str, str]) -> int:
         server_env = allocator.environment
         allocator.environment = lambda: env  # the settings the server is started with
         try:
-            server.start(supervise=False)
+            with _small_pages():
+                server.start(supervise=False)
         finally:
             allocator.environment = server_env
         try:
@@ -102,7 +113,7 @@ def _minflt(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[7])
 
 
-@COUNTED_PER_PAGE
+@LINUX
 def test_the_embedded_redis_reuses_a_dropped_value() -> None:
     """Each value a worker pushes is held, read, then dropped once folded: with the settings,
     the next one takes its memory."""
@@ -132,7 +143,7 @@ def _cached_share(path: Path) -> float:
         libc.munmap(addr, size)
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="posix_fadvise and mincore as Linux has them")
+@LINUX
 def test_the_append_only_file_leaves_the_page_cache(tmp_path: Path) -> None:
     """128 MB of values go through the embedded Redis's append-only file; within a few
     drop intervals at most a tenth of the file is still cached (a file just written is
