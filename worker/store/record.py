@@ -613,7 +613,7 @@ class Jobs:
         batches less those it leaves for later."""
         due = self.r.zrange(keys.due(record.id), 0, 0, withscores=True)
         take = policy.paced_batches(len(fresh), due[0][1] - time.time() if due else None,
-                                    policy.round_seconds(record.fold_rounds, 1) or record.fold_seconds)
+                                    policy.round_seconds(record.fold_rounds, 1) or 0.0)  # None before any round
         later = sorted(fresh, key=lambda b: Batch.from_id(record.id, b).first)[take:]
         return fresh.difference(later), {b: v for b, v in accepted.items() if b not in later}
 
