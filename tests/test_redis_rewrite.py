@@ -1,0 +1,82 @@
+"""The embedded Redis's append-only-file rewrite runs below the API's priority
+(service/redis_server.py, AOF_REWRITE_NICE): its forked child is made nicer than Redis
+within AOF_REWRITE_CHECK_SECONDS of the fork."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import redis
+
+from service.redis_server import AOF_REWRITE_CHECK_SECONDS, AOF_REWRITE_NICE, EmbeddedRedis, lower_children
+
+LINUX = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/PID/task/PID/children (Linux)")
+
+
+def _children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+@LINUX
+def test_lower_children_makes_each_child_nicer_than_its_parent() -> None:
+    """A process that forks a child: the child ends AOF_REWRITE_NICE nicer than the parent,
+    the parent as it was, and lowering again changes nothing."""
+    parent = subprocess.Popen([sys.executable, "-c", "import os, time\nos.fork()\ntime.sleep(30)"])
+    try:
+        deadline = time.monotonic() + 10
+        while not _children(parent.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        (child,) = _children(parent.pid)
+        base = os.getpriority(os.PRIO_PROCESS, parent.pid)
+        assert os.getpriority(os.PRIO_PROCESS, child) == base
+        for _ in range(2):
+            lower_children(parent.pid, AOF_REWRITE_NICE)
+            assert os.getpriority(os.PRIO_PROCESS, child) == min(19, base + AOF_REWRITE_NICE)
+            assert os.getpriority(os.PRIO_PROCESS, parent.pid) == base
+    finally:
+        parent.kill()
+        parent.wait()
+        subprocess.run(["pkill", "-P", str(parent.pid)], check=False)
+
+
+@LINUX
+def test_a_rewrite_child_of_the_embedded_redis_is_niced(tmp_path: Path) -> None:
+    """512 MB in the embedded Redis, then BGREWRITEAOF: its child, watched while it lives,
+    reaches Redis's niceness + AOF_REWRITE_NICE within a few check intervals (writing the
+    data set takes it well over a second here)."""
+    server = EmbeddedRedis(tmp_path).start(supervise=False)
+    try:
+        client = redis.Redis.from_url(server.url)
+        blob = os.urandom(64 << 20)
+        for k in range(8):
+            client.set(f"x{k}", blob)
+        base = os.getpriority(os.PRIO_PROCESS, server.proc.pid)
+        client.bgrewriteaof()
+        first_seen: dict[int, float] = {}
+        seen: dict[int, list[tuple[float, int]]] = {}  # child -> (seconds since first seen, niceness)
+        start = time.monotonic()
+        while time.monotonic() - start < 60:
+            for child in _children(server.proc.pid):
+                try:
+                    niceness = os.getpriority(os.PRIO_PROCESS, child)
+                except OSError:
+                    continue  # it exited since
+                now = time.monotonic()
+                seen.setdefault(child, []).append((now - first_seen.setdefault(child, now), niceness))
+            info = client.info("persistence")
+            if seen and not info["aof_rewrite_in_progress"] and not info["aof_rewrite_scheduled"]:
+                break
+            time.sleep(0.02)
+        assert seen, "no rewrite child was seen"
+        lowered = [n for samples in seen.values() for at, n in samples if n == base + AOF_REWRITE_NICE]
+        late = [(at, n) for samples in seen.values() for at, n in samples if at > 5 * AOF_REWRITE_CHECK_SECONDS]
+        assert late, f"the rewrite ended within {5 * AOF_REWRITE_CHECK_SECONDS} s: {seen}"
+        assert lowered and all(n == base + AOF_REWRITE_NICE for _, n in late), seen
+        assert os.getpriority(os.PRIO_PROCESS, server.proc.pid) == base  # Redis itself is not lowered
+    finally:
+        server.stop()
