@@ -24,7 +24,7 @@ SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "lights.cl", "eye
            "photon_pass.cl", "photon_chains.cl")
 PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
-                "grid_scatter", "grid_scatter_photons", "grid_sort", "grid_permute", "gather_stochastic",
+                "grid_scatter", "grid_scatter_photons", "grid_sort_slots", "grid_permute", "gather_stochastic",
                 "gather_exact", "photon_chains", "scale_pass")
 # The programs an integrator names (Integrator.program): its sources and kernels. The
 # hybrid integrator (vertex connection and merging) builds on the photon-mapping sources

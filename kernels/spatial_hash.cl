@@ -12,7 +12,8 @@
 // random keys (not a racy last-writer-wins store), and that photon stands for all n: its
 // flux is multiplied by n and n is added to M. In expectation this is the full sum.
 //
-// Exact gathering counting-sorts all photons by entry, copies them into that order, and
+// Exact gathering counting-sorts all photons by entry (their records moved to their slots,
+// then sorted within each entry), splits them into the gather's arrays, and
 // visits every photon of the query's entries.
 
 inline int3 cell_of(float3 p, float inv_cell) { return convert_int3_rtn(p * inv_cell); }
@@ -77,69 +78,96 @@ __kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell
     sorted[atomic_inc(&cell_fill[h])] = i;
 }
 
-// The photons' grid: grid_scatter with the photon records moved to their slots, read in
-// trace order (each slot's index into `sorted` is the slot itself). grid_sort and
-// grid_permute then reach only the slots of one entry, which lie together, where indices
-// into the trace's order sent every read of the permute, and every key the sort compared,
-// to a random photon (a third of a 256 x 256 pass went to those reads).
+// The photons' grid: grid_scatter with each photon's whole record moved to its slot, read
+// in trace order. A record is one 64-byte line (PhotonSlot), so the scatter writes one
+// random line a photon, not one per field: with pos, flux, dirs, key and an index each
+// written at its own random place it was the build's largest kernel (65-84 ms of a 256 x
+// 256 furnace pass; now 43-73), and with two engines side by side the build took 119-139
+// ms a pass against 101-109 now, the same sums bit for bit. grid_sort_slots and
+// grid_permute then reach only the slots of one entry, which lie together.
+typedef struct {
+    float4 pos;    // xyz, w: count
+    float4 flux;
+    uint2 dirs;    // packed incoming direction and surface normal
+    ulong key;
+    uint4 pad;     // to a 64-byte line
+} PhotonSlot;
+
 __kernel void grid_scatter_photons(uint n, __global const float4* ph_pos, __global const float4* ph_flux,
                                    __global const uint2* ph_dirs, __global const ulong* ph_key, float inv_cell,
-                                   uint mask, __global volatile uint* cell_fill, __global uint* sorted,
-                                   __global float4* slot_pos, __global float4* slot_flux, __global uint2* slot_dirs,
-                                   __global ulong* slot_key) {
+                                   uint mask, __global volatile uint* cell_fill, __global PhotonSlot* slots) {
     uint i = get_global_id(0);
     if (i >= n) return;
     float4 pos = ph_pos[i];
     uint j = atomic_inc(&cell_fill[cell_hash(cell_of(pos.xyz, inv_cell), mask)]);
-    sorted[j] = j;
-    slot_pos[j] = pos;
-    slot_flux[j] = ph_flux[i];
-    slot_dirs[j] = ph_dirs[i];
-    slot_key[j] = ph_key[i];
+    slots[j] = (PhotonSlot){pos, ph_flux[i], ph_dirs[i], ph_key[i], (uint4)(0)};
 }
 
 // The scatter fills each entry in whatever order the atomics ran (and photon slots came
 // from an atomic counter too), so the float sums of a gather would differ in the last bits
-// from run to run. Heap-sorting each entry by the photons' keys, which are a function of
-// (seed, pass, path, bounce), makes the same seed give the same image, bit for bit.
-inline void sift_down(__global uint* a, __global const ulong* key, int root, int end) {
-    while (2 * root + 1 < end) {
-        int c = 2 * root + 1;
-        if (c + 1 < end && key[a[c + 1]] > key[a[c]]) ++c;
-        if (key[a[root]] >= key[a[c]]) return;
-        uint t = a[root]; a[root] = a[c]; a[c] = t;
-        root = c;
+// from run to run. Heap-sorting each entry by the keys, which are a function of (seed,
+// pass, path, bounce) and unique, makes the same seed give the same image, bit for bit.
+// HEAP_SORT(n, LESS, SWAP) sorts positions 0 .. n-1 ascending, LESS(i, j) and SWAP(i, j)
+// comparing and swapping the items at two positions.
+#define SIFT_DOWN(ROOT, END, LESS, SWAP)                         \
+    {                                                            \
+        int r_ = (ROOT);                                         \
+        while (2 * r_ + 1 < (END)) {                             \
+            int c_ = 2 * r_ + 1;                                 \
+            if (c_ + 1 < (END) && LESS(c_, c_ + 1)) ++c_;        \
+            if (!LESS(r_, c_)) break;                            \
+            SWAP(r_, c_)                                         \
+            r_ = c_;                                             \
+        }                                                        \
     }
-}
+#define HEAP_SORT(N, LESS, SWAP)                                 \
+    {                                                            \
+        int n_ = (N);                                            \
+        for (int s_ = n_ / 2 - 1; s_ >= 0; --s_) SIFT_DOWN(s_, n_, LESS, SWAP) \
+        for (int e_ = n_ - 1; e_ > 0; --e_) {                    \
+            SWAP(0, e_)                                          \
+            SIFT_DOWN(0, e_, LESS, SWAP)                         \
+        }                                                        \
+    }
 
+// Entry indices (the light-vertex grid, vcm_grid.cl) by the keys they point to.
 __kernel void grid_sort(uint entries, __global const uint* cell_start, __global const uint* cell_count,
                         __global uint* sorted, __global const ulong* ph_key) {
     uint h = get_global_id(0);
     if (h >= entries) return;
     __global uint* a = sorted + cell_start[h];
-    int n = (int)cell_count[h];
-    for (int root = n / 2 - 1; root >= 0; --root) sift_down(a, ph_key, root, n);
-    for (int end = n - 1; end > 0; --end) {
-        uint t = a[0]; a[0] = a[end]; a[end] = t;
-        sift_down(a, ph_key, 0, end);
-    }
+#define INDEX_LESS(i, j) (ph_key[a[i]] < ph_key[a[j]])
+#define INDEX_SWAP(i, j) { uint t = a[i]; a[i] = a[j]; a[j] = t; }
+    HEAP_SORT((int)cell_count[h], INDEX_LESS, INDEX_SWAP)
+#undef INDEX_LESS
+#undef INDEX_SWAP
 }
 
-// The photons themselves in entry order, so that a gather reads each entry's photons from
-// consecutive memory rather than through an index into the trace's order, with their
-// packed directions unpacked once here rather than at every query that finds them.
-__kernel void grid_permute(uint n, __global const uint* sorted, __global const float4* ph_pos,
-                           __global const float4* ph_flux, __global const uint2* ph_dirs,
-                           __global float4* grid_pos, __global float4* grid_flux, __global float4* grid_in,
-                           __global float4* grid_nrm) {
+// The photon records themselves, in place: an entry's slots are one run of lines.
+__kernel void grid_sort_slots(uint entries, __global const uint* cell_start, __global const uint* cell_count,
+                              __global PhotonSlot* slots) {
+    uint h = get_global_id(0);
+    if (h >= entries) return;
+    __global PhotonSlot* a = slots + cell_start[h];
+#define SLOT_LESS(i, j) (a[i].key < a[j].key)
+#define SLOT_SWAP(i, j) { PhotonSlot t = a[i]; a[i] = a[j]; a[j] = t; }
+    HEAP_SORT((int)cell_count[h], SLOT_LESS, SLOT_SWAP)
+#undef SLOT_LESS
+#undef SLOT_SWAP
+}
+
+// The photons in the gather's arrays, so that a query's distance test reads only positions
+// (consecutive for an entry), with the packed directions unpacked once here rather than at
+// every query that finds them.
+__kernel void grid_permute(uint n, __global const PhotonSlot* slots, __global float4* grid_pos,
+                           __global float4* grid_flux, __global float4* grid_in, __global float4* grid_nrm) {
     uint j = get_global_id(0);
     if (j >= n) return;
-    uint i = sorted[j];
-    grid_pos[j] = ph_pos[i];
-    grid_flux[j] = ph_flux[i];
-    uint2 dirs = ph_dirs[i];
-    grid_in[j] = (float4)(unpack_dir(dirs.x), 0.0f);
-    grid_nrm[j] = (float4)(unpack_dir(dirs.y), 0.0f);
+    PhotonSlot s = slots[j];
+    grid_pos[j] = s.pos;
+    grid_flux[j] = s.flux;
+    grid_in[j] = (float4)(unpack_dir(s.dirs.x), 0.0f);
+    grid_nrm[j] = (float4)(unpack_dir(s.dirs.y), 0.0f);
 }
 
 // --- gather: per pixel, the photons within its radius of this pass's measurement point

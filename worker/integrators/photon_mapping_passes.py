@@ -78,13 +78,10 @@ class PhotonMappingPasses:
         self.ph_flux = self.dev.buffer(16 * capacity)
         self.ph_dirs = self.dev.buffer(8 * capacity)  # packed incoming direction and surface normal
         self.ph_key = self.dev.buffer(8 * capacity)
-        self.sorted = self.dev.buffer(4 * capacity)
-        # The photons in the exact grid's slots (grid_scatter_photons), then sorted within
-        # each entry and directions unpacked to unit vectors (grid_sort, grid_permute).
-        self.slot_pos = self.dev.buffer(16 * capacity)
-        self.slot_flux = self.dev.buffer(16 * capacity)
-        self.slot_dirs = self.dev.buffer(8 * capacity)
-        self.slot_key = self.dev.buffer(8 * capacity)
+        # The photons' records in the exact grid's slots, one 64-byte line each (PhotonSlot,
+        # grid_scatter_photons), sorted within each entry (grid_sort_slots), then split into
+        # the gather's arrays with directions unpacked to unit vectors (grid_permute).
+        self.slots = self.dev.buffer(64 * capacity)
         self.grid_pos = self.dev.buffer(16 * capacity)
         self.grid_flux = self.dev.buffer(16 * capacity)
         self.grid_in = self.dev.buffer(16 * capacity)  # incoming direction
@@ -232,13 +229,11 @@ class PhotonMappingPasses:
                      p.launch(dev.queue, "grid_scan", 1, u32(entries), self.tab_count, self.cell_start,
                               self.cell_fill),
                      p.launch(dev.queue, "grid_scatter_photons", n_stored, u32(n_stored), self.ph_pos, self.ph_flux,
-                              self.ph_dirs, self.ph_key, inv_cell, mask, self.cell_fill, self.sorted, self.slot_pos,
-                              self.slot_flux, self.slot_dirs, self.slot_key),
-                     p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.tab_count,
-                              self.sorted, self.slot_key),
-                     p.launch(dev.queue, "grid_permute", n_stored, u32(n_stored), self.sorted, self.slot_pos,
-                              self.slot_flux, self.slot_dirs, self.grid_pos, self.grid_flux, self.grid_in,
-                              self.grid_nrm)]
+                              self.ph_dirs, self.ph_key, inv_cell, mask, self.cell_fill, self.slots),
+                     p.launch(dev.queue, "grid_sort_slots", entries, u32(entries), self.cell_start, self.tab_count,
+                              self.slots),
+                     p.launch(dev.queue, "grid_permute", n_stored, u32(n_stored), self.slots, self.grid_pos,
+                              self.grid_flux, self.grid_in, self.grid_nrm)]
             gather_ev = p.launch(dev.queue, "gather_exact", n, i32(a.n_pixels), self.mp_pos, self.mp_nrm,
                                  self.mp_wgt, self.mp_cut, *self._radii(), photons, inv_cell, mask, self.cell_start,
                                  self.tab_count, self.grid_pos, self.grid_flux, self.grid_in, self.grid_nrm,
