@@ -22,7 +22,12 @@ an SPPM pass gets cheaper as its radius shrinks, so a job that got further in a 
 time would look faster than it is. The radius per pass still depends somewhat on how
 passes were grouped into fold rounds (worker/stats.py), so the two jobs end at somewhat
 different errors; the time to a fixed error (the larger final error, from each job's
-error history) is reported too. The 2-worker / 1-worker ratios of all three. The API (with its folder
+error history) is reported too. The 2-worker / 1-worker ratios of all three, each of the
+means of two runs per configuration taken in the order 1, 2, 2, 1 workers (PINNED_ORDER):
+the machine's speed drifts by up to a tenth over the minutes a run takes (one engine alone
+took 333-381 ms a 256x256 furnace pass within half an hour), and with the two runs of a
+configuration placed symmetrically in time a drift linear in time falls out of the ratio,
+where one 1-worker run followed by one 2-worker run minutes later carried all of it. The API (with its folder
 thread) and redis-server are not pinned: this machine has no third core, so wherever
 they ran they would take from a worker; unpinned, the kernel puts them on whichever
 core is idle at the moment (a one-worker job leaves a core free for them, as a real
@@ -201,6 +206,7 @@ class PinnedCase:
 
 PINNED_SCENE = "furnace"
 PINNED = (PinnedCase((256, 256), 100), PinnedCase((1920, 1080), 80))
+PINNED_ORDER = (1, 2, 2, 1)  # workers of the clusters, in turn (the module docstring says why)
 PINNED_SMOKE = (PinnedCase((128, 128), 12), PinnedCase((320, 180), 8))
 SAMPLE_SECONDS = 0.25  # how often the job record's photon count is read during a job
 
@@ -290,21 +296,28 @@ def _seconds_to_error(run: dict, error: float) -> float | None:
     return None
 
 
+def _mean(values: list[float | None]) -> float | None:
+    return statistics.fmean(values) if values and all(v is not None for v in values) else None
+
+
 def _ratios(runs: list[dict]) -> list[dict]:
-    """Per frame size, 2 workers against 1: photons per second, time to the end (the same
-    passes: 1w / 2w) and time to a fixed error (the larger of the two final errors; SPPM's
-    radius, and so the error at equal passes, depends on how passes were grouped into fold
-    rounds, worker/stats.py)."""
+    """Per frame size, 2 workers against 1, from the means of each configuration's runs:
+    photons per second, time to the end (the same passes: 1w / 2w) and time to a fixed
+    error (the largest of the runs' final errors; SPPM's radius, and so the error at equal
+    passes, depends on how passes were grouped into fold rounds, worker/stats.py)."""
     out = []
-    for one in (r for r in runs if r["workers"] == 1):
-        two = next(r for r in runs if r["workers"] == 2 and r["resolution"] == one["resolution"])
-        t1, t2 = one["time_to_error"], two["time_to_error"]
-        error = max(one["final_error"] or 0.0, two["final_error"] or 0.0)
-        e1, e2 = _seconds_to_error(one, error), _seconds_to_error(two, error)
-        out.append({"resolution": one["resolution"],
-                    "photons_per_second": two["photons_per_second"] / one["photons_per_second"],
-                    "photons_per_second_whole_job": two["photons_per_second_whole_job"]
-                    / one["photons_per_second_whole_job"],
+    for size in dict.fromkeys(tuple(r["resolution"]) for r in runs):
+        one, two = ([r for r in runs if tuple(r["resolution"]) == size and r["workers"] == w] for w in (1, 2))
+        error = max(r["final_error"] or 0.0 for r in one + two)
+        means = {w: {k: _mean([r[k] for r in rs]) for k in ("photons_per_second", "photons_per_second_whole_job",
+                                                              "time_to_error")}
+                 | {"fixed": _mean([_seconds_to_error(r, error) for r in rs])} for w, rs in ((1, one), (2, two))}
+        t1, t2 = means[1]["time_to_error"], means[2]["time_to_error"]
+        e1, e2 = means[1]["fixed"], means[2]["fixed"]
+        out.append({"resolution": list(size), "runs": [len(one), len(two)],
+                    "photons_per_second": means[2]["photons_per_second"] / means[1]["photons_per_second"],
+                    "photons_per_second_whole_job": means[2]["photons_per_second_whole_job"]
+                    / means[1]["photons_per_second_whole_job"],
                     "time_to_error": t1 / t2 if t1 and t2 else None,
                     "fixed_error": error, "time_to_fixed_error": e1 / e2 if e1 and e2 else None})
     return out
@@ -319,8 +332,8 @@ def pinned_chart(result: dict, name: str) -> None:
     x = np.arange(len(sizes))
     top = 0.0
     for k, workers in enumerate((1, 2)):
-        rates = [next(r for r in runs if r["workers"] == workers and r["resolution"] == s)["photons_per_second"] / 1e6
-                 for s in sizes]
+        rates = [statistics.fmean(r["photons_per_second"] for r in runs
+                                  if r["workers"] == workers and r["resolution"] == s) / 1e6 for s in sizes]
         axes[0].bar(x + 0.4 * k, rates, 0.38, label=f"{workers} worker{'s' * (workers > 1)}")
         top = max(top, *rates)
     for i, q in enumerate(ratios):
@@ -360,7 +373,7 @@ def pinned_chart(result: dict, name: str) -> None:
 
 def pinned_main(smoke: bool) -> None:
     cases = PINNED_SMOKE if smoke else PINNED
-    runs = pinned(1, cases) + pinned(2, cases)
+    runs = [run for workers in PINNED_ORDER for run in pinned(workers, cases)]
     result = {"scene": PINNED_SCENE, "cores": CORES, "cases": [dataclasses.asdict(c) for c in cases], "runs": runs,
               "ratios": _ratios(runs)}
     name = "service_scaling_pinned" + ("_smoke" if smoke else "")
