@@ -21,6 +21,7 @@ import pytest
 import redis
 
 from service.redis_server import AOF_FILE, AOF_PAGE_DROP_SECONDS, EmbeddedRedis
+from tests.embedded_redis import holding
 from worker import allocator
 
 FRAME = 3840 * 2160  # float64 pixels: 66 MB, above glibc's largest default mmap threshold
@@ -148,17 +149,10 @@ def test_the_append_only_file_leaves_the_page_cache(tmp_path: Path) -> None:
     """128 MB of values go through the embedded Redis's append-only file; within a few
     drop intervals at most a tenth of the file is still cached (a file just written is
     cached whole)."""
-    server = EmbeddedRedis(tmp_path).start(supervise=False)
-    try:
-        client = redis.Redis.from_url(server.url)
-        blob = os.urandom(16 << 20)
-        for k in range(8):
-            client.set(f"x{k}", blob)
+    with holding(tmp_path, 8, 16 << 20):
         aof = tmp_path / AOF_FILE
-        assert aof.stat().st_size >= 8 * len(blob)
+        assert aof.stat().st_size >= 8 * (16 << 20)
         deadline = time.monotonic() + 5 * AOF_PAGE_DROP_SECONDS
         while _cached_share(aof) > 0.1 and time.monotonic() < deadline:
             time.sleep(0.1)
         assert _cached_share(aof) <= 0.1, _cached_share(aof)
-    finally:
-        server.stop()

@@ -11,9 +11,9 @@ import time
 from pathlib import Path
 
 import pytest
-import redis
 
-from service.redis_server import AOF_REWRITE_CHECK_SECONDS, AOF_REWRITE_NICE, EmbeddedRedis, lower_children
+from service.redis_server import AOF_REWRITE_CHECK_SECONDS, AOF_REWRITE_NICE, lower_children
+from tests.embedded_redis import holding
 
 LINUX = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/PID/task/PID/children (Linux)")
 
@@ -49,12 +49,7 @@ def test_a_rewrite_child_of_the_embedded_redis_is_niced(tmp_path: Path) -> None:
     """512 MB in the embedded Redis, then BGREWRITEAOF: its child, watched while it lives,
     reaches Redis's niceness + AOF_REWRITE_NICE within a few check intervals (writing the
     data set takes it well over a second here)."""
-    server = EmbeddedRedis(tmp_path).start(supervise=False)
-    try:
-        client = redis.Redis.from_url(server.url)
-        blob = os.urandom(64 << 20)
-        for k in range(8):
-            client.set(f"x{k}", blob)
+    with holding(tmp_path, 8, 64 << 20) as (server, client):
         base = os.getpriority(os.PRIO_PROCESS, server.proc.pid)
         client.bgrewriteaof()
         first_seen: dict[int, float] = {}
@@ -78,5 +73,3 @@ def test_a_rewrite_child_of_the_embedded_redis_is_niced(tmp_path: Path) -> None:
         assert late, f"the rewrite ended within {5 * AOF_REWRITE_CHECK_SECONDS} s: {seen}"
         assert lowered and all(n == base + AOF_REWRITE_NICE for _, n in late), seen
         assert os.getpriority(os.PRIO_PROCESS, server.proc.pid) == base  # Redis itself is not lowered
-    finally:
-        server.stop()
