@@ -87,11 +87,17 @@ def drop_cached_pages(path: Path) -> None:
         os.close(fd)
 
 
+def child_pids(pid: int) -> list[int]:
+    """The processes `pid`'s main thread started (/proc/PID/task/PID/children; OSError where
+    the kernel does not list them)."""
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
 def lower_children(pid: int, increment: int) -> None:
     """Make every child process of `pid` `increment` nicer than `pid` (at most 19), unless
-    it already is. Nothing where the kernel does not list children (/proc/PID/task/PID/children)."""
+    it already is. Nothing where the kernel does not list children."""
     try:
-        children = [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+        children = child_pids(pid)
         niceness = min(19, os.getpriority(os.PRIO_PROCESS, pid) + increment)
     except (OSError, ValueError):
         return

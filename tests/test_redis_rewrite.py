@@ -12,14 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from service.redis_server import AOF_REWRITE_CHECK_SECONDS, AOF_REWRITE_NICE, lower_children
+from service.redis_server import AOF_REWRITE_CHECK_SECONDS, AOF_REWRITE_NICE, child_pids, lower_children
 from tests.embedded_redis import holding
 
 LINUX = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/PID/task/PID/children (Linux)")
-
-
-def _children(pid: int) -> list[int]:
-    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
 
 
 @LINUX
@@ -29,9 +25,9 @@ def test_lower_children_makes_each_child_nicer_than_its_parent() -> None:
     parent = subprocess.Popen([sys.executable, "-c", "import os, time\nos.fork()\ntime.sleep(30)"])
     try:
         deadline = time.monotonic() + 10
-        while not _children(parent.pid) and time.monotonic() < deadline:
+        while not child_pids(parent.pid) and time.monotonic() < deadline:
             time.sleep(0.01)
-        (child,) = _children(parent.pid)
+        (child,) = child_pids(parent.pid)
         base = os.getpriority(os.PRIO_PROCESS, parent.pid)
         assert os.getpriority(os.PRIO_PROCESS, child) == base
         for _ in range(2):
@@ -57,7 +53,7 @@ def test_a_rewrite_child_of_the_embedded_redis_is_niced(tmp_path: Path) -> None:
         seen: dict[int, list[tuple[float, int]]] = {}  # child -> (seconds since first seen, niceness)
         start = time.monotonic()
         while time.monotonic() - start < 60:
-            for child in _children(server.proc.pid):
+            for child in child_pids(server.proc.pid):
                 try:
                     niceness = os.getpriority(os.PRIO_PROCESS, child)
                 except OSError:
