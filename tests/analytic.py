@@ -111,6 +111,7 @@ def shadowed_plane(eng: Engine, rho: float, power: float, light: tuple[float, fl
 # Scenes written independently of the bundled ones (as JSON dicts), with their answers above.
 SPOT = {"rho": 0.5, "power": 10.0, "height": 1.0, "cone_degrees": 40.0}
 SHADOW = {"rho": 0.5, "power": 4.0 * math.pi, "light": (0.0, 2.0, 0.0), "centre": (0.0, 1.0, 0.0), "radius": 0.3}
+PATCH = {"rho": 0.5, "power": 10.0, "height": 1.0}
 
 
 def closed_sphere_scene(albedo: tuple[float, float, float], power: float = FURNACE_PHI) -> dict:
@@ -135,6 +136,26 @@ def spot_plane_scene(resolution: tuple[int, int] = (64, 64)) -> dict:
         "lights": [{"type": "spot", "position": [0, SPOT["height"], 0], "direction": [0, -1, 0],
                     "cone_angle": SPOT["cone_degrees"], "power": [SPOT["power"]] * 3}],
     }
+
+
+def patch_scene(fov: float, resolution: tuple[int, int] = (24, 24)) -> dict:
+    """PATCH: a point light 1 above a large plane, seen from 3 above through `fov` degrees:
+    only paths leaving the light toward the seen patch are visible (V_c ~ its solid angle /
+    4 pi; the plane's bounce escapes upward). Its radiance: patch_plane."""
+    return {
+        "camera": {"position": [0, 3, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": fov,
+                   "resolution": list(resolution)},
+        "materials": {"plane": {"type": "diffuse", "albedo": [PATCH["rho"]] * 3}},
+        "shapes": [{"type": "quad", "corner": [-50, 0, -50], "edge1": [0, 0, 100], "edge2": [100, 0, 0],
+                    "material": "plane"}],
+        "lights": [{"type": "point", "position": [0, PATCH["height"], 0], "power": [PATCH["power"]] * 3}],
+    }
+
+
+def patch_plane(eng: Engine) -> np.ndarray:
+    """L per pixel for patch_scene: the point light's lower half is a spot of cone 90 degrees
+    with half its power (spot_plane)."""
+    return spot_plane(eng, PATCH["rho"], PATCH["power"] / 2.0, PATCH["height"], 90.0)
 
 
 def shadow_scene(resolution: tuple[int, int] = (64, 64)) -> dict:

@@ -19,6 +19,7 @@ from tests.analytic import (
     FURNACE_L,
     closed_sphere_scene,
     furnace_radiance,
+    patch_scene,
     point_plane,
     spot_plane_scene,
 )
@@ -27,25 +28,21 @@ from worker import adaptive
 from worker.error_estimate import estimate
 from worker.integrators.photon_mapping import ChainInputs, GatherInputs
 from worker.render_loop import render as render_passes
+from worker.stats import Accumulators
+
+
+@pytest.fixture
+def chains_mutate(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Chains mutate at the paper's break-even (gain 1: while the target acceptance is above
+    V_c) instead of MIN_GAIN: the estimator must be exact whenever they mutate, and these
+    scenes (V_c 0.2-0.8) check it in seconds."""
+    monkeypatch.setattr(adaptive, "MIN_GAIN", 1.0)
 
 
 def _scene_file(tmp_path: Path, scene: dict, name: str = "scene.json") -> Path:
     path = tmp_path / name
     path.write_text(json.dumps(scene))
     return path
-
-
-def _patch_scene(fov: float) -> dict:
-    """A point light 1 above a large plane, seen from 3 above through `fov` degrees: only
-    paths leaving the light toward the seen patch are visible (V_c ~ its solid angle / 4 pi;
-    the plane's bounce escapes upward)."""
-    return {
-        "camera": {"position": [0, 3, 0], "look_at": [0, 0, 0], "up": [0, 0, -1], "fov": fov, "resolution": [24, 24]},
-        "materials": {"plane": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
-        "shapes": [{"type": "quad", "corner": [-50, 0, -50], "edge1": [0, 0, 100], "edge2": [100, 0, 0],
-                    "material": "plane"}],
-        "lights": [{"type": "point", "position": [0, 1, 0], "power": [10.0, 10.0, 10.0]}],
-    }
 
 
 def _two_openings_scene() -> dict:
@@ -85,9 +82,9 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     sa, su = render(ada, 24), render(uni, 24)
     c = sa.counters
     assert c["mutations"] == 0 and c["accepted"] == 0
-    # Pass 0 (no V_c yet) runs chains; V_c = 1 then makes every later pass the uniform
-    # photon pass, with a sample of its draws judged for V_c.
-    assert c["visible"] == c["draws"] == c["splats"] == (1 << 13) + 23 * adaptive.sample_iterations(1 << 13)
+    # Pass 0 (no V_c yet) and, V_c being 1, every later pass are the uniform photon pass,
+    # with a sample of its draws judged for V_c.
+    assert c["visible"] == c["draws"] == c["splats"] == 24 * adaptive.sample_iterations(1 << 13)
     assert adaptive.theta(c) == 1.0  # nothing to adapt
     # The same estimator with other photon random numbers: per pixel within the noise of
     # both (the two share their measurement points, the same seed's eye passes, so the
@@ -102,6 +99,7 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
 
 
 @pytest.mark.parametrize("method", ["sppm", "ppm"])
+@pytest.mark.usefixtures("chains_mutate")
 def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None:
     """The camera sees part of the furnace (V_c ~ 0.2): the chains' photons crowd into its
     view, and each pass's V_k / splats scales them back to the analytic radiance."""
@@ -112,11 +110,12 @@ def test_furnace_mean_is_the_analytic_radiance(make_engine, method: str) -> None
     assert abs(mean / FURNACE_L - 1.0) < 0.02, (mean, FURNACE_L)
 
 
+@pytest.mark.usefixtures("chains_mutate")
 def test_long_paths_beyond_the_photon_cache(make_engine, tmp_path) -> None:
     """Albedo 0.9: a path stores 10 photons on average and 18% store more than DEPOSIT_CACHE
     (16), so their states are traced again at every splat instead of re-counted. The camera
-    sees most of the sphere (V_c ~ 0.83): chains mutate only below their target acceptance
-    (worker/adaptive.py, mutates), so the target is set above V_c."""
+    sees most of the sphere (V_c ~ 0.83): at gain 1 chains mutate only below their target
+    acceptance (worker/adaptive.py, gain), so the target is set above V_c."""
     path = _scene_file(tmp_path, closed_sphere_scene((0.9, 0.9, 0.9)))
     eng = make_engine(path, photons_per_pass=1 << 13, seed=8, sampler="adaptive", target_acceptance=0.9)
     state = render(eng, 16)
@@ -126,19 +125,22 @@ def test_long_paths_beyond_the_photon_cache(make_engine, tmp_path) -> None:
     assert state.counters["mutations"] > 0.01 * state.counters["draws"], state.counters
 
 
+@pytest.mark.usefixtures("chains_mutate")
 def test_stochastic_hash_with_chains_is_unbiased_on_average(make_engine) -> None:
     """With the stochastic hash a kept chain state is stored again (the hash counts photons,
-    not counts), each copy with its own key: the mean stays the analytic one."""
-    eng = make_engine("point-plane", photons_per_pass=1 << 16, seed=6, sampler="adaptive", gather="stochastic")
+    not counts), each copy with its own key: the mean stays the analytic one. (V_c ~ 0.28:
+    the target 0.5 above it.)"""
+    eng = make_engine("point-plane", photons_per_pass=1 << 16, seed=6, sampler="adaptive", gather="stochastic",
+                      target_acceptance=0.5)
     state = render(eng, 32)
     assert state.counters["mutations"] > 0
     rel = image(eng, state)[..., 0] / point_plane(eng)[0].reshape(eng.arrays.height, eng.arrays.width) - 1.0
     assert abs(rel.mean()) < 0.015, rel.mean()
 
 
+@pytest.mark.usefixtures("chains_mutate")
 def test_point_plane_matches_analytic_radiance(make_engine) -> None:
-    """Per pixel against the closed form; every photon gathered (exact grid). A pass traces
-    about 2^17 paths (V_c ~ 0.28: some 0.58 * 2^17 iterations)."""
+    """Per pixel against the closed form; every photon gathered (exact grid)."""
     eng = make_engine("point-plane", photons_per_pass=1 << 17, seed=5, sampler="adaptive")
     state = render(eng, 48)
     rel = image(eng, state)[..., 0] / point_plane(eng)[0].reshape(eng.arrays.height, eng.arrays.width) - 1.0
@@ -147,6 +149,7 @@ def test_point_plane_matches_analytic_radiance(make_engine) -> None:
 
 
 @pytest.mark.parametrize("scene", ["furnace", "point-plane"])
+@pytest.mark.usefixtures("chains_mutate")
 def test_error_bounds_cover_within_five_points_of_nominal(make_engine, scene: str) -> None:
     """The error estimate with the adaptive sampler (every pass's sums in uniform photons,
     scaled by the pass's own V_k / splats): the share of pixels whose bound holds
@@ -264,7 +267,7 @@ def test_a_chain_pass_brings_a_uniform_pass_worth_whatever_its_iterations(make_e
     pass's, and a job's first pass (all iterations, no counters yet) twice its later ones."""
     photons, passes, r0 = 1 << 12, 32, 0.05
     common = {"photons_per_pass": photons, "seed": 5, "initial_radius": r0, "gather": gather}
-    path = _scene_file(tmp_path, _patch_scene(12.0))
+    path = _scene_file(tmp_path, patch_scene(12.0))
     uni, ada = make_engine(path, **common), make_engine(path, sampler="adaptive", **common)
     r = np.full(uni.arrays.n_pixels, r0)
 
@@ -286,13 +289,14 @@ def test_a_chain_pass_brings_a_uniform_pass_worth_whatever_its_iterations(make_e
 
 
 @pytest.mark.parametrize("target", [0.05, 0.234, 0.5])
+@pytest.mark.usefixtures("chains_mutate")
 def test_acceptance_reaches_the_target(make_engine, tmp_path, target: float) -> None:
     """A patch seen through a 6 degree view of a point-lit plane: V_c ~ 0.008, so the
-    acceptance runs from V_c (huge mutations) to 1 (tiny ones) and every target is reachable.
-    A pass runs about V_c photons / (V_c + A) iterations (adaptive.iterations): 2^15 photons
-    and the last 24 of 64 passes give at least 5,000 mutations (the acceptance's standard
-    error below 0.007)."""
-    eng = make_engine(_scene_file(tmp_path, _patch_scene(6.0)), photons_per_pass=1 << 15, seed=3,
+    acceptance runs from V_c (huge mutations) to 1 (tiny ones) and every target is reachable
+    (at target 0.05 the chains' gain is 3.6, so they are made to mutate). A pass runs
+    photons / 8 iterations (adaptive.iterations), nearly all mutating: the last 24 of 64
+    passes give at least 5,000 mutations (the acceptance's standard error below 0.007)."""
+    eng = make_engine(_scene_file(tmp_path, patch_scene(6.0)), photons_per_pass=1 << 15, seed=3,
                       sampler="adaptive", target_acceptance=target)
     state = render(eng, 40)
     before = dict(state.counters)
@@ -337,22 +341,34 @@ def test_replica_exchange_finds_both_openings_in_proportion(make_engine, tmp_pat
 
 
 def _adaptive_engine(make_engine, gather: str = "exact"):
-    return make_engine("gap", resolution=(24, 24), photons_per_pass=1 << 12, seed=4, sampler="adaptive", gather=gather)
+    """gap at 24x24 (V_c ~ 0.5): with chains_mutate and the target 0.8 above V_c, every pass
+    after the first mutates."""
+    return make_engine("gap", resolution=(24, 24), photons_per_pass=1 << 12, seed=4, sampler="adaptive", gather=gather,
+                       target_acceptance=0.8)
 
 
 @pytest.mark.parametrize("passes", [1, 2])
+@pytest.mark.usefixtures("chains_mutate")
 def test_batches_merge_in_any_order(make_engine, passes: int) -> None:
-    """Passes 0..5 from one state in batches of `passes`, as concurrent workers would run
-    them, merged forwards and backwards: the same image, counters and next theta. (How
-    passes split into batches moves the radii within a batch, stats.py, so only the
-    order is free.)"""
+    """Passes 1..6 from one state (pass 0's, which gives V_c) in batches of `passes`, as
+    concurrent workers would run them, merged forwards and backwards: the same image,
+    counters and next theta. (How passes split into batches moves the radii within a
+    batch, stats.py, so only the order is free.)"""
     eng = _adaptive_engine(make_engine)
     start = eng.start()
-    inputs = eng.integrator.batch_inputs(start)
-    deltas = [eng.run_batch(inputs, k, passes) for k in range(0, 6, passes)]
+    first = eng.run_batch(eng.integrator.batch_inputs(start), 0, 1)
+
+    def after_first() -> Accumulators:
+        state = eng.integrator.start({"R0": start.R0})
+        eng.integrator.merge(state, first)
+        return state
+
+    inputs = eng.integrator.batch_inputs(after_first())
+    assert inputs.chains.mutate
+    deltas = [eng.run_batch(inputs, k, passes) for k in range(1, 7, passes)]
     results = []
     for order in (deltas, deltas[::-1]):
-        state = eng.integrator.start({"R0": start.R0})
+        state = after_first()
         for d in order:
             eng.integrator.merge(state, d)
         results.append(state)
@@ -364,6 +380,7 @@ def test_batches_merge_in_any_order(make_engine, passes: int) -> None:
 
 
 @pytest.mark.parametrize("gather", ["exact", "stochastic"])
+@pytest.mark.usefixtures("chains_mutate")
 def test_same_seed_same_image(make_engine, gather: str) -> None:
     """Two engines, same settings: the same passes bit for bit (sums and counters)."""
     a, b = _adaptive_engine(make_engine, gather), _adaptive_engine(make_engine, gather)
@@ -383,10 +400,10 @@ def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> 
     assert proc.returncode == 0, proc.stderr
     meta = read_metadata(out)
     counters = json.loads(meta["counters"])
-    # The first pass iterates 4096 times, later ones fewer: about 4096 traced paths (draws
-    # and mutations), as a uniform pass.
-    assert 4096 < counters["draws"] < 3 * 4096 and 0 < counters["visible"] < counters["draws"]
-    assert 3 * 4096 < counters["draws"] + counters["mutations"] < 4 * 4096, counters
+    # gap's V_c (~0.4) is far above where chains pay: every pass is the uniform one, with a
+    # sample of its draws judged.
+    assert counters["draws"] == 3 * adaptive.sample_iterations(4096), counters
+    assert 0 < counters["visible"] < counters["draws"] and counters["mutations"] == 0, counters
     assert json.loads(meta["settings"])["sampler"] == "adaptive"
     proc = run("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
@@ -411,12 +428,13 @@ def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) ->
     """A point light under the seen plane: no path is ever visible. The chains find no start,
     every pass is uniform tracing that found nothing: a black image, no NaN, no hang, and
     the error estimate still answers."""
-    scene = _patch_scene(60.0)
+    scene = patch_scene(60.0)
     scene["lights"][0]["position"] = [0, -1, 0]
     eng = make_engine(_scene_file(tmp_path, scene), photons_per_pass=1 << 12, seed=2, sampler="adaptive")
     state = render(eng, 3)
     c = state.counters
-    assert c["draws"] == 3 * (1 << 12) and c["visible"] == c["splats"] == c["started"] == c["mutations"] == 0
+    assert c["draws"] == adaptive.sample_iterations(1 << 12) + 2 * adaptive.iterations(1 << 12)
+    assert c["visible"] == c["splats"] == c["started"] == c["mutations"] == 0
     img = image(eng, state)
     assert np.all(img == 0.0)
     est = eng.integrator.estimate(state)
@@ -424,7 +442,7 @@ def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) ->
 
 
 def test_a_pass_that_does_not_mutate_is_the_uniform_pass(make_engine) -> None:
-    """cornell-box (V_c ~ 0.8 above the target 0.234): after pass 0 the chains do not mutate,
+    """cornell-box (V_c ~ 0.8, a gain below 1): after pass 0 the chains do not mutate,
     and the pass's sums are the uniform sampler's bit for bit, its counters a sample of
     photons / VISIBILITY_SAMPLE judged draws."""
     common = {"resolution": (24, 24), "photons_per_pass": 1 << 12, "seed": 3}
@@ -440,23 +458,36 @@ def test_a_pass_that_does_not_mutate_is_the_uniform_pass(make_engine) -> None:
     assert 0.5 < a.counters["visible"] / a.counters["draws"] < 1.0
 
 
-@pytest.mark.parametrize("target", [0.234, 0.95])
-def test_chains_mutate_only_below_the_target_acceptance(make_engine, target: float) -> None:
-    """cornell-box: the camera sees most lit surfaces (V_c ~ 0.8). A chain finds a new
-    visible path per trace more often than uniform tracing only if its acceptance beats
-    V_c (worker/adaptive.py, mutates): at target 0.234 the passes after the first (which
-    has no V_c yet) trace uniform draws alone, at 0.95 they keep mutating."""
-    eng = make_engine("cornell-box", resolution=(24, 24), photons_per_pass=1 << 12, seed=3, sampler="adaptive",
-                      target_acceptance=target)
+def test_the_gain_is_one_where_the_acceptance_meets_v_c() -> None:
+    """A chain's new visible paths per traced path equal uniform tracing's exactly when its
+    acceptance equals V_c (the paper's break-even), and grow as V_c falls."""
+    for target in (0.05, 0.234, 0.5):
+        assert adaptive.gain(target, target) == pytest.approx(1.0)
+        assert adaptive.gain(0.5 * target, target) > 1.0 > adaptive.gain(min(2.0 * target, 0.99), target)
+    assert adaptive.gain(0.001, 0.234) > adaptive.gain(0.005, 0.234) > adaptive.MIN_GAIN > adaptive.gain(0.02, 0.234)
+
+
+@pytest.mark.parametrize("scene, mutating", [("cornell-box", False), ("patch", True)])
+def test_chains_mutate_only_where_they_gain(make_engine, tmp_path, scene: str, mutating: bool) -> None:
+    """cornell-box: the camera sees most lit surfaces (V_c ~ 0.8, a gain of 1.0 at the
+    target 0.95, at which the paper's break-even would mutate): every pass traces uniform
+    draws alone. A point-lit plane seen through 2 degrees (V_c ~ 0.001, a gain of about
+    100): the chains mutate from the second pass on (the first has no V_c yet)."""
+    if scene == "patch":
+        eng = make_engine(_scene_file(tmp_path, patch_scene(2.0)), photons_per_pass=1 << 15, seed=3,
+                          sampler="adaptive")
+    else:
+        eng = make_engine("cornell-box", resolution=(24, 24), photons_per_pass=1 << 12, seed=3, sampler="adaptive",
+                          target_acceptance=0.95)
     state = eng.start()
     per_pass = []
     for k in range(3):
         delta = eng.render_batch(state, k, 1)
         eng.integrator.merge(state, delta)
         per_pass.append(delta.counters["mutations"])
-    assert adaptive.visible_fraction(state.counters) > 0.5
-    assert per_pass[0] > 0
-    if target < 0.5:
-        assert per_pass[1:] == [0, 0], per_pass
+    v_c = adaptive.visible_fraction(state.counters)
+    assert per_pass[0] == 0
+    if mutating:
+        assert v_c < 0.005 and min(per_pass[1:]) > 0, (v_c, per_pass)
     else:
-        assert min(per_pass[1:]) > 0, per_pass
+        assert v_c > 0.5 and per_pass[1:] == [0, 0], (v_c, per_pass)

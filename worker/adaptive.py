@@ -21,7 +21,7 @@ Scaling by the pooled V_c instead (the paper's) left two errors. (1) SPPM's radi
 takes its count scale from a pixel's first photons (N = alpha M_1) and shrinks by
 (N + alpha M) / (N + M) after: the radius falls per pass only if every pass brings the same
 expected count. Chain passes brought 35x the counts of a uniform pass in the view (splats
-count a state again), and pass 0 twice the later passes (iterations below need the
+count a state again), and pass 0 twice the later passes (its iterations sized without
 counters): at fov 2.5 the first photons were 57x uniform's against 35x later, and the radius
 at equal passes 5-8% larger where the caustic is, 23% more bias. In uniform photons every
 pass brings the uniform pass's expected count, whatever its iterations. (2) A V_c pooled
@@ -52,10 +52,12 @@ THETA_STEPS = "theta_steps"  # the sum of the passes' log-theta steps, in THETA_
 THETA_QUANTUM = 2.0 ** -24
 THETA_MIN, THETA_MAX = 1e-3, 64.0  # "bounding theta to a large finite range" (dissertation 8.2)
 THETA_GAIN = 4.0  # gamma_k = THETA_GAIN / sqrt(k + 1), in log theta per unit of acceptance error
+MIN_GAIN = 12.0  # chains mutate only while they promise this many times uniform tracing's visible paths (mutates)
+ITERATION_COST = 8  # a chain iteration costs about this many uniform photon paths (iterations)
 CHAIN_SHARE = 0.05  # chains = this share of the visible paths a pass expects (a chain's start costs 1 / V_c draws)
 MIN_CHAINS, MAX_CHAINS = 16, 4096
 MIN_BOOT_DRAWS = 256  # a chain's start: at least this many uniform draws, else photons / chains
-VISIBILITY_SAMPLE = 16  # a pass whose chains do not mutate judges one uniform draw in this many, for V_c
+VISIBILITY_SAMPLE = 64  # a pass whose chains do not mutate judges one uniform draw in this many, for V_c
 
 
 def theta(counters: dict[str, int]) -> float:
@@ -74,21 +76,38 @@ def theta_step(pass_index: int, used: float, mutations: int, accepted: int, targ
     return round(THETA_GAIN / math.sqrt(pass_index + 1.0) * error / THETA_QUANTUM)
 
 
+def gain(v_c: float, target: float) -> float:
+    """The chains' new visible paths per traced path over uniform tracing's (V_c). A chain
+    iteration traces a uniform draw and, when it is invisible, a mutation; it finds a new
+    visible path with probability V_c + (1 - V_c) A, A the acceptance (held at the target),
+    so per traced path (V_c + (1 - V_c) A) / (2 - V_c), against V_c for uniform tracing."""
+    if v_c <= 0.0:
+        return math.inf
+    return (v_c + (1.0 - v_c) * target) / ((2.0 - v_c) * v_c)
+
+
 def mutates(counters: dict[str, int], target: float) -> bool:
-    """Whether a batch's chains mutate: only while the pooled V_c is below the target
-    acceptance A*. A chain iteration traces a uniform draw and, when it is invisible, a
-    mutation; it finds a new visible path with probability V_c + (1 - V_c) A, so per traced
-    path (V_c + (1 - V_c) A) / (2 - V_c), against V_c for uniform tracing: more only when
-    A > V_c, and the adaptation holds A at A*. (Its other splats count a state again: no
-    new path.) With V_c >= A* no mutation size can make the chain pay (theta climbs to its
-    bound: gap at V_c 0.33 splatted a repeat 45% of the time), so the pass is uniform
-    tracing: the uniform photon pass itself (the paper's "automatically uses uniform random
-    sampling", made exact), plus the visibility of a sample of 1 / VISIBILITY_SAMPLE of its
-    draws for the counters (sample_iterations): V is then used for nothing but V_c, and
-    judging every draw cost 1.45x a uniform photon (1.15x a cornell-box pass, 1.3-1.8x on
-    gap). Mutations resume if the pooled V_c falls below the target."""
+    """Whether a batch's chains mutate: only while their gain over uniform tracing (gain,
+    from the pooled V_c; 1 at V_c ~ A*) is at least MIN_GAIN. Before any V_c (a job's first
+    pass) they do not: the pass is uniform and judges its sample of draws for V_c. Run as
+    chains, it had MIN_CHAINS of them (no V_c to size them by): a few long correlated
+    chains, whose one pass stayed in the image's noise.
+
+    A gain of 1 is not enough. The chains' visible paths are correlated (a state splatted
+    again after each rejection, an accepted mutation a small step from its state), each
+    traced path is judged against the measurement points, and a path kept in view is
+    gathered. Measured at the service's defaults (256x256, 2^18 photons a pass, 12 s, two
+    seeds; bench/RESULTS.md, "Adaptive photon tracing"), mutating chains lost to uniform
+    tracing at gains up to 9.3, on gap (gain 1.1) and on the directional-caustic zoom levels
+    fov 5 and 1.25 (gains 6.1 and 9.3: 1.35-1.4x and 1.06-1.11x its noise in two runs). On a
+    point-lit patch they won from a gain of 14 (V_c 0.0085: 0.78-0.80x its error; at gains
+    of about 100 and 1000, V_c 0.0012 and 0.00011, 0.6x and 0.4x). MIN_GAIN lies between.
+    Below it the pass is uniform tracing: the uniform photon pass itself (the paper's
+    "automatically uses uniform random sampling", made exact), plus the visibility of a
+    sample of 1 / VISIBILITY_SAMPLE of its draws for the counters (sample_iterations): V is
+    then used for nothing but V_c. Mutations resume if the pooled V_c falls far enough."""
     v_c = visible_fraction(counters)
-    return v_c is None or v_c < target
+    return v_c is not None and gain(v_c, target) >= MIN_GAIN
 
 
 def visible_fraction(counters: dict[str, int]) -> float | None:
@@ -106,26 +125,21 @@ def pass_scale(counts: dict[str, int], photons: int) -> float:
     return photons * counts["visible"] / (counts["draws"] * counts["splats"])
 
 
-def iterations(counters: dict[str, int], photons: int) -> int:
-    """Chain iterations for a pass that brings as many new visible paths as a uniform pass
-    of `photons` paths is expected to: V_c photons.
-
-    An iteration finds a new visible path when its uniform draw is visible or its mutation
-    accepted, so from the pooled counters iterations = photons * visible / (visible +
-    accepted) (everything visible: photons, the uniform pass). The pass's sums are in
-    uniform photons whatever its iterations (pass_scale), so this sets its cost and noise,
-    not its radius schedule; and SPPM's bias falls by pass: a chain pass that brought more
-    (until this rule, one tracing `photons` paths: 4.6x the new visible paths of a uniform
-    pass at 2.6x its cost on the directional-caustic zoom series) bought noise the user's
-    photons_per_pass did not ask for with passes, and lost 0.6-0.7x at equal time where
-    the error is the radius's bias. With the visible paths of a uniform pass the chain
-    pass costs about a uniform pass there and the comparison is of the samplers alone.
-    Pass 0 (no counters) runs `photons` iterations. A function of the merged counters,
-    like theta."""
-    visible = counters.get("visible", 0)
-    if visible == 0:
-        return photons
-    return max(1, min(photons, round(photons * visible / (visible + counters.get("accepted", 0)))))
+def iterations(photons: int) -> int:
+    """Chain iterations for a pass whose user asked for `photons` photon paths: as many as
+    cost about what tracing them would (ITERATION_COST uniform paths an iteration: its one
+    or two judged traces, the state's cache and the gather of the visible photons it keeps;
+    on a 256x256 point-lit patch a chain pass of photons / 8 iterations took 3x a uniform
+    pass, whose paths mostly miss the view and cost little). The pass's sums are in uniform
+    photons whatever its iterations (pass_scale), so this sets its cost and noise, not its
+    radius schedule. Sized instead to bring only the visible paths a uniform pass is
+    expected to, the chains, where they mutate at all (V_c below about 0.01), ran a few
+    hundred iterations after starts costing more than them, and lost (0.8x and 0.4x
+    uniform's error at V_c 0.0012 and 0.00013). (That rule was made for the 64-pixel
+    directional-caustic zoom series, where the radius's bias is most of the error and
+    chain passes of `photons` iterations lost 0.6-0.7x: their gains, below 10, now keep
+    those views uniform.)"""
+    return max(1, photons // ITERATION_COST)
 
 
 def sample_iterations(photons: int) -> int:

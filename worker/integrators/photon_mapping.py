@@ -110,7 +110,7 @@ class PhotonMapping(Integrator):
         if self.adaptive:
             photons, mutate = self.settings.photons_per_pass, adaptive.mutates(state.counters,
                                                                                self.settings.target_acceptance)
-            iterations = adaptive.iterations(state.counters, photons) if mutate else adaptive.sample_iterations(photons)
+            iterations = adaptive.iterations(photons) if mutate else adaptive.sample_iterations(photons)
             chains = ChainInputs(adaptive.theta(state.counters), adaptive.chains(state.counters, iterations),
                                  iterations, mutate)
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
