@@ -13,18 +13,25 @@
    noise (the relative RMS of their difference over sqrt 2, one image's) and bias (what
    the mean image's error keeps beyond its noise, sqrt(e_mean^2 - noise^2 / 2));
 3. error at equal passes: both samplers the same passes of the same photons per pass (a
-   chain pass brings the new visible paths a uniform pass is expected to, adaptive.iterations;
-   `traced` counts its paths, starts included), with the CPU seconds each took; and the
+   chain pass runs adaptive.iterations; `traced` counts its paths, starts included), with
+   the CPU seconds each took; and the
    noise alone, from a second seed (the relative RMS of the two images' difference over
    sqrt 2), which needs no reference: at equal passes both samplers shrink the radius
    alike (a chain pass's sums are in uniform photons), so this ratio is the chains' gain itself.
+
+4. (`--defaults`, alone) at the service's defaults (256 pixels, 2^18 photons a pass, 12 CPU
+   s): uniform, adaptive, and chains made to mutate at the paper's break-even (MIN_GAIN 1),
+   on cornell-box, gap, directional-caustic at fov 5 and 1.25 and a point-lit patch (tests/analytic.py
+   patch_scene) at fov 6, 2 and 0.6 (V_c about 0.0085, 0.0012, 0.00013): the noise of two
+   seeds (no reference needed at this size) and, on the patch, the error against its
+   closed form. This is where adaptive.mutates's MIN_GAIN comes from.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
 again; they add no new path, so when this is not well above V_c the chains cannot win.
 
     python -m bench.adaptive [--full] [--smoke] [--visibility-only] [--reference-seconds S] [--photons-per-pass P]
-        [--equal-paths-passes N]
+        [--equal-paths-passes N] [--defaults]
 
 Error: the relative RMS of bench/error_vs_time.py against its cached references
 (bench/reference/<scene>-<W>x<H>.exr); the zoom levels get their own references (two
@@ -47,6 +54,7 @@ import numpy as np
 
 from bench.common import BENCH_DIR, save_figure, write_json
 from bench.error_vs_time import REFERENCES, SCENES, reference_path, rel_rms, resolution
+from tests.analytic import patch_plane, patch_scene
 from worker import adaptive
 from worker.engine import Engine
 from worker.image_io import read_image, write_image
@@ -180,6 +188,86 @@ def zoom_reference(fov: float, res: tuple[int, int], photons: int, seconds: floa
     return read_image(path)[..., :3].astype(np.float64)
 
 
+DEFAULTS_SIDE, DEFAULTS_PHOTONS, DEFAULTS_BUDGET = 256, 1 << 18, 12.0
+PATCH_FOVS = (6.0, 2.0, 0.6)
+VARIANTS = {"uniform": None, "adaptive": adaptive.MIN_GAIN, "chains": 1.0}  # sampler, and MIN_GAIN
+
+
+def at_defaults(scene: Scene, res: tuple[int, int], photons: int, budget: float, analytic: bool) -> dict:
+    """Uniform, adaptive and always-mutating chains, two seeds each, taking turns pass by
+    pass on their own CPU clocks: passes, noise (two seeds' relative RMS difference over
+    sqrt 2), V_c and, where `analytic` (the patch), the error against patch_plane."""
+    default_gain = adaptive.MIN_GAIN
+    runs = {}
+    try:
+        for variant, gain in VARIANTS.items():
+            for seed in (SEED, SEED + 1):
+                adaptive.MIN_GAIN = gain or default_gain
+                eng = warmed(scene, res, photons, "uniform" if gain is None else "adaptive", seed)
+                runs[(variant, seed)] = {"engine": eng, "state": eng.start(), "spent": 0.0, "gain": gain}
+        while any(run["spent"] < budget for run in runs.values()):
+            for run in runs.values():
+                if run["spent"] < budget:
+                    adaptive.MIN_GAIN = run["gain"] or default_gain
+                    t0 = time.process_time()
+                    render(run["engine"], passes=run["state"].passes + 1, state=run["state"])
+                    run["spent"] += time.process_time() - t0
+    finally:
+        adaptive.MIN_GAIN = default_gain
+    out = {}
+    for variant in VARIANTS:
+        pair = [runs[(variant, seed)] for seed in (SEED, SEED + 1)]
+        images = [run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3) for run in pair]
+        counters = pair[0]["state"].counters
+        out[variant] = {"passes": [run["state"].passes for run in pair],
+                        "noise": rel_rms(images[0], images[1]) / math.sqrt(2.0),
+                        "visible_fraction": adaptive.visible_fraction(counters) if counters else None}
+        if analytic:
+            truth = patch_plane(pair[0]["engine"]).reshape(res[1], res[0])
+            out[variant]["error"] = [float(np.sqrt(np.mean((img.mean(axis=2) / truth - 1.0) ** 2))) for img in images]
+    v_c = out["chains"]["visible_fraction"]
+    out["gain"] = adaptive.gain(v_c, Settings.model_fields["target_acceptance"].default) if v_c is not None else None
+    return out
+
+
+def defaults_chart(report: dict, prefix: str) -> None:
+    import matplotlib.pyplot as plt
+
+    names = list(report)
+    fig, ax = plt.subplots(figsize=(7.5, 4.4))
+    for k, variant in enumerate(("adaptive", "chains")):
+        ratios = [report[n]["uniform"]["noise"] / report[n][variant]["noise"] for n in names]
+        ax.bar(np.arange(len(names)) + 0.4 * k - 0.2, ratios, 0.4, label=variant)
+    ax.axhline(1.0, color="k", lw=0.8)
+    labels = [f"{n.replace(ZOOM_SCENE, 'caustic')}\ngain {report[n]['gain']:.3g}" for n in names]
+    ax.set_xticks(np.arange(len(names)), labels, fontsize=7)
+    ax.set_ylabel("noise, uniform / sampler (above 1: sampler wins)")
+    ax.set_title(f"{DEFAULTS_SIDE} px, 2^18 photons a pass, {DEFAULTS_BUDGET:g} CPU s")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, f"{prefix}_defaults")
+
+
+def defaults(smoke: bool) -> None:
+    """Part 4 (module docstring): bench/out/adaptive_defaults.json and .png."""
+    side, photons, budget, prefix = (DEFAULTS_SIDE, DEFAULTS_PHOTONS, DEFAULTS_BUDGET, "adaptive")
+    if smoke:
+        side, photons, budget, prefix = 32, 1 << 12, 0.5, "adaptive-smoke"
+    cases = {name: (load_scene_file(bundled_scene_path(name))[0], resolution(name, side), False)
+             for name in ("cornell-box", "gap")}
+    cases.update({f"{ZOOM_SCENE} fov {fov:g}": (zoomed(fov), resolution(ZOOM_SCENE, side), False)
+                  for fov in (5.0, 1.25)})
+    cases.update({f"patch fov {fov:g}": (Scene.model_validate(patch_scene(fov)), (side, side), True)
+                  for fov in PATCH_FOVS})
+    report = {}
+    for name, (scene, res, analytic) in cases.items():
+        report[name] = at_defaults(scene, res, photons, budget, analytic)
+        print(name, report[name], flush=True)
+    write_json(prefix + "_defaults", {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "resolution_side": side,
+                                      "photons_per_pass": photons, "budget_cpu_seconds": budget, "cases": report})
+    defaults_chart(report, prefix)
+
+
 def chart(name: str, curves: dict[str, list], v_c: float | None, prefix: str) -> None:
     import matplotlib.pyplot as plt
 
@@ -204,7 +292,11 @@ def main() -> None:
     parser.add_argument("--photons-per-pass", type=int, default=PHOTONS)
     parser.add_argument("--equal-paths-passes", type=int, default=64, help="part 3: passes per sampler")
     parser.add_argument("--only", nargs="*", help="cases of parts 2 and 3 to run (default: all)")
+    parser.add_argument("--defaults", action="store_true", help="part 4 alone: the service's defaults")
     args = parser.parse_args()
+    if args.defaults:
+        defaults(args.smoke)
+        return
     side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
     photons = args.photons_per_pass
     ref_seconds, references, prefix = args.reference_seconds, REFERENCES, "adaptive"
