@@ -82,9 +82,9 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     sa, su = render(ada, 24), render(uni, 24)
     c = sa.counters
     assert c["mutations"] == 0 and c["accepted"] == 0
-    # Pass 0 (no V_c yet) and, V_c being 1, every later pass are the uniform photon pass,
-    # with a sample of its draws judged for V_c.
-    assert c["visible"] == c["draws"] == c["splats"] == 24 * adaptive.sample_iterations(1 << 13)
+    # Pass 0 (no V_c yet) and, V_c being 1, every later pass are the uniform photon pass;
+    # passes 0, 8 and 16 judge a sample of their draws for V_c.
+    assert c["visible"] == c["draws"] == c["splats"] == 3 * adaptive.sample_iterations(1 << 13)
     assert adaptive.theta(c) == 1.0  # nothing to adapt
     # The same estimator with other photon random numbers: per pixel within the noise of
     # both (the two share their measurement points, the same seed's eye passes, so the
@@ -402,7 +402,7 @@ def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> 
     counters = json.loads(meta["counters"])
     # gap's V_c (~0.4) is far above where chains pay: every pass is the uniform one, with a
     # sample of its draws judged.
-    assert counters["draws"] == 3 * adaptive.sample_iterations(4096), counters
+    assert counters["draws"] == adaptive.sample_iterations(4096), counters  # pass 0's: it judges
     assert 0 < counters["visible"] < counters["draws"] and counters["mutations"] == 0, counters
     assert json.loads(meta["settings"])["sampler"] == "adaptive"
     proc = run("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
@@ -443,18 +443,19 @@ def test_nothing_visible_falls_back_to_uniform_tracing(make_engine, tmp_path) ->
 
 def test_a_pass_that_does_not_mutate_is_the_uniform_pass(make_engine) -> None:
     """cornell-box (V_c ~ 0.8, a gain below 1): after pass 0 the chains do not mutate,
-    and the pass's sums are the uniform sampler's bit for bit, its counters a sample of
-    photons / VISIBILITY_SAMPLE judged draws."""
+    and passes 7 and 8 are the uniform sampler's bit for bit; pass 8 (one in JUDGE_EVERY)
+    judges a sample of photons / VISIBILITY_SAMPLE draws for the counters, pass 7 none."""
     common = {"resolution": (24, 24), "photons_per_pass": 1 << 12, "seed": 3}
     ada, uni = make_engine("cornell-box", sampler="adaptive", **common), make_engine("cornell-box", **common)
     state = ada.start()
     ada.integrator.merge(state, ada.render_batch(state, 0, 1))
     inputs = ada.integrator.batch_inputs(state)
-    assert not inputs.chains.mutate
-    a, u = ada.run_batch(inputs, 1, 2), uni.run_batch(GatherInputs(inputs.radius, inputs.bias, count=inputs.count), 1, 2)
+    assert not inputs.chains.mutate and not adaptive.judges(7) and adaptive.judges(8)
+    plain = GatherInputs(inputs.radius, inputs.bias, count=inputs.count, passes=inputs.passes)
+    a, u = ada.run_batch(inputs, 7, 2), uni.run_batch(plain, 7, 2)
     for name in u.sums:
         np.testing.assert_array_equal(a.sums[name], u.sums[name])
-    assert a.counters["draws"] == 2 * adaptive.sample_iterations(1 << 12) and a.counters["mutations"] == 0
+    assert a.counters["draws"] == adaptive.sample_iterations(1 << 12) and a.counters["mutations"] == 0
     assert 0.5 < a.counters["visible"] / a.counters["draws"] < 1.0
 
 
@@ -484,7 +485,7 @@ def test_chains_mutate_only_where_they_gain(make_engine, tmp_path, scene: str, m
     for k in range(3):
         delta = eng.render_batch(state, k, 1)
         eng.integrator.merge(state, delta)
-        per_pass.append(delta.counters["mutations"])
+        per_pass.append(delta.counters.get("mutations", 0))  # a pass that neither mutates nor judges has none
     v_c = adaptive.visible_fraction(state.counters)
     assert per_pass[0] == 0
     if mutating:

@@ -325,7 +325,7 @@ class PhotonMappingPasses:
             catch_up = max(0, first_pass - inputs.passes) if k == first_pass and inputs.passes is not None else 0
             self.steps, self.own = 1 + catch_up, catch_up
             self._eye_pass(k)
-            if inputs.chains is None:
+            if inputs.chains is None or not (inputs.chains.mutate or adaptive.judges(k)):
                 self.photons_stored = self._photon_pass(k)
                 self._build_and_gather(self.photons_stored, float(r32.max()))
             else:
