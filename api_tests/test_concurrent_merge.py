@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import redis
 
-from service.redis_server import EmbeddedRedis
 from worker.engine import Engine
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs
@@ -42,39 +41,35 @@ def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray, w: int, h
     return job_id
 
 
-def test_concurrent_shuffled_merges_give_one_state(tmp_path: Path) -> None:
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        parsed, base = load_scene_file(bundled_scene_path("cornell-caustics"))
-        w, h = 64, 48
-        settings = Settings(photons_per_pass=1 << 14, seed=21, resolution=(w, h))
-        engine = Engine(parsed, base, settings)
-        r0 = engine.start().R0
-        deltas = [engine.run_batch(GatherInputs(r0 * (1.0 - 0.03 * i)), 2 * i, 2) for i in range(BATCHES)]
-        deltas_file = tmp_path / "deltas.pkl"
-        deltas_file.write_bytes(pickle.dumps(deltas))
-        store = Jobs(redis.Redis.from_url(server.url))
-        scene = inline_meshes(parsed, base)
-        states = []
-        for trial in range(2):
-            job_id = _job(store, scene, settings, r0, w, h)
-            with mp.get_context("spawn").Pool(PROCESSES) as pool:
-                outcomes = pool.starmap(_merge_all, [(server.url, job_id, str(deltas_file), 100 * trial + p)
-                                                      for p in range(PROCESSES)])
-            flat = [o for per_process in outcomes for o in per_process]
-            assert flat.count("merged") == BATCHES and flat.count("duplicate") == (PROCESSES - 1) * BATCHES
-            record = store.get(job_id)
-            assert record.passes == 2 * BATCHES
-            assert record.emitted == sum(d.emitted for d in deltas)
-            states.append(store.state(record))
-        a, b = states
-        for name in a.sums:  # rounding of a reordered sum scales with its largest term
-            expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in deltas)
-            atol = 1e-12 * np.abs(expected).max()
-            np.testing.assert_allclose(getattr(a, name), expected, rtol=1e-12, atol=atol)
-            np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, atol=atol)
-        np.testing.assert_allclose(a.radiance(), b.radiance(), rtol=1e-12, atol=1e-300)
-        lit = a.D > 0
-        assert abs(np.mean(a.radius()[lit] ** 2) / np.mean(b.radius()[lit] ** 2) - 1) < 0.03
-    finally:
-        server.stop()
+def test_concurrent_shuffled_merges_give_one_state(redis_url: str, tmp_path: Path) -> None:
+    parsed, base = load_scene_file(bundled_scene_path("cornell-caustics"))
+    w, h = 64, 48
+    settings = Settings(photons_per_pass=1 << 14, seed=21, resolution=(w, h))
+    engine = Engine(parsed, base, settings)
+    r0 = engine.start().R0
+    deltas = [engine.run_batch(GatherInputs(r0 * (1.0 - 0.03 * i)), 2 * i, 2) for i in range(BATCHES)]
+    deltas_file = tmp_path / "deltas.pkl"
+    deltas_file.write_bytes(pickle.dumps(deltas))
+    store = Jobs(redis.Redis.from_url(redis_url))
+    scene = inline_meshes(parsed, base)
+    states = []
+    for trial in range(2):
+        job_id = _job(store, scene, settings, r0, w, h)
+        with mp.get_context("spawn").Pool(PROCESSES) as pool:
+            outcomes = pool.starmap(_merge_all, [(redis_url, job_id, str(deltas_file), 100 * trial + p)
+                                                  for p in range(PROCESSES)])
+        flat = [o for per_process in outcomes for o in per_process]
+        assert flat.count("merged") == BATCHES and flat.count("duplicate") == (PROCESSES - 1) * BATCHES
+        record = store.get(job_id)
+        assert record.passes == 2 * BATCHES
+        assert record.emitted == sum(d.emitted for d in deltas)
+        states.append(store.state(record))
+    a, b = states
+    for name in a.sums:  # rounding of a reordered sum scales with its largest term
+        expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in deltas)
+        atol = 1e-12 * np.abs(expected).max()
+        np.testing.assert_allclose(getattr(a, name), expected, rtol=1e-12, atol=atol)
+        np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, atol=atol)
+    np.testing.assert_allclose(a.radiance(), b.radiance(), rtol=1e-12, atol=1e-300)
+    lit = a.D > 0
+    assert abs(np.mean(a.radius()[lit] ** 2) / np.mean(b.radius()[lit] ** 2) - 1) < 0.03

@@ -10,13 +10,11 @@ Real Redis, real store."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import redis
 
-from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, Status, keys
@@ -54,83 +52,75 @@ def test_a_delta_names_its_dtype() -> None:
     ({"dtype": "<f8", "arrays": None}, "<f8", "'<f8'"),  # a version sending float64, its dtype named
     (None, "<f4", "no named dtype"),  # the version before dtypes were named: a bare list of arrays
 ])
-def test_a_delta_of_another_version_fails_its_job_cleanly(tmp_path: Path, header: object, dtype: str,
+def test_a_delta_of_another_version_fails_its_job_cleanly(redis_url: str, header: object, dtype: str,
                                                            named: str) -> None:
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        store = Jobs(redis.Redis.from_url(server.url), tile_pixels=TILE)
-        job_id = store.create({}, Settings(max_passes=1000), W, H, None)
-        record = store.get(job_id)
-        n, widths = W * H, dict(record.integrator.sums.widths)
-        store.init_setup(record, {"R0": np.full(n, 0.05)})
+    store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
+    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
+    record = store.get(job_id)
+    n, widths = W * H, dict(record.integrator.sums.widths)
+    store.init_setup(record, {"R0": np.full(n, 0.05)})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
+    tiling = store.tiling(record)
+    good = [Delta(2 * b, 2, 4096, _sums(widths, n, b)) for b in range(2)]
+    for d in good:
+        assert store.merge(Batch(job_id, d.first_pass, 2), d, 0.01) == "merged"
+    # A worker of another version pushes batch 4..5 and has it accepted.
+    bad = Batch(job_id, 4, 2)
+    sums = _sums(widths, n, 9)
+    names = list(sums)
+    head = {**header, "arrays": names} if isinstance(header, dict) else names
+    store.tiles.push_encoded(job_id, tiling, bad.id, lambda k: _foreign(sums, tiling.span(k), head, dtype))
+    assert store.accept(bad, Delta(4, 2, 4096, {}), 0.01, 0.01)[0] == "merged"
+
+    assert store.fold(job_id) is None  # the round refused the delta and wrote nothing
+    record = store.get(job_id)
+    assert record.status == Status.FAILED
+    assert bad.id in record.failure and named in record.failure, record.failure
+    assert record.folded_passes == 0
+    for k in range(tiling.count):
+        assert not store.r.hget(keys.tile(job_id, k, "meta"), "version")
+    assert not store.r.hexists(keys.tofold(job_id), bad.id)  # never folded, never retried
+    # The readable batches fold: the failed job's image holds them.
+    state = store.state(record)
+    record = store.get(job_id)
+    assert record.folded_passes == state.passes == 4 and not store.r.exists(keys.tofold(job_id))
+    expected = sum(d.sums["S"].astype(DELTA_DTYPE).astype(np.float64) for d in good)
+    np.testing.assert_allclose(state.S, expected, rtol=1e-12)
+
+
+def test_a_tile_state_of_the_previous_version_reads_and_folds_on(redis_url: str) -> None:
+    store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
+    jobs = [store.create({}, Settings(max_passes=1000), W, H, None) for _ in range(2)]
+    n = W * H
+    record = store.get(jobs[0])
+    widths, tiling = record.integrator.state_widths, store.tiling(record)
+    deltas = [Delta(2 * b, 2, 4096, _sums(dict(record.integrator.sums.widths), n, b)) for b in range(2)]
+    for job_id in jobs:
+        store.init_setup(store.get(job_id), {"R0": np.full(n, 0.05)})
         store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-        tiling = store.tiling(record)
-        good = [Delta(2 * b, 2, 4096, _sums(widths, n, b)) for b in range(2)]
-        for d in good:
-            assert store.merge(Batch(job_id, d.first_pass, 2), d, 0.01) == "merged"
-        # A worker of another version pushes batch 4..5 and has it accepted.
-        bad = Batch(job_id, 4, 2)
-        sums = _sums(widths, n, 9)
-        names = list(sums)
-        head = {**header, "arrays": names} if isinstance(header, dict) else names
-        store.tiles.push_encoded(job_id, tiling, bad.id, lambda k: _foreign(sums, tiling.span(k), head, dtype))
-        assert store.accept(bad, Delta(4, 2, 4096, {}), 0.01, 0.01)[0] == "merged"
-
-        assert store.fold(job_id) is None  # the round refused the delta and wrote nothing
-        record = store.get(job_id)
-        assert record.status == Status.FAILED
-        assert bad.id in record.failure and named in record.failure, record.failure
-        assert record.folded_passes == 0
-        for k in range(tiling.count):
-            assert not store.r.hget(keys.tile(job_id, k, "meta"), "version")
-        assert not store.r.hexists(keys.tofold(job_id), bad.id)  # never folded, never retried
-        # The readable batches fold: the failed job's image holds them.
-        state = store.state(record)
-        record = store.get(job_id)
-        assert record.folded_passes == state.passes == 4 and not store.r.exists(keys.tofold(job_id))
-        expected = sum(d.sums["S"].astype(DELTA_DTYPE).astype(np.float64) for d in good)
-        np.testing.assert_allclose(state.S, expected, rtol=1e-12)
-    finally:
-        server.stop()
-
-
-def test_a_tile_state_of_the_previous_version_reads_and_folds_on(tmp_path: Path) -> None:
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        store = Jobs(redis.Redis.from_url(server.url), tile_pixels=TILE)
-        jobs = [store.create({}, Settings(max_passes=1000), W, H, None) for _ in range(2)]
-        n = W * H
-        record = store.get(jobs[0])
-        widths, tiling = record.integrator.state_widths, store.tiling(record)
-        deltas = [Delta(2 * b, 2, 4096, _sums(dict(record.integrator.sums.widths), n, b)) for b in range(2)]
-        for job_id in jobs:
-            store.init_setup(store.get(job_id), {"R0": np.full(n, 0.05)})
-            store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-            assert store.merge(Batch(job_id, 0, 2), deltas[0], 0.01) == "merged"
-            assert store.fold(job_id, checkpoint=True) is not None
-        # Job 1's tiles as the previous version stored them: every array in the state's order
-        # in one string; tile 0 as before its first fold (only R0).
-        legacy = store.state(store.get(jobs[1])).arrays()
-        for k in range(tiling.count):
-            span = tiling.span(k)
-            names = ["R0"] if k == 0 else list(widths)
-            store.r.delete(keys.tile(jobs[1], k, "state"))
-            store.r.set(keys.tile(jobs[1], k, "state"), b"".join(legacy[name][span].tobytes() for name in names))
-        CACHE._items.clear()
-        CACHE._bytes = 0
-        got = store.state(store.get(jobs[1])).arrays()
-        for name in widths:
-            expected = legacy[name].copy()
-            expected[tiling.span(0)] = legacy[name][tiling.span(0)] if name == "R0" else 0.0
-            np.testing.assert_array_equal(got[name], expected, err_msg=name)
-        assert store.r.type(keys.tile(jobs[1], 0, "state")) == b"hash"
-        # Tiles 1.. fold on as the job that never had the old layout.
-        for job_id in jobs:
-            assert store.merge(Batch(job_id, 2, 2), deltas[1], 0.01) == "merged"
-            assert store.fold(job_id, checkpoint=True) is not None
-        states = [store.state(store.get(job_id)).arrays() for job_id in jobs]
-        rest = slice(tiling.span(1).start, n)
-        for name in widths:
-            np.testing.assert_array_equal(states[1][name][rest], states[0][name][rest], err_msg=name)
-    finally:
-        server.stop()
+        assert store.merge(Batch(job_id, 0, 2), deltas[0], 0.01) == "merged"
+        assert store.fold(job_id, checkpoint=True) is not None
+    # Job 1's tiles as the previous version stored them: every array in the state's order
+    # in one string; tile 0 as before its first fold (only R0).
+    legacy = store.state(store.get(jobs[1])).arrays()
+    for k in range(tiling.count):
+        span = tiling.span(k)
+        names = ["R0"] if k == 0 else list(widths)
+        store.r.delete(keys.tile(jobs[1], k, "state"))
+        store.r.set(keys.tile(jobs[1], k, "state"), b"".join(legacy[name][span].tobytes() for name in names))
+    CACHE._items.clear()
+    CACHE._bytes = 0
+    got = store.state(store.get(jobs[1])).arrays()
+    for name in widths:
+        expected = legacy[name].copy()
+        expected[tiling.span(0)] = legacy[name][tiling.span(0)] if name == "R0" else 0.0
+        np.testing.assert_array_equal(got[name], expected, err_msg=name)
+    assert store.r.type(keys.tile(jobs[1], 0, "state")) == b"hash"
+    # Tiles 1.. fold on as the job that never had the old layout.
+    for job_id in jobs:
+        assert store.merge(Batch(job_id, 2, 2), deltas[1], 0.01) == "merged"
+        assert store.fold(job_id, checkpoint=True) is not None
+    states = [store.state(store.get(job_id)).arrays() for job_id in jobs]
+    rest = slice(tiling.span(1).start, n)
+    for name in widths:
+        np.testing.assert_array_equal(states[1][name][rest], states[0][name][rest], err_msg=name)

@@ -7,13 +7,11 @@ totals are exact either way. Real Redis, real store."""
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import redis
 
-from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
@@ -26,12 +24,8 @@ PHOTONS = 4096
 
 
 @pytest.fixture()
-def store(tmp_path: Path):
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        yield Jobs(redis.Redis.from_url(server.url), tile_pixels=TILE)
-    finally:
-        server.stop()
+def store(redis_url: str) -> Jobs:
+    return Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
 
 
 def _job_with_two_batches_waiting(store: Jobs, next_due_in: float) -> tuple[str, list[Delta]]:

@@ -14,7 +14,6 @@ from rq import Worker
 
 from api_tests.cluster import Cluster, finished, merged_passes
 from service.models import MAX_ACTIVE_JOBS
-from service.redis_server import EmbeddedRedis
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.scheduler import QUEUE_NAMES
 from worker.settings import Settings
@@ -76,41 +75,37 @@ def test_dead_workers_do_not_count_as_capacity(tmp_path: Path) -> None:
         c.close()
 
 
-def test_a_cancel_between_a_merges_read_and_write_is_kept(tmp_path: Path) -> None:
+def test_a_cancel_between_a_merges_read_and_write_is_kept(redis_url: str) -> None:
     """The cancel lands while a merge holds its read record (white box: the acceptance's
     read triggers it). The merge must retry and see it, not write 'running' back."""
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        conn = redis.Redis.from_url(server.url)
-        parsed, base = load_scene_file(bundled_scene_path("furnace"))
-        settings = Settings(max_passes=100, photons_per_pass=P, resolution=(8, 8))
-        jobs = Jobs(conn)
-        job_id = jobs.create(inline_meshes(parsed, base), settings, 8, 8, "furnace")
-        batch = jobs.allocate(job_id)
-        assert jobs.start(batch, "w1")  # a worker holds it: the cancel cannot just drop it
-        record = jobs.get(job_id)
-        jobs.init_setup(record, {"R0": [0.1] * 64})
-        integrator = record.integrator
-        delta_sums = {name: integrator.sums.zeros(64, name) for name in integrator.sums.names}
-        from worker.integrators.base import Delta
+    conn = redis.Redis.from_url(redis_url)
+    parsed, base = load_scene_file(bundled_scene_path("furnace"))
+    settings = Settings(max_passes=100, photons_per_pass=P, resolution=(8, 8))
+    jobs = Jobs(conn)
+    job_id = jobs.create(inline_meshes(parsed, base), settings, 8, 8, "furnace")
+    batch = jobs.allocate(job_id)
+    assert jobs.start(batch, "w1")  # a worker holds it: the cancel cannot just drop it
+    record = jobs.get(job_id)
+    jobs.init_setup(record, {"R0": [0.1] * 64})
+    integrator = record.integrator
+    delta_sums = {name: integrator.sums.zeros(64, name) for name in integrator.sums.names}
+    from worker.integrators.base import Delta
 
-        class CancelledMidMerge(Jobs):
-            fired = False
+    class CancelledMidMerge(Jobs):
+        fired = False
 
-            def _read(self, pipe, job):  # noqa: ANN001, ANN202 - the acceptance's read, before its write
-                record = super()._read(pipe, job)
-                if not CancelledMidMerge.fired:
-                    CancelledMidMerge.fired = True
-                    Jobs(conn).cancel(job)
-                return record
+        def _read(self, pipe, job):  # noqa: ANN001, ANN202 - the acceptance's read, before its write
+            record = super()._read(pipe, job)
+            if not CancelledMidMerge.fired:
+                CancelledMidMerge.fired = True
+                Jobs(conn).cancel(job)
+            return record
 
-        outcome = CancelledMidMerge(conn).merge(batch, Delta(batch.first, batch.n, batch.n * P, delta_sums), 0.1)
-        assert CancelledMidMerge.fired and outcome == "merged"
-        done = jobs.get(job_id)
-        assert done.status == Status.CANCELLED, done.status
-        assert done.passes == batch.n and done.emitted == batch.n * P
-    finally:
-        server.stop()
+    outcome = CancelledMidMerge(conn).merge(batch, Delta(batch.first, batch.n, batch.n * P, delta_sums), 0.1)
+    assert CancelledMidMerge.fired and outcome == "merged"
+    done = jobs.get(job_id)
+    assert done.status == Status.CANCELLED, done.status
+    assert done.passes == batch.n and done.emitted == batch.n * P
 
 
 def test_a_queued_job_cancels_at_once_and_renders_nothing(tmp_path: Path) -> None:
@@ -205,19 +200,15 @@ def test_jobs_are_listed_a_page_at_a_time(tmp_path: Path) -> None:
         c.close()
 
 
-def test_batches_of_an_unknown_job_are_not_rendered(tmp_path: Path) -> None:
+def test_batches_of_an_unknown_job_are_not_rendered(redis_url: str) -> None:
     """A batch whose job was deleted while it waited is skipped, not rendered."""
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        jobs = Jobs(redis.Redis.from_url(server.url))
-        job_id = jobs.create({}, Settings(max_passes=2), 8, 8, None)
-        batch = jobs.allocate(job_id)
-        jobs.delete(job_id)
-        assert not jobs.start(batch, "w1")
-        assert not jobs.r.keys(keys.job(job_id) + "*")
-        assert isinstance(batch, Batch)
-    finally:
-        server.stop()
+    jobs = Jobs(redis.Redis.from_url(redis_url))
+    job_id = jobs.create({}, Settings(max_passes=2), 8, 8, None)
+    batch = jobs.allocate(job_id)
+    jobs.delete(job_id)
+    assert not jobs.start(batch, "w1")
+    assert not jobs.r.keys(keys.job(job_id) + "*")
+    assert isinstance(batch, Batch)
 
 
 def test_a_full_job_store_answers_507_not_500(tmp_path: Path) -> None:
@@ -234,27 +225,23 @@ def test_a_full_job_store_answers_507_not_500(tmp_path: Path) -> None:
         c.close()
 
 
-def test_batches_allocated_together_are_due_one_refresh_after_another(tmp_path: Path) -> None:
+def test_batches_allocated_together_are_due_one_refresh_after_another(redis_url: str) -> None:
     """Each allocation records when its batch is due; the next one, told, ends at most
     DELIVERY_SECONDS after it (policy.batch_passes), not together with it. A merged or
     dropped batch is no longer due."""
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        conn = redis.Redis.from_url(server.url)
-        parsed, base = load_scene_file(bundled_scene_path("furnace"))
-        jobs = Jobs(conn)
-        job_id = jobs.create(inline_meshes(parsed, base), Settings(photons_per_pass=P, resolution=(8, 8)), 8, 8,
-                             "furnace")
-        conn.hset(keys.job(job_id), mapping={"merge_seconds": 1.0, "merges": 1, "fold_rounds": "[[1, 1.0]]"})
-        first = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
-        second = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
-        assert first is not None and second is not None
-        due = dict(conn.zrange(keys.due(job_id), 0, -1, withscores=True))
-        at_first, at_second = due[first.id.encode()], due[second.id.encode()]
-        assert at_first - time.time() <= DELIVERY_SECONDS
-        assert 0.0 < at_second - at_first <= DELIVERY_SECONDS + 0.5
-        assert second.n > first.n  # longer: its delivery falls between the first worker's
-        jobs.drop(first)
-        assert conn.zrange(keys.due(job_id), 0, -1) == [second.id.encode()]
-    finally:
-        server.stop()
+    conn = redis.Redis.from_url(redis_url)
+    parsed, base = load_scene_file(bundled_scene_path("furnace"))
+    jobs = Jobs(conn)
+    job_id = jobs.create(inline_meshes(parsed, base), Settings(photons_per_pass=P, resolution=(8, 8)), 8, 8,
+                         "furnace")
+    conn.hset(keys.job(job_id), mapping={"merge_seconds": 1.0, "merges": 1, "fold_rounds": "[[1, 1.0]]"})
+    first = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
+    second = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
+    assert first is not None and second is not None
+    due = dict(conn.zrange(keys.due(job_id), 0, -1, withscores=True))
+    at_first, at_second = due[first.id.encode()], due[second.id.encode()]
+    assert at_first - time.time() <= DELIVERY_SECONDS
+    assert 0.0 < at_second - at_first <= DELIVERY_SECONDS + 0.5
+    assert second.n > first.n  # longer: its delivery falls between the first worker's
+    jobs.drop(first)
+    assert conn.zrange(keys.due(job_id), 0, -1) == [second.id.encode()]

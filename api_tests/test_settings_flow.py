@@ -7,7 +7,6 @@ from pathlib import Path
 import redis
 
 from api_tests.cluster import Cluster
-from service.redis_server import EmbeddedRedis
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import DEFAULTS, Settings
 from worker.store import Jobs
@@ -28,22 +27,18 @@ def test_every_field_is_changed_by_the_fixture() -> None:
             assert getattr(DEFAULTS, name) != value, name
 
 
-def test_settings_reach_the_store_and_the_engine_whole(tmp_path: Path) -> None:
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        jobs = Jobs(redis.Redis.from_url(server.url))
-        settings = Settings(**CHANGED)
-        parsed, base = load_scene_file(bundled_scene_path("furnace"))
-        job_id = jobs.create(inline_meshes(parsed, base), settings, 24, 16, "furnace")
-        record = jobs.get(job_id)
-        assert record.settings == settings
-        engine = engine_for(jobs, record)
-        assert engine.settings == settings
-        assert engine.integrator.name == "ppm" and engine.integrator.settings is engine.settings
-        assert (engine.arrays.width, engine.arrays.height) == (24, 16)
-        assert engine.passes.setup()["R0"].max() == 0.3  # initial_radius
-    finally:
-        server.stop()
+def test_settings_reach_the_store_and_the_engine_whole(redis_url: str) -> None:
+    jobs = Jobs(redis.Redis.from_url(redis_url))
+    settings = Settings(**CHANGED)
+    parsed, base = load_scene_file(bundled_scene_path("furnace"))
+    job_id = jobs.create(inline_meshes(parsed, base), settings, 24, 16, "furnace")
+    record = jobs.get(job_id)
+    assert record.settings == settings
+    engine = engine_for(jobs, record)
+    assert engine.settings == settings
+    assert engine.integrator.name == "ppm" and engine.integrator.settings is engine.settings
+    assert (engine.arrays.width, engine.arrays.height) == (24, 16)
+    assert engine.passes.setup()["R0"].max() == 0.3  # initial_radius
 
 
 def test_settings_reach_the_job_view(tmp_path: Path) -> None:

@@ -13,12 +13,9 @@ and folded into float64 sums, so:
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import redis
 
-from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
@@ -45,71 +42,67 @@ def _pass_sums(rng: np.random.Generator, widths: dict[str, int], scale: np.ndarr
     return out
 
 
-def test_ten_thousand_passes_show_no_drift_with_float32_deltas(tmp_path: Path) -> None:
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    try:
-        store = Jobs(redis.Redis.from_url(server.url), tile_pixels=128)  # 4 tiles
-        job_id = store.create({}, Settings(max_passes=BATCHES * PASSES), W, H, None)
-        record = store.get(job_id)
-        n = W * H
-        store.init_setup(record, {"R0": np.full(n, 0.05)})
-        store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-        widths = dict(record.integrator.sums.widths)
-        rng = np.random.default_rng(7)
-        scale = 10.0 ** rng.uniform(-3, 3, n)
+def test_ten_thousand_passes_show_no_drift_with_float32_deltas(redis_url: str) -> None:
+    store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=128)  # 4 tiles
+    job_id = store.create({}, Settings(max_passes=BATCHES * PASSES), W, H, None)
+    record = store.get(job_id)
+    n = W * H
+    store.init_setup(record, {"R0": np.full(n, 0.05)})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
+    widths = dict(record.integrator.sums.widths)
+    rng = np.random.default_rng(7)
+    scale = 10.0 ** rng.uniform(-3, 3, n)
 
-        def zeros(dtype: type) -> dict[str, np.ndarray]:
-            return {name: np.zeros((n, w) if w > 1 else n, dtype) for name, w in widths.items()}
+    def zeros(dtype: type) -> dict[str, np.ndarray]:
+        return {name: np.zeros((n, w) if w > 1 else n, dtype) for name, w in widths.items()}
 
-        # Extended precision: the exact sums of the passes, of the deltas as sent, and of the
-        # batches' magnitudes; and float32 storage of the running sums, for contrast.
-        exact, sent, magnitude, single = zeros(np.longdouble), zeros(np.longdouble), zeros(np.longdouble), \
-            zeros(np.float32)
-        emitted = 1 << 12
-        for b in range(BATCHES):
-            batch_sums = zeros(np.float64)
-            for _ in range(PASSES):  # the device sums a batch's passes in float64
-                for name, value in _pass_sums(rng, widths, scale).items():
-                    batch_sums[name] += value
-                    exact[name] += value.astype(np.longdouble)
-            for name, value in batch_sums.items():
-                sent[name] += value.astype(DELTA_DTYPE).astype(np.longdouble)
-                magnitude[name] += np.abs(value).astype(np.longdouble)
-                single[name] += value.astype(np.float32)
-            delta = Delta(b * PASSES, PASSES, PASSES * emitted, batch_sums)
-            assert store.merge(Batch(job_id, b * PASSES, PASSES), delta, 0.01) == "merged"
-            if b % FOLD_EVERY == FOLD_EVERY - 1 and b < BATCHES - 1:  # the last batch ends the job: it folds
-                assert store.fold(job_id) is not None
-        state = store.state(store.get(job_id))
-        assert state.passes == BATCHES * PASSES and state.emitted == BATCHES * PASSES * emitted
+    # Extended precision: the exact sums of the passes, of the deltas as sent, and of the
+    # batches' magnitudes; and float32 storage of the running sums, for contrast.
+    exact, sent, magnitude, single = zeros(np.longdouble), zeros(np.longdouble), zeros(np.longdouble), \
+        zeros(np.float32)
+    emitted = 1 << 12
+    for b in range(BATCHES):
+        batch_sums = zeros(np.float64)
+        for _ in range(PASSES):  # the device sums a batch's passes in float64
+            for name, value in _pass_sums(rng, widths, scale).items():
+                batch_sums[name] += value
+                exact[name] += value.astype(np.longdouble)
+        for name, value in batch_sums.items():
+            sent[name] += value.astype(DELTA_DTYPE).astype(np.longdouble)
+            magnitude[name] += np.abs(value).astype(np.longdouble)
+            single[name] += value.astype(np.float32)
+        delta = Delta(b * PASSES, PASSES, PASSES * emitted, batch_sums)
+        assert store.merge(Batch(job_id, b * PASSES, PASSES), delta, 0.01) == "merged"
+        if b % FOLD_EVERY == FOLD_EVERY - 1 and b < BATCHES - 1:  # the last batch ends the job: it folds
+            assert store.fold(job_id) is not None
+    state = store.state(store.get(job_id))
+    assert state.passes == BATCHES * PASSES and state.emitted == BATCHES * PASSES * emitted
 
-        def error(got: np.ndarray, ref: np.ndarray, name: str) -> float:
-            """The largest error over pixels, in units of the sum of the batches' magnitudes."""
-            return float(np.max(np.abs(got.astype(np.longdouble) - ref) / magnitude[name]))
+    def error(got: np.ndarray, ref: np.ndarray, name: str) -> float:
+        """The largest error over pixels, in units of the sum of the batches' magnitudes."""
+        return float(np.max(np.abs(got.astype(np.longdouble) - ref) / magnitude[name]))
 
-        for name in state.sums:  # (a batch's M goes into N, not kept: worker/stats.py)
-            assert error(getattr(state, name), sent[name], name) < 1e-12, name  # the fold adds exactly
-            assert error(getattr(state, name), exact[name], name) <= UNIT * (1 + 1e-6), name  # one rounding a batch
-        worst32 = max(error(single[name], exact[name], name) for name in state.sums)
-        assert worst32 > 16 * UNIT, worst32  # float32 storage drifts: the test can see it
-        # The variance of the per-pass samples: X2 - X1^2/m cancels to 1e-3 of X2. Its
-        # first-order rounding bound: u (|X2| + 2 |X1| |X1| / m) / (m - 1), with |.| the
-        # batches' magnitudes.
-        m = BATCHES * PASSES
+    for name in state.sums:  # (a batch's M goes into N, not kept: worker/stats.py)
+        assert error(getattr(state, name), sent[name], name) < 1e-12, name  # the fold adds exactly
+        assert error(getattr(state, name), exact[name], name) <= UNIT * (1 + 1e-6), name  # one rounding a batch
+    worst32 = max(error(single[name], exact[name], name) for name in state.sums)
+    assert worst32 > 16 * UNIT, worst32  # float32 storage drifts: the test can see it
+    # The variance of the per-pass samples: X2 - X1^2/m cancels to 1e-3 of X2. Its
+    # first-order rounding bound: u (|X2| + 2 |X1| |X1| / m) / (m - 1), with |.| the
+    # batches' magnitudes.
+    m = BATCHES * PASSES
 
-        def variance(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-            x1, x2 = x1.astype(np.longdouble), x2.astype(np.longdouble)
-            return (x2 - x1 * x1 / m) / (m - 1)
+    def variance(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+        x1, x2 = x1.astype(np.longdouble), x2.astype(np.longdouble)
+        return (x2 - x1 * x1 / m) / (m - 1)
 
-        ref_var = variance(exact["X1"], exact["X2"])
-        bound = UNIT * (magnitude["X2"] + 2 * np.abs(exact["X1"]) * magnitude["X1"] / m) / (m - 1)
-        var_error = np.abs(variance(state.X1, state.X2) - ref_var)
-        assert np.all(var_error <= 1.01 * bound)
-        assert float(np.max(var_error / ref_var)) < 1e-3 * np.sqrt(2.0 / (m - 1))
-        assert float(np.max(np.abs(variance(single["X1"], single["X2"]) - ref_var) / ref_var)) > 1e-4
-        # The image: non-negative sums, so within float32's unit roundoff, relative.
-        ref_image = exact["S"] / (m * emitted) + exact["Ld"] / m
-        image = record.integrator.image(state).astype(np.longdouble)
-        assert float(np.max(np.abs(image - ref_image) / ref_image)) <= UNIT * (1 + 1e-6)
-    finally:
-        server.stop()
+    ref_var = variance(exact["X1"], exact["X2"])
+    bound = UNIT * (magnitude["X2"] + 2 * np.abs(exact["X1"]) * magnitude["X1"] / m) / (m - 1)
+    var_error = np.abs(variance(state.X1, state.X2) - ref_var)
+    assert np.all(var_error <= 1.01 * bound)
+    assert float(np.max(var_error / ref_var)) < 1e-3 * np.sqrt(2.0 / (m - 1))
+    assert float(np.max(np.abs(variance(single["X1"], single["X2"]) - ref_var) / ref_var)) > 1e-4
+    # The image: non-negative sums, so within float32's unit roundoff, relative.
+    ref_image = exact["S"] / (m * emitted) + exact["Ld"] / m
+    image = record.integrator.image(state).astype(np.longdouble)
+    assert float(np.max(np.abs(image - ref_image) / ref_image)) <= UNIT * (1 + 1e-6)
