@@ -44,10 +44,12 @@ adaptive-smoke*). Timing figures need a quiet machine.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -90,12 +92,27 @@ def engine(scene: Scene, res: tuple[int, int], photons: int, seed: int = SEED, *
     return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=seed, **settings))
 
 
+@contextlib.contextmanager
+def min_gain(value: float) -> Iterator[None]:
+    """adaptive.MIN_GAIN set to `value` within (1: the chains mutate at the paper's break-even)."""
+    default = adaptive.MIN_GAIN
+    adaptive.MIN_GAIN = value
+    try:
+        yield
+    finally:
+        adaptive.MIN_GAIN = default
+
+
 def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict[str, float]:
-    """V_c, theta and the acceptance after `passes` adaptive passes (the last half's acceptance)."""
+    """V_c, theta and the acceptance after `passes` adaptive passes (the last half's
+    acceptance) of chains at the paper's break-even (MIN_GAIN 1, where they mutate while the
+    target acceptance is above V_c), and their gain (whether the sampler's own chains mutate:
+    at least MIN_GAIN)."""
     eng = engine(scene, res, photons, sampler="adaptive")
-    state = render(eng, passes=passes // 2)
-    half = dict(state.counters)
-    render(eng, passes=passes, state=state)
+    with min_gain(1.0):
+        state = render(eng, passes=passes // 2)
+        half = dict(state.counters)
+        render(eng, passes=passes, state=state)
     c = state.counters
     mutations = c["mutations"] - half["mutations"]
     v_c = adaptive.visible_fraction(c)
@@ -104,7 +121,8 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
             "traced_per_splat": traced / c["splats"] if c["splats"] else None,
             "new_visible_per_traced": (c["visible"] + c["accepted"]) / traced if traced else None,
             "theta": adaptive.theta(c), "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations
-            else None, "passes": passes}
+            else None, "passes": passes,
+            "gain": adaptive.gain(v_c, eng.settings.target_acceptance) if v_c is not None else None}
 
 
 def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str, seed: int = SEED) -> Engine:
@@ -149,6 +167,15 @@ def split(a: np.ndarray, b: np.ndarray, ref: np.ndarray) -> dict[str, float]:
             "bias": math.sqrt(max(mean_error ** 2 - noise ** 2 / 2.0, 0.0))}
 
 
+def traced_paths(counters: dict[str, int], passes: int, photons: int) -> int:
+    """Photon paths a run traced: a pass that does not mutate (a uniform sampler's, or the
+    adaptive sampler's first and those below MIN_GAIN) traces `photons` and judges its
+    sample of draws; the chains' passes trace their draws, mutations and starts (here all
+    passes after the first mutate, or none: the gain decides from a V_c that moves little)."""
+    judged = counters.get("draws", 0) + counters.get("mutations", 0) + counters.get("boot", 0)
+    return judged + (photons if counters.get("mutations", 0) else passes * photons)
+
+
 def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, passes: int) -> dict:
     """Both samplers, `passes` passes of `photons` photon paths: error, CPU seconds, paths traced."""
     out = {}
@@ -163,7 +190,7 @@ def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: in
         twin = other.integrator.image(render(other, passes=passes)).reshape(res[1], res[0], 3)
         out[sampler] = {"error": rel_rms(img, ref), "noise": rel_rms(img, twin) / math.sqrt(2.0),
                         "cpu_seconds": seconds,
-                        "traced": c["draws"] + c["mutations"] + c["boot"] if c else passes * photons}
+                        "traced": traced_paths(c, passes, photons)}
     out["uniform_over_adaptive"] = out["uniform"]["error"] / out["adaptive"]["error"]
     out["noise_uniform_over_adaptive"] = out["uniform"]["noise"] / out["adaptive"]["noise"]
     return out
@@ -197,23 +224,19 @@ def at_defaults(scene: Scene, res: tuple[int, int], photons: int, budget: float,
     """Uniform, adaptive and always-mutating chains, two seeds each, taking turns pass by
     pass on their own CPU clocks: passes, noise (two seeds' relative RMS difference over
     sqrt 2), V_c and, where `analytic` (the patch), the error against patch_plane."""
-    default_gain = adaptive.MIN_GAIN
     runs = {}
-    try:
-        for variant, gain in VARIANTS.items():
-            for seed in (SEED, SEED + 1):
-                adaptive.MIN_GAIN = gain or default_gain
+    for variant, gain in VARIANTS.items():
+        for seed in (SEED, SEED + 1):
+            with min_gain(gain or adaptive.MIN_GAIN):
                 eng = warmed(scene, res, photons, "uniform" if gain is None else "adaptive", seed)
-                runs[(variant, seed)] = {"engine": eng, "state": eng.start(), "spent": 0.0, "gain": gain}
-        while any(run["spent"] < budget for run in runs.values()):
-            for run in runs.values():
-                if run["spent"] < budget:
-                    adaptive.MIN_GAIN = run["gain"] or default_gain
+            runs[(variant, seed)] = {"engine": eng, "state": eng.start(), "spent": 0.0, "gain": gain}
+    while any(run["spent"] < budget for run in runs.values()):
+        for run in runs.values():
+            if run["spent"] < budget:
+                with min_gain(run["gain"] or adaptive.MIN_GAIN):
                     t0 = time.process_time()
                     render(run["engine"], passes=run["state"].passes + 1, state=run["state"])
                     run["spent"] += time.process_time() - t0
-    finally:
-        adaptive.MIN_GAIN = default_gain
     out = {}
     for variant in VARIANTS:
         pair = [runs[(variant, seed)] for seed in (SEED, SEED + 1)]
@@ -221,7 +244,8 @@ def at_defaults(scene: Scene, res: tuple[int, int], photons: int, budget: float,
         counters = pair[0]["state"].counters
         out[variant] = {"passes": [run["state"].passes for run in pair],
                         "noise": rel_rms(images[0], images[1]) / math.sqrt(2.0),
-                        "visible_fraction": adaptive.visible_fraction(counters) if counters else None}
+                        "visible_fraction": adaptive.visible_fraction(counters) if counters else None,
+                        "theta": adaptive.theta(counters) if counters else None}
         if analytic:
             truth = patch_plane(pair[0]["engine"]).reshape(res[1], res[0])
             out[variant]["error"] = [float(np.sqrt(np.mean((img.mean(axis=2) / truth - 1.0) ** 2))) for img in images]
