@@ -21,10 +21,10 @@
 
 4. (`--defaults`, alone) at the service's defaults (256 pixels, 2^18 photons a pass, 12 CPU
    s): uniform, adaptive, and chains made to mutate at the paper's break-even (MIN_GAIN 1),
-   on cornell-box, gap, directional-caustic at fov 5 and 1.25 and a point-lit patch (tests/analytic.py
-   patch_scene) at fov 6, 2 and 0.6 (V_c about 0.0085, 0.0012, 0.00013): the noise of two
-   seeds (no reference needed at this size) and, on the patch, the error against its
-   closed form. This is where adaptive.mutates's MIN_GAIN comes from.
+   on cornell-box, gap, directional-caustic at fov 5 and 1.25 and a point-lit patch
+   (tests/analytic.py patch_scene) at fov 6, 2 and 0.6 (V_c about 0.0084, 0.0011,
+   0.00011): the noise of two seeds (no reference needed at this size) and, on the patch,
+   the error against its closed form. This is where adaptive.mutates's MIN_GAIN comes from.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
