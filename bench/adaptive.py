@@ -49,7 +49,7 @@ import json
 import math
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +76,7 @@ CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere'
 # sampler, 128 passes of 2^13 at about 2 traced paths a photon path: 0.12).
 PHOTONS = 1 << 13
 SEED = 7
+VARIANTS = {"uniform": None, "adaptive": adaptive.MIN_GAIN, "chains": 1.0}  # sampler (uniform if None), MIN_GAIN
 
 
 def zoomed(fov: float) -> Scene:
@@ -134,29 +135,45 @@ def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str, seed:
     return eng
 
 
+def take_turns(scene: Scene, res: tuple[int, int], photons: int, budget: float, keys: list[tuple[str, int]],
+               after_pass: Callable[[dict], None] | None = None) -> dict[tuple[str, int], dict]:
+    """Per (variant of VARIANTS, seed) a run (engine, state, CPU seconds spent), rendered
+    pass by pass in turn until each has spent `budget`, each on its own clock (set-up and
+    rendering, not the kernels' compilation), so that a shared machine's load, which moved
+    a pass's CPU time by up to 1.5x between runs made one after the other, falls on all of
+    them alike. `after_pass(run)` is called after each pass, off the clock."""
+    runs = {}
+    for variant, seed in keys:
+        gain = VARIANTS[variant]
+        with min_gain(gain or adaptive.MIN_GAIN):
+            eng = warmed(scene, res, photons, "uniform" if gain is None else "adaptive", seed)
+            t0 = time.process_time()
+            runs[(variant, seed)] = {"engine": eng, "state": eng.start(), "gain": gain}
+            runs[(variant, seed)]["spent"] = time.process_time() - t0
+    while any(run["spent"] < budget for run in runs.values()):
+        for run in runs.values():
+            if run["spent"] < budget:
+                with min_gain(run["gain"] or adaptive.MIN_GAIN):
+                    t0 = time.process_time()
+                    render(run["engine"], passes=run["state"].passes + 1, state=run["state"])
+                    run["spent"] += time.process_time() - t0
+                if after_pass is not None:
+                    after_pass(run)
+    return runs
+
+
 def curves(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
            keys: list[tuple[str, int]]) -> dict[tuple[str, int], tuple[list, np.ndarray, int]]:
     """Per (sampler, seed): (CPU seconds, relative RMS error) after every pass, the final
-    image and its passes. The runs take turns pass by pass, each on its own clock (set-up
-    and rendering, not the kernels' compilation), so that a shared machine's load, which
-    moved a pass's CPU time by up to 1.5x between runs made one after the other, falls on
-    all of them alike."""
-    runs = {}
-    for key in keys:
-        eng = warmed(scene, res, photons, key[0], key[1])
-        t0 = time.process_time()
-        runs[key] = {"engine": eng, "state": eng.start(), "spent": time.process_time() - t0, "points": []}
-    while any(run["spent"] < budget for run in runs.values()):
-        for run in runs.values():
-            if run["spent"] >= budget:
-                continue
-            eng, state = run["engine"], run["state"]
-            t0 = time.process_time()
-            render(eng, passes=state.passes + 1, state=state)
-            run["spent"] += time.process_time() - t0  # the error below is not the sampler's time
-            run["points"].append((run["spent"], rel_rms(eng.integrator.image(state).reshape(res[1], res[0], 3), ref)))
-    return {key: (run["points"], run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3),
-                  run["state"].passes) for key, run in runs.items()}
+    image and its passes (take_turns)."""
+    def image(run: dict) -> np.ndarray:
+        return run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3)
+
+    def record(run: dict) -> None:
+        run.setdefault("points", []).append((run["spent"], rel_rms(image(run), ref)))
+
+    runs = take_turns(scene, res, photons, budget, keys, record)
+    return {key: (run.get("points", []), image(run), run["state"].passes) for key, run in runs.items()}
 
 
 def split(a: np.ndarray, b: np.ndarray, ref: np.ndarray) -> dict[str, float]:
@@ -217,26 +234,14 @@ def zoom_reference(fov: float, res: tuple[int, int], photons: int, seconds: floa
 
 DEFAULTS_SIDE, DEFAULTS_PHOTONS, DEFAULTS_BUDGET = 256, 1 << 18, 12.0
 PATCH_FOVS = (6.0, 2.0, 0.6)
-VARIANTS = {"uniform": None, "adaptive": adaptive.MIN_GAIN, "chains": 1.0}  # sampler, and MIN_GAIN
 
 
 def at_defaults(scene: Scene, res: tuple[int, int], photons: int, budget: float, analytic: bool) -> dict:
     """Uniform, adaptive and always-mutating chains, two seeds each, taking turns pass by
     pass on their own CPU clocks: passes, noise (two seeds' relative RMS difference over
     sqrt 2), V_c and, where `analytic` (the patch), the error against patch_plane."""
-    runs = {}
-    for variant, gain in VARIANTS.items():
-        for seed in (SEED, SEED + 1):
-            with min_gain(gain or adaptive.MIN_GAIN):
-                eng = warmed(scene, res, photons, "uniform" if gain is None else "adaptive", seed)
-            runs[(variant, seed)] = {"engine": eng, "state": eng.start(), "spent": 0.0, "gain": gain}
-    while any(run["spent"] < budget for run in runs.values()):
-        for run in runs.values():
-            if run["spent"] < budget:
-                with min_gain(run["gain"] or adaptive.MIN_GAIN):
-                    t0 = time.process_time()
-                    render(run["engine"], passes=run["state"].passes + 1, state=run["state"])
-                    run["spent"] += time.process_time() - t0
+    keys = [(variant, seed) for variant in VARIANTS for seed in (SEED, SEED + 1)]
+    runs = take_turns(scene, res, photons, budget, keys)
     out = {}
     for variant in VARIANTS:
         pair = [runs[(variant, seed)] for seed in (SEED, SEED + 1)]
