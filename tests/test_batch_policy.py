@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
-                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, MAX_BATCH_PASSES, MERGE_SHARE, REFRESH_SECONDS,
+                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_SHARE, REFRESH_SECONDS,
                                  ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, paced_batches,
                                  round_seconds)
 
@@ -57,8 +57,16 @@ def test_the_last_passes_are_split_among_the_workers(workers: int, left: int) ->
     assert batch_passes(0.1, 0.0, workers=workers, passes_left=1000) == round(BATCH_TARGET_SECONDS / 0.1)
 
 
-def test_batches_never_exceed_the_cap() -> None:
-    assert batch_passes(0.001, 1.0, fold_seconds=10.0, workers=8) == MAX_BATCH_PASSES
+@pytest.mark.parametrize("workers", [20, 100, 1000])
+def test_many_workers_on_a_job_keep_the_merge_within_its_share(workers: int) -> None:
+    """With many workers the refresh asks nothing of a batch's length, so the merge share
+    alone sets it, however many passes that takes (a 1920x1080 pass of 1.2 s, a merge of
+    0.3 s and a fold round of 2.4 s: 46 passes): the merges a second of the job, and with
+    them the state nodes' load, are what the share allows and no more."""
+    pass_seconds, merge, fold = 1.2, 0.3, 2.4
+    spread = [i * 60.0 / workers for i in range(1, workers)]  # the others' deliveries over a batch
+    n = batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers, others_due=spread)
+    assert n * pass_seconds == pytest.approx((merge + fold) / MERGE_SHARE, abs=pass_seconds / 2)
 
 
 def _deliveries(workers: int, pass_seconds: float, merge: float, fold: float,

@@ -34,7 +34,6 @@ LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
 QUEUED_SECONDS = LEASE_SECONDS  # how often the reaper checks that a waiting batch is still in its queue
 BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long, and ...
 MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
-MAX_BATCH_PASSES = 32
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
 MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy (issue 14: 100 on one job)
 # The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
@@ -91,6 +90,13 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     batches end together rather than one worker rendering the tail alone). One pass until a
     pass was timed.
 
+    No cap in passes: a batch's passes cost what they cost, and the refresh bounds its
+    length. A cap (32 passes, until 2026-11-27) cut exactly the batches the share asks to be
+    long, those of many workers on a job (a 1920x1080 pass of 1.2 s, a merge and round of
+    2.7 s: 46 passes), so their merges came 1.4x as often as the share allows and loaded
+    the state nodes as much more (bench/merge_capacity.py). A long batch is no slower to
+    stop: a worker asks after every pass whether the job still wants it.
+
     The refresh assumes the workers' deliveries spread over the interval; workers that
     start together would deliver in pairs, and the image would wait twice as long between
     pairs. So a batch is delivered (merge included) at most DELIVERY_SECONDS after the last
@@ -105,7 +111,7 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
             target = min(target, seconds_left)
         last = max((due for due in others_due if due < target + mean_merge_seconds), default=0.0)
         stagger = math.floor((max(0.0, last) + DELIVERY_SECONDS - mean_merge_seconds) / pass_seconds)
-        n = max(1, min(MAX_BATCH_PASSES, round(target / pass_seconds), stagger))
+        n = max(1, min(round(target / pass_seconds), stagger))
     if passes_left is not None:
         n = min(n, -(-passes_left // workers))
     return n
