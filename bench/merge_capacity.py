@@ -67,7 +67,9 @@ from worker.store.tiles import encode_delta
 
 PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)
 ROUND_MODEL_SPAN = 3  # _round_model needs rounds of at least this many times the fewest batches
-PROJECTED_WORKERS = (1, 2, 5, 10, 20, 50, 100, 200)  # charted
+ROUND_FIXED_POINT_STEPS = 200  # project: damped steps to the batch and round of an N
+PROJECTED_WORKERS = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)  # charted
+PROJECTED_MAX = 1000  # the most workers project tries
 FULL = {"sizes": [(1920, 1080), (3840, 2160)], "workers": [1, 2, 5, 10, 20, 50, 100], "batches": 3}
 SMOKE = {"sizes": [(320, 180), (640, 360)], "workers": [1, 2], "batches": 2}
 
@@ -257,12 +259,13 @@ def project(runs: list[dict]) -> dict:
     batch accepted meanwhile: its load is the rounds a second times a round's fixed cost plus
     the batches a second times a delta's (_round_model over every round of the series; the
     CPU seconds a batch at the largest N sustained, which spread a round over that N's
-    batches, is kept as `folder_per_batch_load_at_100`). For each N
-    the scheduler's batch gives the rate batches arrive, N / (batch + merge), and with it
-    each part's load; the merge waits longer on a loaded node (as on a queue served at
-    random: alone / (1 - load)). A part is saturated at PROJECTED_LOAD. Reported per
-    series: the largest N whose every part stays below that with the merge under 5%, what
-    limits the next N, and the loads at N = 100."""
+    batches, is kept as `folder_per_batch_load_at_100`). For each N the scheduler's batch,
+    sized by the merge and the round that round model gives at that N (`steady`), gives the
+    rate batches arrive, N / (batch + merge), and with it each part's load; the merge waits
+    longer on a loaded node (as on a queue served at random: alone / (1 - load)). A part is
+    saturated at PROJECTED_LOAD. Reported per series: the largest N up to PROJECTED_MAX
+    whose every part stays below that with the merge under 5%, what limits the next N, and
+    the loads, batch and round at N = 100."""
     out = {}
     for (w, h, nodes), series in _series(runs).items():
         done = [r for r in series if r["sustained"]]
@@ -276,13 +279,28 @@ def project(runs: list[dict]) -> dict:
         round_seconds = base["fold_round_median_seconds"] or 0.0
         model = _round_model([tuple(c) for r in series for c in r.get("folder_round_costs", [])])
 
+        def steady(n: int) -> tuple[float, float, float]:
+            """The batch, the batches a second and the fold round at N = n. The scheduler's
+            batch takes the job's last round, and with the folder on a core of its own a
+            round lasts its CPU seconds (the model), which grow with the batches it folds:
+            the fixed point of the two (a round measured here, at the base N on shared
+            cores, would stand for every N)."""
+            length = round_seconds
+            for _ in range(ROUND_FIXED_POINT_STEPS):
+                batch = _steady_batch(pass_seconds, merge, length, n)
+                rate = n / (batch + merge)
+                if model is None:
+                    break
+                period = fold_interval(length) + FOLD_POLL_SECONDS / 2 + length
+                length = 0.5 * (length + model[0] + model[1] * max(1.0, rate * period))
+            return batch, rate, length
+
         def loads(n: int) -> tuple[dict[str, float], float, float]:
             """Each part's load, the merge share and the batches a second, at N = n."""
-            batch = _steady_batch(pass_seconds, merge, round_seconds, n)
-            rate = n / (batch + merge)
+            batch, rate, length = steady(n)
             load = {part: rate * c for part, c in costs.items()}
             if model is not None:
-                rounds = min(rate, 1.0 / (fold_interval(round_seconds) + FOLD_POLL_SECONDS / 2 + round_seconds))
+                rounds = min(rate, 1.0 / (fold_interval(length) + FOLD_POLL_SECONDS / 2 + length))
                 load["folder"] = rounds * model[0] + rate * model[1]
             waited = merge / max(1e-9, 1.0 - max(load.values()))
             return load, waited / (batch + waited), rate
@@ -295,7 +313,7 @@ def project(runs: list[dict]) -> dict:
                 return max(load, key=load.get)
             return "merge share" if share > MERGE_SHARE else None
 
-        capacity = max((n for n in range(1, 1001) if limit_at(n) is None), default=0)
+        capacity = max((n for n in range(1, PROJECTED_MAX + 1) if limit_at(n) is None), default=0)
         limit = limit_at(capacity + 1)
         at_100, share_100, rate_100 = loads(100)
         out[f"{w}x{h}, {nodes} node(s)"] = {
@@ -303,7 +321,8 @@ def project(runs: list[dict]) -> dict:
             "from_workers": base["workers"], "cpu_seconds_per_batch": costs, "merge_alone_seconds": merge,
             "capacity": capacity, "limited_by": limit, "loads_at_100": at_100, "merge_share_at_100": share_100,
             "folder_round_model": model, "folder_per_batch_load_at_100": rate_100 * costs["folder"],
-            "bytes_per_second_at_100": rate_100 * base["delta_bytes"]}
+            "bytes_per_second_at_100": rate_100 * base["delta_bytes"],
+            "batch_and_round_seconds_at_100": steady(100)[::2]}
     return out
 
 

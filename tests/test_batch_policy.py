@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
-                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_SHARE, REFRESH_SECONDS,
+                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_PATH_SHARE, MERGE_SHARE, REFRESH_SECONDS,
                                  ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, paced_batches,
                                  round_seconds)
 
@@ -58,15 +58,19 @@ def test_the_last_passes_are_split_among_the_workers(workers: int, left: int) ->
 
 
 @pytest.mark.parametrize("workers", [20, 100, 1000])
-def test_many_workers_on_a_job_keep_the_merge_within_its_share(workers: int) -> None:
-    """With many workers the refresh asks nothing of a batch's length, so the merge share
-    alone sets it, however many passes that takes (a 1920x1080 pass of 1.2 s, a merge of
-    0.3 s and a fold round of 2.4 s: 46 passes): the merges a second of the job, and with
-    them the state nodes' load, are what the share allows and no more."""
+def test_many_workers_on_a_job_load_its_merge_path_the_same(workers: int) -> None:
+    """With many workers the refresh asks little of a batch's length: the merge share sets
+    it (a 1920x1080 pass of 1.2 s, a merge of 0.3 s and a fold round of 2.4 s: 46 passes,
+    whatever that takes in passes), and past some N the job's merges together, which come
+    N / batch a second, would keep its merge path ever busier: batches then lengthen with N,
+    so the path is busy at most MERGE_PATH_SHARE of the time, and the image still changes
+    every REFRESH_SECONDS."""
     pass_seconds, merge, fold = 1.2, 0.3, 2.4
-    spread = [i * 60.0 / workers for i in range(1, workers)]  # the others' deliveries over a batch
-    n = batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers, others_due=spread)
-    assert n * pass_seconds == pytest.approx((merge + fold) / MERGE_SHARE, abs=pass_seconds / 2)
+    spread = [i * REFRESH_SECONDS / 2 for i in range(1, workers)]  # the others' deliveries, spread
+    batch = batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers, others_due=spread) * pass_seconds
+    assert batch >= (merge + fold) / MERGE_SHARE - pass_seconds / 2
+    assert workers / (batch + merge) * merge <= MERGE_PATH_SHARE * 1.01
+    assert (batch + merge) / workers <= REFRESH_SECONDS
 
 
 def _deliveries(workers: int, pass_seconds: float, merge: float, fold: float,

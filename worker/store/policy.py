@@ -33,7 +33,13 @@ FINAL = frozenset(Status) - ACTIVE
 LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
 QUEUED_SECONDS = LEASE_SECONDS  # how often the reaper checks that a waiting batch is still in its queue
 BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long, and ...
-MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge
+MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge, and ...
+# ... long enough that the job's merges together keep its merge path (the state nodes, which
+# take a batch's delta in about its merge's time) busy at most this share of the time: with
+# N workers a batch lasts at least N mean merges / MERGE_PATH_SHARE, so the merges of one
+# job load the nodes the same however many workers render it (and, as the mean merge
+# includes its waits, less when the nodes are busy with other jobs too).
+MERGE_PATH_SHARE = 0.5
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
 MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy (issue 14: 100 on one job)
 # The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
@@ -82,7 +88,8 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     About BATCH_TARGET_SECONDS of rendering, and long enough that the batch's merge and the
     fold round that takes it in (`fold_seconds`, the job's last round: the folder and the
     state nodes read, merge and estimate the whole state) cost at most MERGE_SHARE of a
-    worker's time, as far as the refresh allows: the refresh is a budget, the merge share a
+    worker's time, and that the job's workers together keep its merge path busy at most
+    MERGE_PATH_SHARE of the time, as far as the refresh allows: the refresh is a budget, the merge share a
     cost, so the job's workers together still deliver a batch every REFRESH_SECONDS, each
     batch's merge included (a job whose merge alone is long pays a larger share for that).
     Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
@@ -90,12 +97,12 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     batches end together rather than one worker rendering the tail alone). One pass until a
     pass was timed.
 
-    No cap in passes: a batch's passes cost what they cost, and the refresh bounds its
-    length. A cap (32 passes, until 2026-11-27) cut exactly the batches the share asks to be
-    long, those of many workers on a job (a 1920x1080 pass of 1.2 s, a merge and round of
-    2.7 s: 46 passes), so their merges came 1.4x as often as the share allows and loaded
-    the state nodes as much more (bench/merge_capacity.py). A long batch is no slower to
-    stop: a worker asks after every pass whether the job still wants it.
+    No cap in passes: the refresh bounds a batch's length. A cap (32 passes, until
+    2026-11-27) cut exactly the batches the share asks to be long, those of many workers on
+    a job (a 1920x1080 pass of 1.2 s, a merge and round of 2.7 s: 46 passes), so their
+    merges came 1.4x as often as the share allows and loaded the state nodes as much more
+    (bench/merge_capacity.py). A long batch is no slower to stop: a worker asks after every
+    pass whether the job still wants it.
 
     The refresh assumes the workers' deliveries spread over the interval; workers that
     start together would deliver in pairs, and the image would wait twice as long between
@@ -106,7 +113,8 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     workers, n = max(1, workers), 1
     if pass_seconds > 0.0:
         refresh = max(pass_seconds, workers * REFRESH_SECONDS - mean_merge_seconds)
-        target = max(BATCH_TARGET_SECONDS, min((mean_merge_seconds + fold_seconds) / MERGE_SHARE, refresh))
+        cost = max((mean_merge_seconds + fold_seconds) / MERGE_SHARE, workers * mean_merge_seconds / MERGE_PATH_SHARE)
+        target = max(BATCH_TARGET_SECONDS, min(cost, refresh))
         if seconds_left is not None:
             target = min(target, seconds_left)
         last = max((due for due in others_due if due < target + mean_merge_seconds), default=0.0)
