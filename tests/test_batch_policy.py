@@ -96,7 +96,7 @@ def _deliveries(workers: int, pass_seconds: float, merge: float, fold: float,
     return deliveries, sizes
 
 
-@pytest.mark.parametrize("workers", [1, 2, 3, 5])
+@pytest.mark.parametrize("workers", [1, 2, 3, 5, 20, 100])
 @pytest.mark.parametrize("pass_seconds, merge, fold", [(4.4, 1.0, 2.6), (1.1, 0.3, 0.6), (0.2, 0.05, 0.1),
                                                        (2.9, 2.0, 7.0)])
 def test_workers_that_start_together_deliver_spread_over_the_refresh(workers: int, pass_seconds: float,
