@@ -15,8 +15,10 @@ a one-thread worker of today's engine, measured on furnace at 1920 x 1080 with t
 service's default 2^18 photons a pass: 1.18 s a pass, 0.15 s of it tracing), a batch the passes the scheduler's
 own rule gives for that pass time, the mean merge so far, the job's last fold round and
 the N workers (worker/store/policy.py batch_passes: a merge and the fold round it causes
-at most 5% of the batch, as far as the N workers together still bring a batch every
-10 s). Workers start staggered over one batch.
+at most 5% of the batch and the job's merges at most half the merge path's time, as far
+as the N workers together still bring a batch every 10 s, and each delivered at most 9.5 s after the job's other batches due before it, so
+that deliveries spread: the job's due set, as Jobs.allocate reads it). Workers start
+staggered over one batch.
 
 Per frame size, node count and N: merge seconds (push + accept + encode; median, p95),
 its share of the simulated workers' time, the passes a batch needs for the mean merge to
@@ -109,15 +111,30 @@ def _batch_seconds(store: Jobs, job_id: str, pass_seconds: float, mean_merge: fl
     return _steady_batch(pass_seconds, mean_merge, store.get(job_id).fold_seconds, n_workers)
 
 
+def _next_batch(store: Jobs, job_id: str, worker: int, pass_seconds: float, mean_merge: float,
+                n_workers: int) -> float:
+    """A simulated worker's next batch, sized as Jobs.allocate sizes it: with the job's last
+    fold round and the other workers' expected deliveries (the job's due set, where each
+    simulated worker keeps its own), so that their deliveries spread as the service's do."""
+    now, me = time.time(), f"sim-{worker}".encode()
+    others = [due - now for member, due in store.r.zrange(keys.due(job_id), 0, -1, withscores=True) if member != me]
+    seconds = batch_passes(pass_seconds, mean_merge, None, store.get(job_id).fold_seconds, n_workers,
+                           others_due=others) * pass_seconds
+    store.r.zadd(keys.due(job_id), {me: now + seconds + mean_merge})
+    return seconds
+
+
 def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pass_seconds: float,
             first_merge: float, start: float, end: float, first_batch: int, out: mp.Queue) -> None:
     """Simulated workers `workers` (of n_workers): render a batch (wait), push, accept,
-    repeat; each batch sized by the scheduler's rule from the mean merge so far."""
+    repeat; each batch sized by the scheduler's rule from the mean merge so far and the
+    others' deliveries (_next_batch)."""
     retain_large_allocations()  # as `photonfarm worker` does
     store = _store(urls)
     delta, payloads, encode = _delta(store, job_id)
     first = _batch_seconds(store, job_id, pass_seconds, first_merge, n_workers)
     due = {w: start + first * (1 + w / n_workers) for w in workers}
+    store.r.zadd(keys.due(job_id), {f"sim-{w}": at + first_merge for w, at in due.items()})
     latencies, lateness, accepted, rendered, batch_no = [first_merge], [], [], 0.0, first_batch
     while True:
         w = min(due, key=due.get)
@@ -130,7 +147,7 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pa
         latencies.append(time.perf_counter() - t0 + encode)
         accepted.append(time.time())
         batch_no += 1
-        batch = _batch_seconds(store, job_id, pass_seconds, statistics.fmean(latencies), n_workers)
+        batch = _next_batch(store, job_id, w, pass_seconds, statistics.fmean(latencies), n_workers)
         rendered += batch
         due[w] = time.time() + batch
     out.put({"latencies": latencies[1:], "lateness": lateness, "accepted": accepted, "rendered": rendered})
