@@ -16,9 +16,9 @@ service's default 2^18 photons a pass: 1.18 s a pass, 0.15 s of it tracing), a b
 own rule gives for that pass time, the mean merge so far, the job's last fold round and
 the N workers (worker/store/policy.py batch_passes: a merge and the fold round it causes
 at most 5% of the batch and the job's merges at most half the merge path's time, as far
-as the N workers together still bring a batch every 10 s, and each delivered at most 9.5 s after the job's other batches due before it, so
-that deliveries spread: the job's due set, as Jobs.allocate reads it). Workers start
-staggered over one batch.
+as the N workers together still bring a batch every 10 s, and each delivered at most
+9.5 s after the job's other batches due before it, so that deliveries spread: the job's
+due set, as Jobs.allocate reads it). Workers start staggered over one batch.
 
 Per frame size, node count and N: merge seconds (push + accept + encode; median, p95),
 its share of the simulated workers' time, the passes a batch needs for the mean merge to

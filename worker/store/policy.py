@@ -89,9 +89,10 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     fold round that takes it in (`fold_seconds`, the job's last round: the folder and the
     state nodes read, merge and estimate the whole state) cost at most MERGE_SHARE of a
     worker's time, and that the job's workers together keep its merge path busy at most
-    MERGE_PATH_SHARE of the time, as far as the refresh allows: the refresh is a budget, the merge share a
-    cost, so the job's workers together still deliver a batch every REFRESH_SECONDS, each
-    batch's merge included (a job whose merge alone is long pays a larger share for that).
+    MERGE_PATH_SHARE of the time, as far as the refresh allows: the refresh is a budget,
+    the merge share a cost, so the job's workers together still deliver a batch every
+    REFRESH_SECONDS, each batch's merge included (a job whose merge alone is long pays a
+    larger share for that).
     Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
     plus one pass) and its passes (`passes_left`, split among the workers, so the last
     batches end together rather than one worker rendering the tail alone). One pass until a
