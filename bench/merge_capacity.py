@@ -106,11 +106,6 @@ def _steady_batch(pass_seconds: float, mean_merge: float, fold_seconds: float, n
     return batch_passes(pass_seconds, mean_merge, None, fold_seconds, n_workers, others_due=spread) * pass_seconds
 
 
-def _batch_seconds(store: Jobs, job_id: str, pass_seconds: float, mean_merge: float, n_workers: int) -> float:
-    """The scheduler's batch for these workers (with the job's last fold round)."""
-    return _steady_batch(pass_seconds, mean_merge, store.get(job_id).fold_seconds, n_workers)
-
-
 def _next_batch(store: Jobs, job_id: str, worker: int, pass_seconds: float, mean_merge: float,
                 n_workers: int) -> float:
     """A simulated worker's next batch, sized as Jobs.allocate sizes it: with the job's last
@@ -125,14 +120,13 @@ def _next_batch(store: Jobs, job_id: str, worker: int, pass_seconds: float, mean
 
 
 def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pass_seconds: float,
-            first_merge: float, start: float, end: float, first_batch: int, out: mp.Queue) -> None:
-    """Simulated workers `workers` (of n_workers): render a batch (wait), push, accept,
-    repeat; each batch sized by the scheduler's rule from the mean merge so far and the
-    others' deliveries (_next_batch)."""
+            first_merge: float, first: float, start: float, end: float, first_batch: int, out: mp.Queue) -> None:
+    """Simulated workers `workers` (of n_workers): render a batch (the first `first` seconds,
+    as run calibrated it; wait), push, accept, repeat; each next batch sized by the
+    scheduler's rule from the mean merge so far and the others' deliveries (_next_batch)."""
     retain_large_allocations()  # as `photonfarm worker` does
     store = _store(urls)
     delta, payloads, encode = _delta(store, job_id)
-    first = _batch_seconds(store, job_id, pass_seconds, first_merge, n_workers)
     due = {w: start + first * (1 + w / n_workers) for w in workers}
     store.r.zadd(keys.due(job_id), {f"sim-{w}": at + first_merge for w, at in due.items()})
     latencies, lateness, accepted, rendered, batch_no = [first_merge], [], [], 0.0, first_batch
@@ -211,15 +205,15 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
     _merge(store, job_id, Batch(job_id, 0, 1), delta, payloads)
     alone = time.perf_counter() - t0 + encode
     store.fold(job_id, wait=True)  # the job's first round: its length sizes the batches (Jobs.allocate)
-    batch_seconds = _batch_seconds(store, job_id, pass_seconds, alone, n_workers)
+    batch_seconds = _steady_batch(pass_seconds, alone, store.get(job_id).fold_seconds, n_workers)
     # Run N workers and the folder for `batches` batches each.
     ctx = mp.get_context("spawn")
     out: mp.Queue = ctx.Queue()
     start = time.time() + 5.0  # the pushers build their deltas meanwhile
     end = start + batch_seconds * (batches + 1)
     groups = [list(range(p, n_workers, processes)) for p in range(min(processes, n_workers))]
-    procs = [ctx.Process(target=_pusher, args=(urls, job_id, g, n_workers, pass_seconds, alone, start, end,
-                                               1 + i * 10 ** 6, out)) for i, g in enumerate(groups)]
+    procs = [ctx.Process(target=_pusher, args=(urls, job_id, g, n_workers, pass_seconds, alone, batch_seconds,
+                                               start, end, 1 + i * 10 ** 6, out)) for i, g in enumerate(groups)]
     pushed = ctx.Event()
     procs.append(ctx.Process(target=_folder, args=(urls, job_id, pushed, out)))
     node_cpu0 = [cpu_seconds([pid]) for pid in pids]
