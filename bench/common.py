@@ -73,6 +73,22 @@ def cpu_seconds(pids: list[int]) -> float:
     return total
 
 
+def core_times() -> list:
+    """Each core's times so far (psutil: user, system, idle, steal, ...)."""
+    return psutil.cpu_times(percpu=True)
+
+
+def host_seconds(before: list, after: list, ours: float) -> dict[str, object]:
+    """What the cores did between two core_times(): per core, the seconds the hypervisor
+    gave to other guests (steal: this VM wanted the core and did not get it) and the busy
+    seconds; and the busy seconds of processes other than ours (`ours`: their CPU seconds
+    over the same span)."""
+    steal = [a.steal - b.steal for b, a in zip(before, after)]
+    busy = [(a.user + a.nice + a.system + a.irq + a.softirq) - (b.user + b.nice + b.system + b.irq + b.softirq)
+            for b, a in zip(before, after)]
+    return {"steal_seconds": steal, "busy_seconds": busy, "others_cpu_seconds": sum(busy) - ours}
+
+
 def write_json(name: str, report: object) -> Path:
     """bench/out/NAME.json."""
     OUT_DIR.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,10 @@ deployment with one worker per core does not). Every process's CPU seconds over 
 job (psutil; Redis with its append-only-file rewrites) are split per accepted batch:
 the workers' rendering and merging (push and accept, from the job record), the API
 (the folder's rounds) and Redis. CPU seconds move far less with the shared machine's
-load than wall time, and say what keeps the ratio below 2x. `--smoke` runs small frames
+load than wall time, and say what keeps the ratio below 2x. Per job also the host's
+share (bench.common.host_seconds): each core's steal time (the hypervisor running other
+guests while this VM wanted the core; a pinned worker then renders slower whatever we do)
+and the CPU of processes other than the cluster's. `--smoke` runs small frames
 for a few seconds (a check that it runs). Writes bench/out/service_scaling_pinned.json
 and .png (`_smoke` for the smoke run).
 """
@@ -56,7 +59,7 @@ import numpy as np
 import redis
 
 from api_tests.cluster import Cluster, finished
-from bench.common import bench_engine, cpu_seconds, save_figure, write_json
+from bench.common import bench_engine, core_times, cpu_seconds, host_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.render_loop import render
@@ -226,7 +229,7 @@ def _pinned_job(c: Cluster, case: PinnedCase, workers: int) -> dict:
     jobs = Jobs(c.redis_client)
     parts = {"workers": [w.pid for w in c.workers], "api": [c.api.pid], "redis": [c.redis.proc.pid]}
     load = os.getloadavg()[0]
-    cpu0, wall0 = {k: cpu_seconds(v) for k, v in parts.items()}, time.perf_counter()
+    cpu0, cores0, wall0 = {k: cpu_seconds(v) for k, v in parts.items()}, core_times(), time.perf_counter()
     job_id = c.submit(scene_name=PINNED_SCENE, settings={"max_passes": case.passes,
                                                          "resolution": list(case.resolution),
                                                   "seed": 1})["id"]
@@ -239,6 +242,7 @@ def _pinned_job(c: Cluster, case: PinnedCase, workers: int) -> dict:
         time.sleep(SAMPLE_SECONDS)
     wall = time.perf_counter() - wall0
     cpu = {k: cpu_seconds(v) - cpu0[k] for k, v in parts.items()}
+    host = host_seconds(cores0, core_times(), sum(cpu.values()))
     history = jobs.history(job_id)
     batches, rounds = max(1, record.merges), max(1, len(history))
     split = {"worker render": record.render_cpu_seconds, "worker merge": record.merge_cpu_seconds,
@@ -254,7 +258,7 @@ def _pinned_job(c: Cluster, case: PinnedCase, workers: int) -> dict:
             "cpu_seconds": split, "cpu_seconds_per_batch": {k: v / batches for k, v in split.items()},
             "api_cpu_seconds_per_fold_round": cpu["api"] / rounds,
             "load_average_before": load, "load_average_after": os.getloadavg()[0],
-            "history": history}
+            "host": host, "history": history}
 
 
 def pinned(workers: int, cases: tuple[PinnedCase, ...]) -> list[dict]:
@@ -276,7 +280,9 @@ def pinned(workers: int, cases: tuple[PinnedCase, ...]) -> list[dict]:
                       f"{run['photons_per_second'] / 1e6:.3f} M photons/s "
                       f"(whole job {run['photons_per_second_whole_job'] / 1e6:.3f}), "
                       f"error {run['final_error']:.4f} after {tte:.1f} s, "
-                      f"{run['batches']} batches, {run['fold_rounds']} folds, load {run['load_average_before']:.1f}; "
+                      f"{run['batches']} batches, {run['fold_rounds']} folds, load {run['load_average_before']:.1f}, "
+                      f"steal {sum(run['host']['steal_seconds']):.2f} s, "
+                      f"others {run['host']['others_cpu_seconds']:.2f} CPU s; "
                       "CPU s per batch: " + ", ".join(f"{k} {v:.2f}" for k, v in run["cpu_seconds_per_batch"].items()),
                       flush=True)
             return out
