@@ -110,8 +110,8 @@ class Device:
         host memory, which on PoCL's CPU device is no copy at all (a fresh copy cost 184 ms
         a pass at 1920x1080: page faults on 232 MB, then the copy). They stay valid for as
         long as they are referenced, whatever runs next (batch_sums). The readback's time
-        starts once the kernels that write the sums have run (an integrator need not wait
-        for its last kernel: the hybrid's camera pass ran inside this time before)."""
+        starts once the kernels that write the sums have run: an integrator need not wait
+        for its last kernel (the hybrid's camera pass), whose time is its own stage's."""
         self.queue.finish()
         t0 = time.perf_counter()
         flat, _ = cl.enqueue_map_buffer(self.queue, self._sums, cl.map_flags.READ | cl.map_flags.WRITE, 0,
