@@ -73,9 +73,13 @@ Its relative error is capped at 1: an estimate of 0 is off by at most max(L, flo
 The image average. Per pixel, relative error = bound / max(L, floor), floor =
 FLOOR_FRACTION x the mean L of lit pixels, so dim pixels are measured against a visible
 fraction of the image. The image's average relative error is the LARGER of two means:
-over pixels that found photons, and over measured pixels that never did. A black region
-then cannot hold the average up forever (its mean falls with the bound above), nor, by
-being most of the image, dilute the error of the lit part (which is averaged on its own).
+over pixels that found photons, and over every measured pixel (those that never found one
+included). A black region then cannot hold the average up forever (its errors fall with
+the bound above), nor, by being most of the image, dilute the error of the lit part
+(which is averaged on its own); and it raises the average in proportion to its size, so a
+few pixels measured in a pass or two without a photon (the corner of cornell-box at
+2^18 photons a pass, passes 15-30: one pixel of 62,500) do not set the whole image's error
+to 100%, which the mean over never-lit pixels alone did.
 With fewer than two passes the noise is unknown and the average is 1.
 
 Direct light by next-event estimation (`direct: nee`). Then the image is the photon
@@ -309,7 +313,8 @@ def actual_average(est: ErrorEstimate, truth: np.ndarray) -> float:
 
 
 def image_average(relative: np.ndarray, known: np.ndarray, dark: np.ndarray) -> float:
-    """The larger of the mean relative error over pixels that found photons and over
-    measured pixels that never did (module docstring); 1 if no pixel was measured."""
-    means = [float(relative[group].mean()) for group in (known, dark) if group.any()]
+    """The larger of the mean relative error over pixels that found photons and over every
+    measured pixel, those that never did included (module docstring); 1 if no pixel was
+    measured."""
+    means = [float(relative[group].mean()) for group in (known, known | dark) if group.any()]
     return max(means) if means else 1.0
