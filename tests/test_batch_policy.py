@@ -11,13 +11,23 @@ import pytest
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_PATH_SHARE, MERGE_SHARE, REFRESH_SECONDS,
                                  ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, paced_batches,
-                                 round_seconds)
+                                 recent_pass_seconds, round_seconds)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
     assert batch_passes(0.0, 0.0) == 1
     assert batch_passes(0.0, 0.0, passes_left=0) == 0
     assert batch_passes(0.5, 0.0, passes_left=0) == 0
+
+
+def test_the_next_batch_is_sized_by_the_later_passes_of_the_last() -> None:
+    """A batch's first pass carries its set-up, and a job's passes speed up as its radii
+    shrink: the later half of the batch's passes, not its mean, predicts the next pass."""
+    start, passes = 100.0, [3.8, 2.6, 2.4, 2.2, 2.0, 1.9]  # seconds each
+    ends = list(start + np.cumsum(passes))
+    assert recent_pass_seconds(start, ends) == pytest.approx((2.2 + 2.0 + 1.9) / 3)
+    assert recent_pass_seconds(start, ends[:1]) == pytest.approx(3.8)  # one pass: all there is
+    assert recent_pass_seconds(start, ends[:2]) == pytest.approx(2.6)
 
 
 def test_a_cheap_merge_gives_batches_of_the_target_length() -> None:
@@ -50,11 +60,50 @@ def test_the_time_budget_bounds_the_batch() -> None:
 
 @pytest.mark.parametrize("workers, left", [(2, 10), (2, 7), (3, 10), (4, 3)])
 def test_the_last_passes_are_split_among_the_workers(workers: int, left: int) -> None:
-    """Near the end of a pass budget each batch takes at most its share of what is left,
-    so the workers end together instead of one rendering the tail alone."""
+    """Near the end of a pass budget, with every other worker free, each batch takes its
+    share of what is left, so the workers end together instead of one rendering the tail alone."""
     n = batch_passes(0.1, 0.0, workers=workers, passes_left=left)
     assert n == -(-left // workers)
     assert batch_passes(0.1, 0.0, workers=workers, passes_left=1000) == round(BATCH_TARGET_SECONDS / 0.1)
+
+
+def _tail(workers: int, pass_seconds: float, merge: float, fold: float, total: int) -> tuple[list[int], list[float]]:
+    """A job of `total` passes whose workers each allocate their next batch on delivering
+    one (told the passes left and when the others' batches are due): its batches' passes and
+    each worker's last delivery."""
+    due: dict[int, float] = {}
+    sizes: list[int] = []
+    ends: dict[int, float] = {}
+
+    def allocate(w: int, now: float) -> None:
+        n = batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers, passes_left=total - sum(sizes),
+                         others_due=[at - now for v, at in due.items() if v != w])
+        if n > 0:
+            due[w] = now + n * pass_seconds + merge
+            sizes.append(n)
+
+    for w in range(workers):
+        allocate(w, 0.0)
+    while due:
+        w = min(due, key=lambda v: due[v])
+        ends[w] = due.pop(w)
+        allocate(w, ends[w])
+    return sizes, list(ends.values())
+
+
+@pytest.mark.parametrize("workers, pass_seconds, merge, fold, total", [
+    (2, 1.8, 0.3, 0.7, 80), (2, 0.33, 0.05, 0.05, 90), (3, 1.0, 0.3, 0.6, 100), (5, 1.1, 0.3, 0.6, 300)])
+def test_the_workers_end_a_pass_budget_together_in_few_batches(workers: int, pass_seconds: float, merge: float,
+                                                               fold: float, total: int) -> None:
+    """The last passes go to the free worker and to the others once their batches are due,
+    so that all end together: at most about two passes apart, and the tail adds at most one
+    batch per worker to what batches of the usual length would take (an equal split of
+    what is left, blind to the others' batches, halves the tail batch by batch: 8, 4, 2, 1)."""
+    sizes, ends = _tail(workers, pass_seconds, merge, fold, total)
+    assert sum(sizes) == total
+    assert max(ends) - min(ends) <= 2 * pass_seconds + merge
+    usual = max(sizes)
+    assert len(sizes) <= -(-total // usual) + workers, sizes
 
 
 @pytest.mark.parametrize("workers", [20, 100, 1000])

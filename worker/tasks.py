@@ -22,6 +22,7 @@ from worker.integrators.base import BatchAborted
 from worker.scene import SCENES_DIR, SceneError, parse_scene
 from worker.scheduler import feed
 from worker.store import Batch, JobRecord, Jobs, Status
+from worker.store.policy import recent_pass_seconds
 
 log = logging.getLogger("photonfarm.worker")
 ENGINE_CACHE_SIZE = 2
@@ -64,14 +65,19 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         log.error("job failed: cannot render its scene", extra=context)
         return "failed"
     # Render: the job's first batch fixes its setup arrays (e.g. R0, from pass 0); the
-    # passes alone are timed (the next batches are sized by that time).
+    # passes alone are timed, each pass's end too (the next batch is sized by the later ones).
+    pass_ends: list[float] = []
+
+    def keep_going(k: int) -> bool:
+        pass_ends.append(time.perf_counter())
+        return jobs.renew(batch, worker) == Status.RUNNING
+
     try:
         with holding(batch):
             if not jobs.has_setup(record):
                 jobs.init_setup(record, engine.passes.setup())
             start, cpu = time.perf_counter(), time.process_time()
-            delta = engine.run_batch(jobs.batch_inputs(record), first, n,
-                                     keep_going=lambda k: jobs.renew(batch, worker) == Status.RUNNING)
+            delta = engine.run_batch(jobs.batch_inputs(record), first, n, keep_going=keep_going)
     except BatchAborted:
         jobs.drop(batch)
         log.info("batch aborted: the job stopped wanting it", extra=context)
@@ -86,7 +92,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken, cpu_seconds=cpu_seconds)
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
-        feed(jobs, job_id, pass_seconds=seconds / n)
+        feed(jobs, job_id, pass_seconds=recent_pass_seconds(start, pass_ends))
         try:
             jobs.fold_if_stale(job_id)
         except redis.RedisError as exc:  # the batch counts; the next fold takes it

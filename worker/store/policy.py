@@ -94,9 +94,9 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     REFRESH_SECONDS, each batch's merge included (a job whose merge alone is long pays a
     larger share for that).
     Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
-    plus one pass) and its passes (`passes_left`, split among the workers, so the last
-    batches end together rather than one worker rendering the tail alone). One pass until a
-    pass was timed.
+    plus one pass) and its passes (`passes_left`, shared with the workers of the job's other
+    in-flight batches so that all end together rather than one worker rendering the tail
+    alone: `tail_share`). One pass until a pass was timed.
 
     No cap in passes: the refresh bounds a batch's length. A cap (32 passes, until
     2026-11-27) cut exactly the batches the share asks to be long, those of many workers on
@@ -122,8 +122,44 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
         stagger = math.floor((max(0.0, last) + DELIVERY_SECONDS - mean_merge_seconds) / pass_seconds)
         n = max(1, min(round(target / pass_seconds), stagger))
     if passes_left is not None:
-        n = min(n, -(-passes_left // workers))
+        n = min(n, tail_share(passes_left, pass_seconds, workers, others_due))
     return n
+
+
+def recent_pass_seconds(start: float, pass_ends: Sequence[float]) -> float:
+    """A worker's render seconds a pass for sizing its next batch, from its batch's start and
+    each pass's end: the mean of the later half of the passes (at least the last). Not the
+    batch's mean: a batch's first pass carries the batch's set-up (and an engine's first
+    pass its buffers' first touch), and a job's passes speed up as its radii shrink, so the
+    batch's mean overstates the next pass (a 1920x1080 job: 2.6 s a pass in its first
+    batches, 1.5 s by its end) and its batches come out short, more of them, each a merge
+    and a fold round."""
+    ends = [start, *pass_ends]
+    later = max(1, (len(ends) - 1) // 2)
+    return (ends[-1] - ends[-1 - later]) / later
+
+
+def tail_share(passes_left: int, pass_seconds: float, workers: int, others_due: Sequence[float] = ()) -> int:
+    """This batch's part of a job's last `passes_left` passes, so that its worker (free now)
+    and the job's other `workers - 1` end together: each other worker renders from when its
+    in-flight batch is due (`others_due`, seconds from now; one without a batch is free now),
+    and all at `pass_seconds` a pass. The end T solves T + sum over the others of
+    max(0, T - due) = passes_left * pass_seconds (filled in order of due time); this batch
+    takes T / pass_seconds passes, rounded up. With every other worker free that is an
+    equal split; with the others busy for long, more of the tail, in fewer batches (each
+    batch costs a merge and a fold round whatever its passes). Untimed: an equal split."""
+    others = max(1, workers) - 1
+    if pass_seconds <= 0.0 or others == 0:
+        return -(-passes_left // (others + 1))
+    due = sorted(max(0.0, d) for d in others_due)[:others]
+    due = [0.0] * (others - len(due)) + due  # workers without an in-flight batch are free now
+    work, end, busy = passes_left * pass_seconds, 0.0, 1
+    for i, d in enumerate(due + [math.inf]):
+        end = (work + sum(due[:i])) / busy
+        if end <= d:
+            break
+        busy += 1
+    return min(passes_left, max(1, math.ceil(end / pass_seconds - 1e-6)))
 
 
 # ------------------------------------------------------------- the termination rule
