@@ -13,7 +13,7 @@ Reported per round, and the mean of the rounds after the first of each kind (mem
 checkpoint; the first round's state read is from
 Redis, the later ones from the folder's tile cache, as in the API; Redis's CPU moves with
 when its append-only-file rewrites land, so take the mean of several rounds): the folder's CPU seconds per stage of
-`TiledState.fold_round` (read state, read deltas, merge, inputs, estimate, write), the
+`TiledState.fold_round` (read state, read and merge deltas, inputs, estimate, write), the
 rest of `Jobs.fold` (lease, record, accounting), Redis's CPU seconds over the round
 (its append-only-file rewrites included), and, on the folded state, what an image read
 costs (`Jobs.state` from the cache and `Integrator.image`) and the error estimate's

@@ -130,13 +130,20 @@ def rewind(alpha: float, passes: int, first: int) -> tuple[float, float]:
     return ratio, ratio * passes / first
 
 
-def add_delta(state: "State", delta: "Delta") -> None:
-    """The additive part of every merge: a batch's sums, photons, passes and counters."""
-    for name in state.sums:
-        state.sums[name] += delta.sums[name]
-    state.emitted += delta.emitted
-    state.passes += delta.n_passes
-    for name, value in delta.counters.items():
+def add_sums(state: "State", sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
+    """The per-pixel additive part of every merge, over a run of pixels: each sum the state
+    keeps adds its part (a float32 delta's adds in the state's float64, exactly converted);
+    a sum the parts lack adds nothing there."""
+    for name, part in sums.items():
+        if name in state.sums:
+            state.sums[name][pixels] += part
+
+
+def add_counts(state: "State", n_passes: int, emitted: int, counters: dict[str, int]) -> None:
+    """The scalar additive part of every merge: passes, photons and counters."""
+    state.emitted += emitted
+    state.passes += n_passes
+    for name, value in counters.items():
         state.counters[name] = state.counters.get(name, 0) + value
 
 
@@ -215,8 +222,14 @@ class Accumulators:
         times the photons the passes counted at their own places in the radius schedule
         (M, kernels/spatial_hash.cl). Commutative: the same state whatever the order and
         grouping of the batches."""
-        self.N += self.alpha * delta.sums["M"]
-        add_delta(self, delta)
+        self.merge_sums(delta.sums)
+        add_counts(self, delta.n_passes, delta.emitted, delta.counters)
+
+    def merge_sums(self, sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
+        """The per-pixel part of `merge` over a run of pixels (a tile of a fold round)."""
+        if "M" in sums:
+            self.N[pixels] += self.alpha * np.asarray(sums["M"], np.float64)
+        add_sums(self, sums, pixels)
         self._radius = None
 
     def photon_radiance(self, pixels: slice = slice(None)) -> np.ndarray:

@@ -21,6 +21,7 @@ import numpy as np
 from kernels.contract import SumLayout
 from worker.error_estimate import ErrorEstimate
 from worker.settings import Settings
+from worker.stats import add_counts
 
 
 @dataclass
@@ -91,9 +92,16 @@ class Integrator(ABC):
     def batch_inputs(self, state: State) -> Any:
         """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
-    @abstractmethod
     def merge(self, state: State, delta: Delta) -> None:
         """Add a batch to the state: commutative in every sum."""
+        self.merge_sums(state, delta.sums)
+        add_counts(state, delta.n_passes, delta.emitted, delta.counters)
+
+    @abstractmethod
+    def merge_sums(self, state: State, sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
+        """The per-pixel part of `merge` over a run of pixels (`sums`: the arrays of those
+        pixels a delta carries; one it lacks is zero). A fold round adds each tile's
+        deltas this way, straight into the state, with `add_counts` once for the batches."""
 
     @abstractmethod
     def image(self, state: State) -> np.ndarray:

@@ -27,8 +27,8 @@ import numpy as np
 
 from kernels.contract import LUMINANCE, SumLayout
 from worker.error_estimate import EDGE_FACTOR, EDGE_MARGIN, FLOOR_FRACTION, ErrorEstimate, image_average, student_t
-from worker.integrators.base import Delta, Integrator
-from worker.stats import add_delta
+from worker.integrators.base import Integrator
+from worker.stats import add_sums
 
 
 @dataclass
@@ -98,8 +98,9 @@ class ConnectMerge(Integrator):
     def batch_inputs(self, state: HybridState) -> HybridInputs:
         return HybridInputs(float(state.R0[0]))
 
-    def merge(self, state: HybridState, delta: Delta) -> None:  # type: ignore[override]
-        add_delta(state, delta)
+    def merge_sums(self, state: HybridState, sums: dict[str, np.ndarray],  # type: ignore[override]
+                   pixels: slice = slice(None)) -> None:
+        add_sums(state, sums, pixels)
 
     def image(self, state: HybridState) -> np.ndarray:
         return state.C / state.passes if state.passes else np.zeros_like(state.C)

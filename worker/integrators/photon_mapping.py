@@ -18,7 +18,7 @@ import numpy as np
 from kernels.contract import SumLayout
 from worker import adaptive
 from worker.error_estimate import ErrorEstimate, bias_estimate, estimate
-from worker.integrators.base import Delta, Integrator
+from worker.integrators.base import Integrator
 from worker.stats import Accumulators
 
 # S: flux (rgb, smooth kernel, / k1 r^2); D: photon count / pi r^2; M: photons counted,
@@ -117,8 +117,9 @@ class PhotonMapping(Integrator):
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains, count, state.passes)
 
-    def merge(self, state: Accumulators, delta: Delta) -> None:
-        state.merge(delta)
+    def merge_sums(self, state: Accumulators, sums: dict[str, np.ndarray],  # type: ignore[override]
+                   pixels: slice = slice(None)) -> None:
+        state.merge_sums(sums, pixels)
 
     def image(self, state: Accumulators) -> np.ndarray:
         return state.radiance()

@@ -33,6 +33,7 @@ from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.store import keys
 from worker.store.overlay import OVERLAYS, Overlay
+from worker.stats import add_counts
 from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, TornInputs, decode_delta,
                                 decode_inputs, decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
 
@@ -315,25 +316,24 @@ class TiledState:
                 written = [b for b in batch_ids if sum(b in ids for ids in lacking.values()) < tiling.count]
                 if written:
                     fresh = {k: [b for b in ids if b in written] for k, ids in lacking.items()}
-                    delta, _, _ = self._pending_deltas(job_id, tiling, integrator, versions,
-                                                       {k: ids for k, ids in fresh.items() if ids},
-                                                       [accepted[b] for b in written])
-                    integrator.merge(state, delta)
+                    self._add_pending(job_id, tiling, integrator, versions, {k: ids for k, ids in fresh.items() if ids},
+                                      [accepted[b] for b in written], state)
                 return state
             except FoldContended:
                 continue
 
-    def _pending_deltas(self, job_id: str, tiling: Tiling, integrator: Integrator, versions: dict[int, int],
-                        fresh: dict[int, list[str]], headers: list[dict[str, Any]]
-                        ) -> tuple[Delta, dict[int, int], dict[int, set[str]]]:
-        """The delta of some accepted batches: each tile's pending deltas of them (`fresh`:
-        tile -> batch ids it has not written), read a tile at a time (a tile's first delta of
-        an array is copied in, the rest added: the same sums as adding each to zero), and
-        their headers' passes, photons and counters. Also, per tile, the bytes read and the
-        arrays its deltas carried. Every delta is checked readable (UnreadableDelta); a delta
-        gone because its tile was written meanwhile raises FoldContended."""
+    def _add_pending(self, job_id: str, tiling: Tiling, integrator: Integrator, versions: dict[int, int],
+                     fresh: dict[int, list[str]], headers: list[dict[str, Any]],
+                     state: State) -> tuple[dict[int, int], dict[int, set[str]]]:
+        """Merge some accepted batches into `state`: each tile's pending deltas of them
+        (`fresh`: tile -> batch ids it has not written), read and added a tile at a time
+        straight into the state's pixels (no frame-sized delta: at 3840x2160 that would be
+        a GB, allocated and written once more per round), then their headers' passes,
+        photons and counters. Returns, per tile, the bytes read and the arrays its deltas
+        carried. Every delta is checked readable (UnreadableDelta); a delta gone because its
+        tile was written meanwhile raises FoldContended. Either leaves `state` part-merged:
+        the caller drops it."""
         delta_widths = dict(integrator.sums.widths)
-        sums = {name: integrator.sums.zeros(tiling.n_pixels, name) for name in integrator.sums.names}
         carried: dict[int, set[str]] = {}
 
         def add(node: int, tiles: list[int]) -> dict[int, int]:
@@ -351,12 +351,8 @@ class TiledState:
                         parts = decode_delta(payload, delta_widths, span.stop - span.start)
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
-                    for name, part in parts.items():  # tiles are disjoint: threads never add to one pixel
-                        if name in names:
-                            sums[name][span] += part
-                        else:
-                            sums[name][span] = part
-                            names.add(name)
+                    integrator.merge_sums(state, parts, span)  # tiles are disjoint: threads never add to one pixel
+                    names.update(parts)
                 read[k] = sum(len(p) for p in payloads)
             return read
 
@@ -365,9 +361,8 @@ class TiledState:
         for header in headers:
             for name, value in header["c"].items():
                 added[name] = added.get(name, 0) + int(value)
-        delta = Delta(first_pass=-1, n_passes=sum(h["n"] for h in headers), emitted=sum(h["e"] for h in headers),
-                      sums=sums, counters=added)
-        return delta, read, carried
+        add_counts(state, sum(h["n"] for h in headers), sum(h["e"] for h in headers), added)
+        return read, carried
 
     # ------------------------------------------------------------------- fold
     def _on_version(self, node: int, job_id: str, k: int, version: int,
@@ -414,14 +409,11 @@ class TiledState:
         else:
             state = overlay.copy_state(integrator) if fresh_ids else overlay.state
         stages.lap("read state")
-        # The round's delta: each tile's batches it has not written and the overlay lacks.
-        delta, read, carried = self._pending_deltas(job_id, tiling, integrator, versions, fresh,
-                                                    [accepted[b] for b in fresh_ids])
-        stages.lap("read deltas")
-        # Merge, then what the next batches read and the error.
-        if fresh_ids:
-            integrator.merge(state, delta)
-        stages.lap("merge")
+        # Merge the round's deltas: each tile's batches it has not written and the overlay lacks.
+        read, carried = self._add_pending(job_id, tiling, integrator, versions, fresh,
+                                          [accepted[b] for b in fresh_ids], state) if fresh_ids else ({}, {})
+        stages.lap("read and merge deltas")
+        # What the next batches read, and the error.
         inputs = integrator.batch_inputs(state)
         stages.lap("inputs")
         if fresh_ids:
