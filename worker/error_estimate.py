@@ -281,7 +281,7 @@ def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
     t = student_t(confidence, i - 1) if i >= 2 else math.inf
     z_rough, z_margin = edge_quantiles(i) if i >= 2 else (math.inf, math.inf)
     run = _Round(state, constant, significance, discontinuities, t, z_rough, z_margin,
-                 unlit_scale(state, lum, known, confidence))
+                 unlit_scale(state, lum, known, confidence) if dark.any() else math.inf)  # (used only where dark)
     out = {name: np.empty(len(lum)) for name in ("bias", "noise", "bound")}
     state.radius()  # computed once, before the blocks share it
     each(lambda blk: _block(run, blk, direct[blk] if nee else None, dark[blk], out), blocks(len(lum)))
@@ -316,5 +316,5 @@ def image_average(relative: np.ndarray, known: np.ndarray, dark: np.ndarray) -> 
     """The larger of the mean relative error over pixels that found photons and over every
     measured pixel, those that never did included (module docstring); 1 if no pixel was
     measured."""
-    means = [float(relative[group].mean()) for group in (known, known | dark) if group.any()]
+    means = [float(relative.mean(where=group)) for group in (known, known | dark) if group.any()]
     return max(means) if means else 1.0
