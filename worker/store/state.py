@@ -31,9 +31,9 @@ import redis
 from worker.host_threads import HOST_THREADS, each
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
+from worker.stats import add_counts
 from worker.store import keys
 from worker.store.overlay import OVERLAYS, Overlay
-from worker.stats import add_counts
 from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, TornInputs, decode_delta,
                                 decode_inputs, decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
 
