@@ -42,9 +42,10 @@ def test_a_zero_count_bounds_the_radiance_and_the_bound_falls_as_photons_are_emi
 def test_the_average_is_the_larger_of_the_lit_mean_and_the_mean_over_every_measured_pixel() -> None:
     rel = np.array([0.4, 0.2, 0.01, 0.01, 0.01, 0.01])
     known = np.array([True, True, False, False, False, False])
-    assert image_average(rel, known, ~known) == pytest.approx(0.3)  # 4 dark pixels do not dilute it
+    measured = np.ones_like(known)
+    assert image_average(rel, known, measured) == pytest.approx(0.3)  # 4 dark pixels do not dilute it
     # a dark half raises it by its share: the mean over all four
-    assert image_average(np.array([0.02, 0.02, 0.5, 0.5]), known[:4], ~known[:4]) == pytest.approx(0.26)
+    assert image_average(np.array([0.02, 0.02, 0.5, 0.5]), known[:4], measured[:4]) == pytest.approx(0.26)
 
 
 def test_one_never_lit_pixel_does_not_set_the_image_at_100_percent() -> None:
@@ -55,7 +56,7 @@ def test_one_never_lit_pixel_does_not_set_the_image_at_100_percent() -> None:
     rel[-1] = 1.0
     known = np.ones(62_500, bool)
     known[-1] = False
-    assert image_average(rel, known, ~known) == pytest.approx(0.2 + 0.8 / 62_500)
+    assert image_average(rel, known, np.ones_like(known)) == pytest.approx(0.2 + 0.8 / 62_500)
 
 
 def spot_scene(tmp_path: Path) -> Path:

@@ -296,7 +296,7 @@ def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
             relative[blk] = np.where(measured[blk] & np.isfinite(bound[blk]),
                                      bound[blk] / np.maximum(lum[blk], floor), 1.0)
     relative[dark] = np.minimum(relative[dark], 1.0)  # an estimate of 0 is off by at most 100%
-    average = image_average(relative, known, dark) if i >= 2 else 1.0
+    average = image_average(relative, known, measured) if i >= 2 else 1.0
     return ErrorEstimate(luminance=lum, bias=out["bias"], noise=out["noise"], bound=bound, relative=relative,
                          measured=measured, known=known, average=average, confidence=confidence)
 
@@ -309,12 +309,12 @@ def actual_average(est: ErrorEstimate, truth: np.ndarray) -> float:
     lit = truth > 0.0
     floor = FLOOR_FRACTION * float(truth[lit].mean()) if lit.any() else 1.0
     actual = np.abs(est.luminance - truth) / np.maximum(truth, floor)
-    return image_average(actual, est.known, est.measured & ~est.known)
+    return image_average(actual, est.known, est.measured)
 
 
-def image_average(relative: np.ndarray, known: np.ndarray, dark: np.ndarray) -> float:
-    """The larger of the mean relative error over pixels that found photons and over every
-    measured pixel, those that never did included (module docstring); 1 if no pixel was
-    measured."""
-    means = [float(relative.mean(where=group)) for group in (known, known | dark) if group.any()]
+def image_average(relative: np.ndarray, known: np.ndarray, measured: np.ndarray) -> float:
+    """The larger of the mean relative error over pixels that found photons (`known`) and
+    over every measured pixel, those that never did included (module docstring); 1 if no
+    pixel was measured."""
+    means = [float(relative.mean(where=group)) for group in (known, measured) if group.any()]
     return max(means) if means else 1.0

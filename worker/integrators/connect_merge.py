@@ -169,6 +169,6 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
     with np.errstate(invalid="ignore", divide="ignore"):
         relative = np.where(measured & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
     relative[dark] = np.minimum(relative[dark], 1.0)
-    average = image_average(relative, known, dark) if i >= 2 else 1.0
+    average = image_average(relative, known, measured) if i >= 2 else 1.0
     return ErrorEstimate(luminance=lum, bias=bias, noise=noise, bound=bound, relative=relative,
                          measured=measured, known=known, average=average, confidence=confidence)
