@@ -15,6 +15,7 @@ import random
 import signal
 import threading
 import time
+import weakref
 from pathlib import Path
 from typing import Iterator
 
@@ -25,6 +26,7 @@ import redis
 from service.redis_server import EmbeddedRedis
 from worker import stats
 from worker.engine import Engine
+from worker.integrators import integrator_for
 from worker.integrators.base import Delta, State
 from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
@@ -310,7 +312,7 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     assert folded is not None and folded.checkpointed
     passes = made[0].n_passes + made[1].n_passes
     total = float(sum(a.sum() for a in folded.state.arrays().values()))
-    assert len(seen) == 2 * 6  # each tile's state: written, then cached
+    assert len(seen) == 6  # each tile's state, written (the kept overlay serves reads: nothing cached)
     assert all(s == (passes, passes, total) for s in seen), seen
     monkeypatch.setattr(state_module, "encode_state", real)
     record = store.get(job_id)
@@ -321,6 +323,71 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     assert store.fold(job_id).state.passes == passes + made[2].n_passes
     monkeypatch.undo()
     _assert_folded_once(store, job_id, made)
+
+
+def test_a_round_adds_to_the_overlay_in_place_unless_a_reader_holds_its_state(
+        servers: list[EmbeddedRedis], deltas: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A round in memory adds its batches to the overlay's own state when no one else refers
+    to it (no copy of the state a round), and to a copy while a reader holds it: the
+    reader's state keeps the passes and the numbers it was given."""
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: [])  # every round in memory
+    _merge(store, job_id, made[0])
+    assert not store.fold(job_id).checkpointed
+    held = store.state(store.get(job_id))  # a reader holds the state
+    seen = (held.passes, {name: a.copy() for name, a in held.arrays().items()})
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id)
+    assert folded.state is not held and folded.state.passes == made[0].n_passes + made[1].n_passes
+    assert held.passes == seen[0] and all(np.array_equal(a, seen[1][name]) for name, a in held.arrays().items())
+    previous = weakref.ref(folded.state)  # refers to it without holding it
+    del held, folded
+    _merge(store, job_id, made[2])
+    folded = store.fold(job_id)
+    assert folded.state is previous() and folded.state.passes == sum(d.n_passes for d in made)  # in place
+    del folded
+    _assert_folded_once(store, job_id, made)
+
+
+def test_a_jobs_last_round_leaves_its_state_to_the_tile_cache(servers: list[EmbeddedRedis], deltas: tuple,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The round that drops the overlay (a job's last, a worker's) gives the tile cache its
+    state, so the finished job's image is read without reading a tile's state."""
+    store, job_id, made = _fresh_job(servers, deltas, 2)
+    _merge(store, job_id, made[0])
+    assert not store.fold(job_id).checkpointed
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id, wait=True, checkpoint=True)
+    assert folded.checkpointed and overlay_module.OVERLAYS.current(job_id) is None
+    monkeypatch.setattr(store.tiles, "_read_state", [lambda **kw: pytest.fail("read a tile's state")] * (1 + SHARDS))
+    _assert_same_state(store.state(store.get(job_id)), folded.state)
+
+
+def test_readers_wait_for_a_round_in_place_and_a_failed_one_drops_the_overlay(deltas: tuple) -> None:
+    """While a round adds to the overlay's state in place the job's readers wait, then read
+    the round's overlay; a round that fails after it began leaves no overlay (its state
+    would not match its batches), so the next read takes the tiles."""
+    _, _, settings, r0 = deltas
+    integrator = integrator_for(settings)
+    overlays = overlay_module.Overlays()
+    first = overlay_module.Overlay({0: 1}, frozenset(), integrator.start({"R0": r0}), None, {}, {}, {})
+    overlays.put("job", first)
+    read: list[State | None] = []
+    reader = threading.Thread(target=lambda: read.append(overlays.state("job", {0: 1})))
+    with overlays.merging("job", first, integrator) as state:
+        assert state is first.state  # no one else holds it
+        reader.start()
+        time.sleep(0.3)
+        assert not read  # waiting for the round
+        state.passes += 1
+        overlays.put("job", dataclasses.replace(first, batches=frozenset({"b"})))
+    reader.join(10)
+    assert read and read[0] is state and read[0].passes == 1
+    del read[:], state, first  # nothing but the overlay refers to the state now
+    with pytest.raises(RuntimeError):
+        with overlays.merging("job", overlays.current("job"), integrator):
+            raise RuntimeError("the round failed")
+    assert overlays.current("job") is None and overlays.state("job", {0: 1}) is None
 
 
 def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_same_state(

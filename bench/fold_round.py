@@ -139,7 +139,9 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             print(f"{w}x{h} round {r} ({'checkpoint' if folded.checkpointed else 'memory'}): {fold_wall:.2f} s, "
                   f"folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s, "
                   + ", ".join(f"{k} {v:.3f}" for k, v in stages.items()), flush=True)
-            state = None  # the frame's arrays go before the next round allocates its own
+            # Nothing here holds the folded state into the next round, as in the API between
+            # reads: the round then adds to the overlay's state in place (worker/store/overlay.py).
+            folded = state = None
         store.delete(job_id)
     finally:
         server.stop()

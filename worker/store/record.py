@@ -588,7 +588,8 @@ class Jobs:
                 cpu = time.process_time()
                 try:
                     with OVERLAYS.writing(job_id):  # a failed write drops the overlay
-                        written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles)
+                        written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles,
+                                                                  keep=not checkpoint)
                         if complete:
                             self.tiles.settle(job_id, complete)
                         if checkpoint:

@@ -22,6 +22,7 @@ import json
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -304,8 +305,8 @@ class TiledState:
         while True:
             try:
                 versions, _ = self._versions(job_id, tiling)
-                if (overlay := OVERLAYS.valid(job_id, versions)) is not None:
-                    return overlay.state
+                if (held := OVERLAYS.state(job_id, versions)) is not None:
+                    return held
                 snap = snapshot()
                 accepted, batch_ids = snap.accepted, sorted(snap.accepted)
                 now, lacking = self._versions(job_id, tiling, batch_ids)
@@ -404,66 +405,76 @@ class TiledState:
         fresh = {k: ids for k, ids in fresh.items() if ids}
         fresh_ids = [b for b in batch_ids if b not in held]
         if overlay is None:
-            state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
-                                       emitted, passes, counters)
+            arrays = self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions))
+            merging: AbstractContextManager[State] = nullcontext(integrator.restore(arrays, emitted, passes, counters))
+        elif fresh_ids:  # the overlay's own state if no reader holds it (its readers wait for this round), else a copy
+            merging = OVERLAYS.merging(job_id, overlay, integrator)
         else:
-            state = overlay.copy_state(integrator) if fresh_ids else overlay.state
-        stages.lap("read state")
-        # Merge the round's deltas: each tile's batches it has not written and the overlay lacks.
-        read, carried = self._add_pending(job_id, tiling, integrator, versions, fresh,
-                                          [accepted[b] for b in fresh_ids], state) if fresh_ids else ({}, {})
-        stages.lap("read and merge deltas")
-        # What the next batches read, and the error.
-        inputs = integrator.batch_inputs(state)
-        stages.lap("inputs")
-        if fresh_ids:
-            estimate = integrator.estimate(state)
-            error = estimate.average if estimate is not None else None
-        else:  # a checkpoint of the overlay as it was (without an overlay every batch is fresh)
-            error = overlay.error
-        stages.lap("estimate")
-        sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
-        pending = dict(overlay.pending) if overlay is not None else {}
-        for k, n in read.items():
-            sent.setdefault(k, set()).update(carried[k])
-            pending[k] = pending.get(k, 0) + n
-        now = time.monotonic()
-        now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
-                           {k: frozenset(names) for k, names in sent.items()}, pending,
-                           (overlay.folded_at if overlay is not None else {}) | {b: now for b in fresh_ids})
+            merging = nullcontext(overlay.state)
+        with merging as state:
+            stages.lap("read state")
+            # Merge the round's deltas: each tile's batches it has not written and the overlay lacks.
+            read, carried = self._add_pending(job_id, tiling, integrator, versions, fresh,
+                                              [accepted[b] for b in fresh_ids], state) if fresh_ids else ({}, {})
+            stages.lap("read and merge deltas")
+            # What the next batches read, and the error.
+            inputs = integrator.batch_inputs(state)
+            stages.lap("inputs")
+            if fresh_ids:
+                estimate = integrator.estimate(state)
+                error = estimate.average if estimate is not None else None
+            else:  # a checkpoint of the overlay as it was (without an overlay every batch is fresh)
+                error = overlay.error
+            stages.lap("estimate")
+            sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
+            pending = dict(overlay.pending) if overlay is not None else {}
+            for k, n in read.items():
+                sent.setdefault(k, set()).update(carried[k])
+                pending[k] = pending.get(k, 0) + n
+            now = time.monotonic()
+            now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
+                               {k: frozenset(names) for k, names in sent.items()}, pending,
+                               (overlay.folded_at if overlay is not None else {}) | {b: now for b in fresh_ids})
 
-        # Write each tile's batch inputs in a transaction on its version (the nodes at once),
-        # then show the image: this process's readers take the overlay.
-        def write(node: int, tiles: list[int]) -> dict[int, None]:
-            for k in tiles:
-                self._on_version(node, job_id, k, versions[k], lambda pipe: pipe.set(
-                    keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k))))
-            return {}
+            # Write each tile's batch inputs in a transaction on its version (the nodes at once),
+            # then show the image: this process's readers take the overlay.
+            def write(node: int, tiles: list[int]) -> dict[int, None]:
+                for k in tiles:
+                    self._on_version(node, job_id, k, versions[k], lambda pipe: pipe.set(
+                        keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k))))
+                return {}
 
-        try:
-            self._per_node(tiling, write)
-        except FoldContended:
-            OVERLAYS.drop(job_id)
-            raise
-        OVERLAYS.put(job_id, now_held)
-        stages.lap("write inputs")
-        return (Folded(state, error, stages.seconds, False),
-                list(range(tiling.count)) if checkpoint else now_held.checkpoint_tiles(tiling))
+            try:
+                self._per_node(tiling, write)
+            except FoldContended:
+                OVERLAYS.drop(job_id)
+                raise
+            OVERLAYS.put(job_id, now_held)
+            stages.lap("write inputs")
+            return (Folded(state, error, stages.seconds, False),
+                    list(range(tiling.count)) if checkpoint else now_held.checkpoint_tiles(tiling))
 
     def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator,
-                   tiles: list[int]) -> tuple[Overlay, list[str]]:
+                   tiles: list[int], keep: bool = True) -> tuple[Overlay, list[str]]:
         """Write this process's overlay of the job (the round just made it) to those of
         `tiles` that lack some of its batches, each tile in one transaction on the version
         the overlay was built on: its state, its folded set, its pending entries gone, its
         version bumped. Returns the overlay on the tiles' new versions (with the batches some
         tile still lacks) and the batches every tile has now written (for the record to
         count). Run inside OVERLAYS.writing (readers keep the overlay while the versions
-        move); raises FoldContended if another folder got to a tile first."""
+        move); raises FoldContended if another folder got to a tile first.
+        The tile cache takes the state only from a checkpoint whose caller drops the overlay
+        (`keep` False: a job's last round, a worker's), every tile at its new version: views
+        of the arrays, which no round changes once the overlay is gone. A kept overlay serves
+        this process's reads itself, and the next round may add to its state in place
+        (Overlays.merging), which a cache entry's view would forbid."""
         overlay = OVERLAYS.current(job_id)
         if overlay is None:
             raise FoldContended("this process holds no overlay of the job")
         batch_ids = sorted(overlay.batches)
         if not batch_ids:
+            if not keep:
+                self._cache_state(job_id, tiling, integrator, overlay.state, overlay.versions)
             return overlay, []
         _, todo = self._versions(job_id, tiling, batch_ids)
         chosen = {k for k in tiles if k in todo}
@@ -486,17 +497,26 @@ class TiledState:
                     pipe.hincrby(meta, "version", 1)
 
                 self._on_version(node, job_id, k, overlay.versions[k], queue)
-                CACHE.put(job_id, k, overlay.versions[k] + 1, encode_state(arrays, list(widths), span))
             return {}
 
         self._per_node(tiling, write)
         left = {k: ids for k, ids in todo.items() if k not in chosen}
         complete = [b for b in batch_ids if not any(b in ids for ids in left.values())]
         versions = {k: v + (k in chosen) for k, v in overlay.versions.items()}
+        if not keep:
+            self._cache_state(job_id, tiling, integrator, overlay.state, versions)
         return Overlay(versions, overlay.batches - frozenset(complete), overlay.state, overlay.error,
                        {k: v for k, v in overlay.sent.items() if k in left},
                        {k: v for k, v in overlay.pending.items() if k in left},
                        {b: t for b, t in overlay.folded_at.items() if b not in complete}), complete
+
+    @staticmethod
+    def _cache_state(job_id: str, tiling: Tiling, integrator: Integrator, state: State,
+                     versions: dict[int, int]) -> None:
+        """Every tile's state fields into the tile cache at its version (views of `state`)."""
+        arrays, names = state.arrays(), list(integrator.state_widths)
+        for k in range(tiling.count):
+            CACHE.put(job_id, k, versions[k], encode_state(arrays, names, tiling.span(k)))
 
     def publish(self, job_id: str, folded: Folded, history: dict[str, Any], rounds: Sequence[tuple[int, float]],
                 read_at: float) -> None:

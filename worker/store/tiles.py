@@ -228,8 +228,9 @@ def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: t
 class TileCache:
     """Folded tiles' state fields by (job, tile) with the version they were read or written
     at, bounded in bytes: a tile whose node still shows that version need not be read again.
-    A folder's entries are views of its round's state arrays (no copy; a round never changes
-    them once written), so those arrays stay alive while an entry refers to them."""
+    A folder's entries are views of the state arrays of an overlay it dropped (no copy; no
+    round changes them: TiledState.checkpoint), so those arrays stay alive while an entry
+    refers to them."""
 
     def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
         self.max_bytes = max_bytes
