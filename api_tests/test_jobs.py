@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 import tempfile
+import threading
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
@@ -47,6 +49,41 @@ def test_submit_poll_and_fetch_images(cluster: Cluster) -> None:
 
     listed = cluster.http.get("/v1/jobs").json()
     assert job["id"] in [j["id"] for j in listed]
+
+
+def test_images_read_while_rounds_fold_follow_the_passes(cluster: Cluster) -> None:
+    """Clients polling a job's image and error map while fold rounds add to its state (in
+    place when no reader holds it; readers wait for such a round, worker/store/overlay.py):
+    every read answers, the passes each reader sees never go back, and the last image holds
+    every pass. A round and readers that waited on each other for good would hang the job
+    (`wait` fails it)."""
+    passes = 40
+    job = cluster.submit(scene_name="furnace", settings={"max_passes": passes, "photons_per_pass": 1 << 13, "seed": 3})
+    stop, seen, bad = threading.Event(), [[], [], []], []
+
+    def poll(i: int, kind: str) -> None:
+        with httpx.Client(base_url=cluster.http.base_url, headers=cluster.http.headers, timeout=60) as client:
+            while not stop.is_set():
+                resp = client.get(f"/v1/jobs/{job['id']}/{kind}", params={"format": "png"})
+                if resp.status_code == 200:
+                    seen[i].append(int(resp.headers["X-Passes"]))
+                elif resp.status_code != 409:  # 409: the error map before the first pass
+                    bad.append((kind, resp.status_code, resp.text[:200]))
+
+    readers = [threading.Thread(target=poll, args=(i, kind)) for i, kind in enumerate(("image", "image", "error"))]
+    for reader in readers:
+        reader.start()
+    try:
+        done = cluster.wait(job["id"], finished)
+    finally:
+        stop.set()
+        for reader in readers:
+            reader.join(60)
+    assert done["status"] == "completed" and not bad, (done, bad)
+    assert cluster.http.get(job["links"]["image_png"]).headers["X-Passes"] == str(passes)
+    for reads in seen:
+        assert reads and all(a <= b for a, b in zip(reads, reads[1:])), reads
+    assert len(set(seen[0])) >= 2  # the reads spanned rounds
 
 
 def test_unknown_job_is_404(cluster: Cluster) -> None:
