@@ -1,5 +1,6 @@
 """Faults: a worker SIGKILLed mid-batch, the API killed and restarted, Redis killed and
-restarted; each with one Redis and with the job state sharded over three more. Each job
+restarted; each with one Redis and with the job state sharded over three more. And a state
+node that stalls while a worker pushes its batch. Each job
 must still finish, with every pass merged exactly once: the passes and photon totals add
 up exactly, and the merged batches tile 0..max_passes-1. Each with SPPM and with the
 hybrid integrator (vcm), whose sums the store merges the same way."""
@@ -12,6 +13,7 @@ import time
 import pytest
 
 from api_tests.cluster import Cluster, finished, merged_passes
+from worker.store import Batch, Leases
 
 P = 1 << 16
 PASSES = 40
@@ -103,5 +105,46 @@ def test_redis_down_while_workers_render(tmp_path) -> None:  # noqa: ANN001
         c.redis.start(supervise=False)
         _assert_exact(c, job["id"])
         assert all(proc.poll() is None for proc in c.workers), "a worker process exited"
+    finally:
+        c.close()
+
+
+def _between_passes(c: Cluster, job_id: str, timeout: float = 60.0) -> Batch:
+    """A batch of the job whose worker, the job's only one, has rendered some of its passes
+    and has two or more to go: it reads nothing more from the state nodes until it pushes
+    the batch's delta. (The worker's heartbeat names the batch after its first pass and
+    counts every pass it rendered: the job's passes before the batch, and the batch's.)"""
+    leases, r = Leases(c.redis_client), c.redis_client
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        for member, owner in r.hgetall("pf:lease-owner").items():
+            batch = Batch.parse(member.decode())
+            beat = leases.heartbeats().get(owner.decode(), {})
+            if batch.job_id == job_id and beat.get("batch") == batch.id and \
+                    int(beat.get("passes", 0)) - batch.first <= batch.n - 2:
+                return batch
+        time.sleep(0.02)
+    raise AssertionError("no batch was caught with two passes to go")
+
+
+def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path) -> None:  # noqa: ANN001
+    """The job's state node stalls (SIGSTOP: as a slow link or a long write would) for
+    several leases while the worker renders a batch and then pushes it. The worker's
+    heartbeat keeps the batch's lease through the push, so the reaper issues it to no one
+    else (a lapsed lease during a push had another worker render it again, in vain: a 4K
+    batch's half-GB push outlasted the tests' 4 s leases), and the job ends exact."""
+    c = Cluster(tmp_path, workers=1, shards=1, env={"PHOTONFARM_LEASE_SECONDS": "1"})
+    try:
+        job = _long_job(c, "sppm")
+        _between_passes(c, job["id"])
+        node = c.shards[0].proc
+        node.send_signal(signal.SIGSTOP)
+        try:
+            time.sleep(8.0)  # the batch's last passes, then its push waits: 8 leases, 4 looks of the reaper
+        finally:
+            node.send_signal(signal.SIGCONT)
+        _assert_exact(c, job["id"])
+        api_log = (c.data_dir / "api.log").read_text()
+        assert "re-issued lost batches" not in api_log
     finally:
         c.close()

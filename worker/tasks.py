@@ -88,8 +88,11 @@ def run_batch(job_id: str, first: int, n: int) -> str:
             jobs.drop(batch)
         raise
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu
-    # Merge, then ask for the next batch.
-    outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken, cpu_seconds=cpu_seconds)
+    # Merge, then ask for the next batch. The heartbeat keeps the lease while the delta is
+    # pushed: a push may outlast a lease (half a GB at 3840x2160, a slow state node), and a
+    # lapsed lease has the reaper issue the batch again for another worker to render in vain.
+    with holding(batch):
+        outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken, cpu_seconds=cpu_seconds)
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
     if outcome == "merged":
         feed(jobs, job_id, pass_seconds=recent_pass_seconds(start, pass_ends))
