@@ -60,7 +60,8 @@ def test_batches_that_came_together_show_over_two_rounds_when_the_next_is_far(st
     assert second is not None and second.state.passes == 4 and store.get(job_id).image_passes == 4
     np.testing.assert_allclose(second.state.S, _sum_of(deltas), rtol=1e-12)
     assert store.fold(job_id) is None  # nothing left to show
-    assert [batches for batches, _ in store.get(job_id).fold_rounds] == [1, 1]
+    # The first round read the state from the tiles; the second added to the one it kept.
+    assert [(r.batches, r.rebuilt) for r in store.get(job_id).fold_rounds] == [(1, True), (1, False)]
 
 
 @pytest.mark.parametrize("next_due_in, checkpoint", [(1.0, False), (60.0, True)])

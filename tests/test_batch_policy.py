@@ -10,8 +10,8 @@ import pytest
 
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_PATH_SHARE, MERGE_SHARE, REFRESH_SECONDS,
-                                 ROUNDS_KEPT, batch_passes, checkpoint_tiles, fold_interval, paced_batches,
-                                 recent_pass_seconds, round_seconds)
+                                 FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes, checkpoint_tiles, fold_interval,
+                                 paced_batches, recent_pass_seconds, round_seconds)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -198,6 +198,19 @@ def test_the_expected_round_follows_its_batches() -> None:
     exact = [(b, 2.0 + 0.5 * b) for b in (1, 3, 2, 4)]
     assert round_seconds(exact, 6) == pytest.approx(5.0)
     assert round_seconds([(2, 3.0), (2, 3.0)], 5) == pytest.approx(6.0)
+
+
+def test_a_rebuilt_round_does_not_set_the_next_rounds_start() -> None:
+    """A round that rebuilt the state from the tiles (a 3840 x 2160 job's first: 8.2 s, then
+    rounds of 1.6 s) is left out of the expected length: the next rounds still start so as
+    to end about DELIVERY_SECONDS after the last, not at once (with it in the fit, and its
+    margin, a round was expected to take 14 s and started FOLD_SECONDS after the last)."""
+    rounds = [Round(1, 8.2, True), Round(1, 1.6), Round(2, 2.1), Round(1, 1.7)]
+    expected = round_seconds(rounds, 1)
+    assert expected == pytest.approx(round_seconds(rounds[1:], 1)) and expected < 2.5
+    assert fold_interval(rounds[-1].seconds, expected) > DELIVERY_SECONDS - 2.5
+    assert fold_interval(1.7, round_seconds([(b, t) for b, t, _ in rounds], 1)) == FOLD_SECONDS  # the fit with it
+    assert round_seconds([Round(1, 8.2, True)], 1) is None  # the last round's length stands in (fold_interval)
 
 
 def test_a_round_takes_every_waiting_batch_unless_the_next_delivery_is_far() -> None:

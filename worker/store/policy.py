@@ -10,6 +10,7 @@ import math
 import os
 from collections.abc import Sequence
 from enum import StrEnum
+from typing import NamedTuple
 
 from worker.settings import Settings
 
@@ -183,19 +184,39 @@ def fold_interval(fold_seconds: float, next_seconds: float | None = None) -> flo
     return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, DELIVERY_SECONDS - expected))
 
 
-def round_seconds(rounds: Sequence[tuple[int, float]], batches: int) -> float | None:
+class Round(NamedTuple):
+    """A fold round as the job record keeps it: the new batches it took in, its seconds to
+    the image, and whether it rebuilt the job's state from the tiles (no state kept in the
+    folder's memory: a job's first round, or the first after the folder restarted), which
+    costs more than a round that adds to the kept state."""
+
+    batches: int
+    seconds: float
+    rebuilt: bool = False
+
+
+def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     """How long a fold round that takes in `batches` new batches is expected to run (to its
-    image), from the job's recent rounds (new batches, seconds; ROUNDS_KEPT of them): a
-    round merges each new delta and then estimates the whole state, so it costs a part per
-    batch and a fixed part, fit to those rounds by least squares (with no spread in their
-    batches, the fixed part taken as one batch's), plus ROUND_MARGIN times the most any of
-    them ran over the fit, so that a round longer than the last one still ends in time: of
-    rounds that vary 15% at random about a fit, 1 in 33 ran over in a simulation (1 in 7
-    with the margin once; tests/test_batch_policy.py). None before any."""
-    if not rounds:
+    image), from the job's recent rounds (Round, or (batches, seconds); ROUNDS_KEPT of them)
+    that added to a kept state: a round merges each new delta and then estimates the whole
+    state, so it costs a part per batch and a fixed part, fit to those rounds by least
+    squares (with no spread in their batches, the fixed part taken as one batch's), plus
+    ROUND_MARGIN times the most any of them ran over the fit, so that a round longer than
+    the last one still ends in time: of rounds that vary 15% at random about a fit, 1 in 33
+    ran over in a simulation (1 in 7 with the margin once; tests/test_batch_policy.py).
+    None before any.
+
+    A rebuilt round is left out: it reads every tile into fresh memory (a 3840 x 2160 job's
+    first round took 6.6-10.8 s, the next 1.3-2.6 s), so with it in the fit the margin made
+    every round for the next ROUNDS_KEPT expected to take 14 s, each started at once
+    (fold_interval), and the batches that came together showed a few seconds apart and then
+    nothing until the next pair (bench/RESULTS.md, "The 10 s refresh at 3840x2160")."""
+    kept = [Round(*r) for r in rounds]
+    kept = [r for r in kept if not r.rebuilt]
+    if not kept:
         return None
-    n = [float(b) for b, _ in rounds]
-    s = [seconds for _, seconds in rounds]
+    n = [float(r.batches) for r in kept]
+    s = [r.seconds for r in kept]
     n_mean, s_mean = sum(n) / len(n), sum(s) / len(s)
     spread = sum((x - n_mean) ** 2 for x in n)
     per_batch = sum((x - n_mean) * (y - s_mean) for x, y in zip(n, s)) / spread if spread else s_mean / (1 + n_mean)

@@ -67,7 +67,7 @@ class JobRecord:
     image_passes: int  # in the image after the last fold round (checkpoint or overlay, worker/store/overlay.py)
     waiting_since: float  # accepted passes beyond the image have waited since (fold_if_stale)
     folded_at: float
-    fold_rounds: tuple[tuple[int, float], ...]  # the recent rounds' new batches and seconds (policy.round_seconds)
+    fold_rounds: tuple[policy.Round, ...]  # the recent rounds (policy.round_seconds)
     setup: bool  # the tiles hold the setup arrays (e.g. R0)
     stopping: bool  # a move to a final status is under way: no new batches
     ending: Status | None  # the final status an accepted batch decided (Jobs.end_if_decided)
@@ -99,7 +99,8 @@ class JobRecord:
                    image_passes=int(f.get("image_passes", f.get("folded_passes", 0))),
                    waiting_since=float(f.get("waiting_since", 0.0)),
                    folded_at=float(f.get("folded_at", 0.0)),
-                   fold_rounds=tuple((int(b), float(t)) for b, t in json.loads(f.get("fold_rounds", "[]"))),
+                   fold_rounds=tuple(policy.Round(int(r[0]), float(r[1]), bool(r[2:] and r[2]))
+                                     for r in json.loads(f.get("fold_rounds", "[]"))),
                    setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1", ending=Status(f["ending"]) if f.get("ending") else None,
                    shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
@@ -115,7 +116,7 @@ class JobRecord:
     @property
     def fold_seconds(self) -> float:
         """The last fold round's length (0 before the first)."""
-        return self.fold_rounds[-1][1] if self.fold_rounds else 0.0
+        return self.fold_rounds[-1].seconds if self.fold_rounds else 0.0
 
     @property
     def n_pixels(self) -> int:
@@ -583,7 +584,8 @@ class Jobs:
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
-                (*record.fold_rounds, (len(fresh), time.perf_counter() - fold_start))[-policy.ROUNDS_KEPT:], read_at)
+                (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
+                 )[-policy.ROUNDS_KEPT:], read_at)
             if tiles:
                 cpu = time.process_time()
                 try:

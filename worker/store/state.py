@@ -114,6 +114,7 @@ class Folded:
     error: float | None
     stages: dict[str, float]
     checkpointed: bool
+    rebuilt: bool = False  # the round read the state from the tiles (no overlay: policy.Round)
 
 
 @dataclass(frozen=True)
@@ -451,7 +452,7 @@ class TiledState:
                 raise
             OVERLAYS.put(job_id, now_held)
             stages.lap("write inputs")
-            return (Folded(state, error, stages.seconds, False),
+            return (Folded(state, error, stages.seconds, False, rebuilt=overlay is None),
                     list(range(tiling.count)) if checkpoint else now_held.checkpoint_tiles(tiling))
 
     def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator,
@@ -518,10 +519,10 @@ class TiledState:
         for k in range(tiling.count):
             CACHE.put(job_id, k, versions[k], encode_state(arrays, names, tiling.span(k)))
 
-    def publish(self, job_id: str, folded: Folded, history: dict[str, Any], rounds: Sequence[tuple[int, float]],
+    def publish(self, job_id: str, folded: Folded, history: dict[str, Any], rounds: Sequence[tuple],
                 read_at: float) -> None:
         """After a round: log the error after it, and when it ended, the job's recent rounds
-        (new batches, seconds; this one last), the passes its image holds and since when
+        (policy.Round; this one last), the passes its image holds and since when
         batches it did not see (accepted after `read_at`) wait."""
         pipe = self.main.pipeline()
         pipe.hset(keys.job(job_id), mapping={"folded_at": time.time(), "fold_rounds": json.dumps(rounds),
