@@ -13,7 +13,7 @@ import time
 import pytest
 
 from api_tests.cluster import Cluster, finished, merged_passes
-from worker.store import Batch, Leases
+from worker.store import Batch, Leases, keys
 
 P = 1 << 16
 PASSES = 40
@@ -117,7 +117,7 @@ def _between_passes(c: Cluster, job_id: str, timeout: float = 60.0) -> Batch:
     leases, r = Leases(c.redis_client), c.redis_client
     deadline = time.time() + timeout
     while time.time() < deadline:
-        for member, owner in r.hgetall("pf:lease-owner").items():
+        for member, owner in r.hgetall(keys.LEASE_OWNER).items():
             batch = Batch.parse(member.decode())
             beat = leases.heartbeats().get(owner.decode(), {})
             if batch.job_id == job_id and beat.get("batch") == batch.id and \
