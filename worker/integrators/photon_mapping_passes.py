@@ -255,8 +255,9 @@ class PhotonMappingPasses:
         dist = np.empty(points, np.float32)
         cl.enqueue_copy(dev.queue, dist, self.mp_dist)
         hit = dist > 0.0
-        if not hit.any():
-            return a.scene_diagonal / max(a.width, a.height), points
+        if not hit.any():  # any positive radius serves a camera that sees nothing: one of the scene's size
+            # (a scene of no shapes and no lights is the camera's point alone: no size, a unit taken instead)
+            return (a.scene_diagonal or 1.0) / max(a.width, a.height), points
         return float(np.median(dist[hit])) * a.pixel_angle, points
 
     def setup(self) -> dict[str, np.ndarray]:
