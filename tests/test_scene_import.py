@@ -496,6 +496,15 @@ def test_obj_normals_are_read(tmp_path: Path) -> None:
     assert load_mesh(tmp_path / "flat.obj").normals is None
 
 
+def test_obj_bytes_outside_utf8(tmp_path: Path) -> None:
+    """A Latin-1 comment does not stop an OBJ from reading; bytes that are no OBJ at all say so."""
+    (tmp_path / "latin1.obj").write_bytes("# caf\u00e9 mod\u00e8le\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".encode("latin-1"))
+    assert load_mesh(tmp_path / "latin1.obj").triangles.tolist() == [[0, 1, 2]]
+    (tmp_path / "binary.obj").write_bytes(b"\x00\x01\x02 binary \xff\xfe")
+    with pytest.raises(MeshError, match="no triangles"):
+        load_mesh(tmp_path / "binary.obj")
+
+
 @pytest.mark.parametrize("content", [b"", b"ply\nformat ascii 1.0\nend_header\n", b"solid x\nendsolid\n"],
                          ids=["empty", "no-elements", "not-ply"])
 def test_bad_ply_is_a_mesh_error(tmp_path: Path, content: bytes) -> None:

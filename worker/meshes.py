@@ -9,6 +9,7 @@ of text: a user's file is input, and input never ends in a traceback.
 
 from __future__ import annotations
 
+import io
 import logging
 import warnings
 from dataclasses import dataclass
@@ -51,7 +52,11 @@ def _parse(path: Path) -> list[dict]:
         warnings.simplefilter("ignore")  # numpy warnings from trimesh's texture code
         if path.suffix.lower() == ".ply":
             return [ply.load_ply(fh)]
-        return list(obj.load_obj(fh, maintain_order=True)["geometry"].values())
+        # OBJ is ASCII text; bytes that are not UTF-8 (a comment or a name in another
+        # encoding) become U+FFFD here, where trimesh would guess an encoding with a package
+        # we do not install.
+        text = io.StringIO(fh.read().decode("utf-8", errors="replace"))
+        return list(obj.load_obj(text, maintain_order=True)["geometry"].values())
 
 
 def _triangulate(faces: object) -> np.ndarray:
