@@ -196,6 +196,9 @@ def test_jobs_are_listed_a_page_at_a_time(tmp_path: Path) -> None:
         assert resp.status_code == 200 and resp.headers["x-total-count"] == "5"
         assert [j["id"] for j in resp.json()] == ids[::-1][1:3]  # newest first
         assert c.http.get("/v1/jobs", params={"limit": 0}).status_code == 422
+        assert c.http.get("/v1/jobs", params={"offset": 10}).json() == []  # past the last job: an empty page
+        beyond = c.http.get("/v1/jobs", params={"offset": 10 ** 20})  # past Redis's 64-bit ranges: not a 500
+        assert beyond.status_code == 422 and beyond.json()["detail"][0]["loc"] == ["query", "offset"]
     finally:
         c.close()
 

@@ -53,6 +53,7 @@ log = logging.getLogger("photonfarm.api")
 # Repeated reads come from memory, so pollers do not take CPU from the workers on a shared host:
 ENCODED_CACHE_BYTES = 64 * 1024 * 1024  # encoded images and error maps, by (job, passes merged, format)
 PIXEL_CACHE_JOBS = 2  # jobs whose per-pixel estimate and error are kept for GET .../pixel (cursor readouts)
+MAX_LIST_OFFSET = 1 << 48  # GET /v1/jobs pages start below this (Redis takes 64-bit ranges; no farm holds more jobs)
 METRICS_SECONDS = 1.0  # a /metrics scrape reads every job from Redis at most this often
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 DOCS_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files, served from the fastapi-offline package
@@ -363,7 +364,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             return create_job(parsed, base_dir, root, job_settings, None, scene_loc, response)
 
     @app.get("/v1/jobs", response_model=list[JobView], dependencies=secured, responses=errors(*auth, 422))
-    def list_jobs(response: Response, offset: int = Query(0, ge=0),
+    def list_jobs(response: Response, offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
                   limit: int = Query(50, ge=1, le=500)) -> list[JobView]:
         """Jobs, newest first, a page at a time; X-Total-Count says how many there are."""
         records = (jobs.get(job_id) for job_id in jobs.ids(offset, limit, newest_first=True))
