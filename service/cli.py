@@ -171,7 +171,12 @@ def render(args: argparse.Namespace) -> int:
 
 def _scene_path(scene: str) -> Path:
     """A scene file by path (.json or .xml), or a bundled scene by name."""
-    return Path(scene) if Path(scene).suffix.lower() in (".json", ".xml") else bundled_scene_path(scene)
+    path = Path(scene)
+    if path.suffix.lower() in (".json", ".xml"):
+        return path
+    if path.exists():  # the user named a file, not a bundled scene
+        raise SceneError("scene", f"{scene}: a scene file is .json (photonfarm's) or .xml (Mitsuba 3)")
+    return bundled_scene_path(scene)
 
 
 def convert(args: argparse.Namespace) -> int:

@@ -38,6 +38,15 @@ def test_an_unwritable_output_is_one_line_before_rendering(tmp_path: Path) -> No
     assert time.perf_counter() - t0 < 30  # it did not render 100000 passes first
 
 
+def test_a_scene_file_of_another_kind_is_named_as_such(tmp_path: Path) -> None:
+    """An existing file that is not .json or .xml is not looked up as a bundled scene's name."""
+    other = tmp_path / "scene.txt"
+    other.write_text("{}")
+    proc = run(str(other), "--passes", "1", *SMALL, "--out", str(tmp_path / "x.png"))
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert ".json" in proc.stderr and "bundled" not in proc.stderr, proc.stderr
+
+
 def test_ctrl_c_writes_the_image_so_far(tmp_path: Path) -> None:
     out = tmp_path / "so-far.exr"
     proc = subprocess.Popen([str(PHOTONFARM), "render", "furnace", "--seconds", "120", *SMALL, "--out", str(out)],
