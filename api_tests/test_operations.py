@@ -73,6 +73,26 @@ def test_submit_errors_are_one_clear_line(cluster: Cluster, tmp_path: Path) -> N
     inline = subprocess.run([*PHOTONFARM, "submit", str(path), "--url", str(cluster.http.base_url)],
                             capture_output=True, text=True, timeout=60)
     assert inline.returncode == 2 and "scene.shapes.0.radius" in inline.stderr
+    text = tmp_path / "scene.txt"
+    text.write_text(json.dumps(scene))
+    other = subprocess.run([*PHOTONFARM, "submit", str(text), "--url", str(cluster.http.base_url)],
+                           capture_output=True, text=True, timeout=60)
+    assert other.returncode == 2 and ".json" in other.stderr and "scene_name" not in other.stderr, other.stderr
+
+
+def test_submit_watch_checks_its_output_before_submitting(cluster: Cluster, tmp_path: Path) -> None:
+    """An image that cannot be written is said before the job runs, not after it ends."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    before = cluster.http.get("/v1/jobs").headers["x-total-count"]
+    proc = subprocess.run([*PHOTONFARM, "submit", "furnace", "--url", str(cluster.http.base_url), "--max-passes", "2",
+                           "--watch", "--out", str(blocker / "x.png")], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "cannot write" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert cluster.http.get("/v1/jobs").headers["x-total-count"] == before  # nothing was submitted
+    wrong = subprocess.run([*PHOTONFARM, "submit", "furnace", "--url", str(cluster.http.base_url),
+                            "--out", str(tmp_path / "x.bmp")], capture_output=True, text=True, timeout=60)
+    assert wrong.returncode == 2 and ".exr or .png" in wrong.stderr
 
 
 def test_image_stays_finite(cluster: Cluster) -> None:

@@ -15,7 +15,8 @@ from typing import Any
 from pydantic import ValidationError
 
 from worker.allocator import retain_large_allocations
-from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_any_scene
+from worker.outputs import check_writable, make_folder
+from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_any_scene, scene_file
 from worker.settings import Settings
 
 # Render flags that are settings fields, by flag name (defaults and help from the model).
@@ -99,33 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     from service.client import add_parser as add_submit_parser
 
-    add_submit_parser(sub, _positive(float), _positive(int), _resolution)
+    add_submit_parser(sub, _positive(float), _positive(int), _resolution, _output)
 
     worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
     worker.add_argument("--redis-url", default=os.environ.get("REDIS_URL"), required="REDIS_URL" not in os.environ)
     worker.add_argument("--burst", action="store_true", help="exit when the queues are empty")
     return parser
-
-
-def _check_output_folder(path: Path) -> None:
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
-
-
-def _check_output(path: Path) -> None:
-    """Fail before rendering, not after: create missing folders, and probe that the file
-    can be written."""
-    _check_output_folder(path)
-    try:
-        existed = path.exists()
-        with open(path, "ab"):
-            pass
-        if not existed:
-            path.unlink()
-    except OSError as exc:
-        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def render(args: argparse.Namespace) -> int:
@@ -142,7 +122,7 @@ def render(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         err = exc.errors()[0]
         raise ValueError(f"--{'-'.join(str(p) for p in err['loc']).replace('_', '-')}: {err['msg']}") from None
-    _check_output(args.out)
+    check_writable(args.out)
     try:
         engine = Engine(scene, base_dir, settings)
         state = engine.start()
@@ -171,12 +151,7 @@ def render(args: argparse.Namespace) -> int:
 
 def _scene_path(scene: str) -> Path:
     """A scene file by path (.json or .xml), or a bundled scene by name."""
-    path = Path(scene)
-    if path.suffix.lower() in (".json", ".xml"):
-        return path
-    if path.exists():  # the user named a file, not a bundled scene
-        raise SceneError("scene", f"{scene}: a scene file is .json (photonfarm's) or .xml (Mitsuba 3)")
-    return bundled_scene_path(scene)
+    return scene_file(scene) or bundled_scene_path(scene)
 
 
 def convert(args: argparse.Namespace) -> int:
@@ -192,7 +167,7 @@ def convert(args: argparse.Namespace) -> int:
     if args.out is None:
         print(text)
     else:
-        _check_output_folder(args.out)
+        make_folder(args.out)
         args.out.write_text(text + "\n")
         print(f"wrote {args.out}")
     return 0

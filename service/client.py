@@ -18,6 +18,8 @@ from tqdm import tqdm
 
 from service.models import MAX_BODY_BYTES
 from service.upload import MAX_UPLOAD_FILES
+from worker.outputs import check_writable
+from worker.scene import SceneError, scene_file
 from worker.store.policy import FINAL
 
 UPLOAD_SUFFIXES = (".json", ".xml", ".obj", ".ply")  # what a scene may name
@@ -88,8 +90,11 @@ def _post_job(client: "Client", args: argparse.Namespace) -> dict[str, Any]:
     """A bundled scene or a plain JSON scene go as JSON; a scene that names files (meshes,
     includes) and any Mitsuba .xml go as an upload with the files beside them."""
     settings = _settings(args)
-    path = Path(args.scene)
-    if path.suffix.lower() not in (".json", ".xml"):
+    try:
+        path = scene_file(args.scene)
+    except SceneError as exc:
+        raise ClientError(exc.message) from None
+    if path is None:
         return client.call("POST", "/v1/jobs", json={"scene_name": args.scene, "settings": settings}).json()
     try:
         scene = json.loads(path.read_text()) if path.suffix.lower() == ".json" else None
@@ -145,6 +150,14 @@ def _watch(client: Client, job: dict[str, Any], poll: float) -> dict[str, Any]:
 
 def submit(args: argparse.Namespace) -> int:
     client = Client(args.url, args.token)
+    if args.watch:  # the image is written after the job's end: its place is checked first
+        try:
+            if args.out is not None:
+                check_writable(args.out)
+            elif not os.access(Path.cwd(), os.W_OK):
+                raise ValueError(f"cannot write the image into {Path.cwd()}: give --out")
+        except ValueError as exc:
+            raise ClientError(str(exc)) from None
     job = _post_job(client, args)
     print(f"job {job['id']} {job['status']}: {args.url.rstrip('/')}{job['links']['self']}")
     if not args.watch:
@@ -154,13 +167,18 @@ def submit(args: argparse.Namespace) -> int:
         raise ClientError(f"job failed: {job['failure']}")
     out = args.out or Path(f"{Path(args.scene).stem}-{job['id']}.png")
     link = job["links"]["image_exr" if out.suffix.lower() == ".exr" else "image_png"]
-    out.write_bytes(client.call("GET", link).content)
+    try:
+        out.write_bytes(client.call("GET", link).content)
+    except OSError as exc:
+        raise ClientError(f"cannot write {out}: {exc.strerror or exc}; the image stays at "
+                          f"{args.url.rstrip('/')}{link}") from None
     print(f"{job['status']}: {job['passes']} passes, {job['photons']} photons, {job['elapsed_seconds']:.1f} s; "
           f"wrote {out}")
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction, positive_float: Any, positive_int: Any, resolution: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction, positive_float: Any, positive_int: Any, resolution: Any,
+               output: Any) -> None:
     p = sub.add_parser("submit", help="submit a job to a running service (HTTP)")
     p.add_argument("scene", help="bundled scene name, or a scene .json or Mitsuba .xml file (sent with the scene and mesh files of its folder)")
     p.add_argument("--url", default=os.environ.get("PHOTONFARM_URL", "http://127.0.0.1:8000"))
@@ -173,4 +191,4 @@ def add_parser(sub: argparse._SubParsersAction, positive_float: Any, positive_in
     p.add_argument("--resolution", type=resolution)
     p.add_argument("--watch", action="store_true", help="follow the job and write its final image")
     p.add_argument("--poll", type=positive_float, default=1.0, help="seconds between polls (default 1)")
-    p.add_argument("--out", type=Path, help="final image, .png or .exr (default SCENE-ID.png)")
+    p.add_argument("--out", type=output, help="final image, .png or .exr (default SCENE-ID.png)")

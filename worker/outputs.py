@@ -5,13 +5,38 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from worker.image_io import write_image
-from worker.integrators.base import Integrator, State
+
+if TYPE_CHECKING:  # (the CLI checks its outputs without loading the engine)
+    from worker.integrators.base import Integrator, State
 
 ERROR_LAYERS = ("bias", "noise", "bound", "relative")  # luminance, per pixel (worker/error_estimate.py)
+
+
+def make_folder(path: Path) -> None:
+    """The folders `path` goes in, made if missing; ValueError with a one-line reason if they cannot be."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def check_writable(path: Path) -> None:
+    """Fail before rendering (or waiting on a job), not after: make missing folders, and
+    probe that the file can be written (ValueError with a one-line reason)."""
+    make_folder(path)
+    try:
+        existed = path.exists()
+        with open(path, "ab"):
+            pass
+        if not existed:
+            path.unlink()
+    except OSError as exc:
+        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def write_render(path: Path, integrator: Integrator, state: State, width: int, height: int,

@@ -391,6 +391,17 @@ def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
     return scene, base_dir
 
 
+def scene_file(text: str) -> Path | None:
+    """A scene named on a command line: a scene file by path (.json, or Mitsuba .xml), or None
+    for a bundled scene's name; an existing file of another kind is a SceneError (not a name)."""
+    path = Path(text)
+    if path.suffix.lower() in (".json", ".xml"):
+        return path
+    if path.exists():
+        raise SceneError("scene", f"{text}: a scene file is .json (photonfarm's) or .xml (Mitsuba 3)")
+    return None
+
+
 def bundled_scene_path(name: str) -> Path:
     """The file of a bundled scene, by name (e.g. 'cornell-box'). The name is looked up
     among the bundled scenes, never joined into a path, so no name reads another file."""
