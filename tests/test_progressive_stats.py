@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +13,8 @@ import pytest
 import worker.integrators.photon_mapping_passes as photon_mapping_passes
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs, sum_layout
+from worker.render_loop import render as render_passes
+from worker.scene import bundled_scene_path
 from worker import stats
 from worker.stats import Accumulators
 
@@ -90,6 +94,29 @@ def test_the_initial_radius_from_a_subset_of_pixels_is_the_whole_frames(make_eng
         r0[points] = make_engine(scene, **settings).passes.setup()["R0"]
     assert np.ptp(r0[1 << 12]) == 0.0
     assert r0[1 << 12][0] == pytest.approx(r0[1 << 30][0], rel=0.02)
+
+
+def test_the_initial_radius_does_not_depend_on_the_frame_size(make_engine) -> None:
+    """R0 by the photon rule is a distance in the scene. At 1920x1080 gap's probe (8 pixel
+    footprints) caught a photon or two where it caught any, overstating the density by the
+    photons it missed: R0 was 27% below 256x256's (43% at 3840x2160). The probe now grows
+    until its median lit point holds PROBE_MIN_PHOTONS."""
+    r0 = [make_engine("gap", resolution=size, seed=3).passes.setup()["R0"][0] for size in ((256, 256), (1920, 1080))]
+    assert r0[1] == pytest.approx(r0[0], rel=0.1)
+
+
+def test_a_close_up_gets_a_radius_its_photons_reach(make_engine, tmp_path: Path) -> None:
+    """cornell-box at fov 0.01: the probe caught no photon at all, R0 fell to 2 pixel
+    footprints (0.015), which no photon ever reached, and the image stayed black."""
+    scene = json.loads(bundled_scene_path("cornell-box").read_text())
+    scene["camera"]["fov"] = 0.01
+    path = tmp_path / "close-up.json"
+    path.write_text(json.dumps(scene))
+    wide = make_engine("cornell-box", seed=3, photons_per_pass=1 << 16).passes.setup()["R0"][0]
+    engine = make_engine(path, resolution=(16, 16), seed=3, photons_per_pass=1 << 16)
+    state = render_passes(engine, passes=4)
+    assert state.R0[0] > 0.3 * wide  # the back wall's photon density, seen through a pinhole
+    assert np.all(engine.integrator.image(state) > 0.0)
 
 
 def test_unlit_pixels_keep_a_bounded_radius() -> None:

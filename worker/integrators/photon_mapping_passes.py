@@ -25,7 +25,13 @@ if TYPE_CHECKING:
 
 R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at the median lit pixel ...
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
-PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints
+PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints, ...
+# ... a radius grown by PROBE_GROWTH until the median lit probe point holds PROBE_MIN_PHOTONS
+# (or it spans the scene): where photons lie sparser than the probe (a close-up, a big frame), a
+# point that caught one photon overstates the density by the photons it missed, and with none
+# caught R0 fell to the footprints' (cornell-box at fov 0.01: 0.015, which no photon ever reached).
+PROBE_GROWTH = 4.0
+PROBE_MIN_PHOTONS = 4.0
 # ... at most at this many pixels, a regular subset of the frame (R0's medians). 2^14: R0
 # within 0.4% of every pixel's on the bundled scenes at 256x256 to 3840x2160, and the
 # set-up (the probe's gather is most of it) 0.34 s against 0.67-0.93 on furnace at
@@ -273,26 +279,35 @@ class PhotonMappingPasses:
         resolution, only noise.
 
         The density comes from pass 0 itself: its eye pass, its photons, and an exact gather
-        at PROBE_FOOTPRINTS pixel footprints, both at a regular subset of the pixels
-        (pixel_footprint); nothing of it is kept."""
+        at PROBE_FOOTPRINTS pixel footprints (grown until the median lit point holds
+        PROBE_MIN_PHOTONS), both at a regular subset of the pixels (pixel_footprint); nothing
+        of it is kept."""
         dev, a = self.dev, self.dev.arrays
         n = a.n_pixels
         if self.settings.initial_radius is not None:
             return {"R0": np.full(n, self.settings.initial_radius)}
         footprint, points = self.pixel_footprint()
-        # Density: an exact gather of pass 0's photons at the probe radius, at the
-        # footprint's pixels (on every pixel, the set-up of directional-caustic at 3840x2160
-        # took 3.3 s; now 0.8 s).
-        probe = PROBE_FOOTPRINTS * footprint
-        dev.zero_sums()
-        self._set_radii(np.full(n, probe), np.zeros(n), np.zeros(n))
         # Every photon counted, first hits too: with nee the radius is the one photons alone
         # would get (sized by the density of the photons that are stored, mostly bounced
         # light, it is up to 5x larger and blurs the caustics that only photons carry).
-        self._build_and_gather(self._photon_pass(0, first_hits=True), probe, gather="exact", points=points)
-        density = dev.read_sums()["D"][:points]  # M / (pi probe^2): photons per unit area per pass
+        stored = self._photon_pass(0, first_hits=True)
+        probe = PROBE_FOOTPRINTS * footprint
+        while True:
+            # Density: an exact gather of pass 0's photons at the probe radius, at the
+            # footprint's pixels (on every pixel, the set-up of directional-caustic at
+            # 3840x2160 took 3.3 s; now 0.8 s).
+            dev.zero_sums()
+            self._set_radii(np.full(n, probe), np.zeros(n), np.zeros(n))
+            self._build_and_gather(stored, probe, gather="exact", points=points)
+            # M / (pi probe^2): photons per unit area per pass (a copy: a view kept would make the
+            # next gather sum into a new buffer, Device.batch_sums, fresh memory at 0.6 s a GB)
+            density = dev.read_sums()["D"][:points].copy()
+            lit = density > 0.0
+            caught = float(np.median(density[lit])) * math.pi * probe ** 2 if lit.any() else 0.0
+            if caught >= PROBE_MIN_PHOTONS or probe >= a.scene_diagonal:
+                break
+            probe *= PROBE_GROWTH
         dev.times.seconds.clear()  # set-up, not rendering
-        lit = density > 0.0
         r0 = R0_FOOTPRINTS * footprint
         if lit.any():  # else no photon reached anything the camera sees
             r0 = max(r0, math.sqrt(R0_PHOTONS / (math.pi * float(np.median(density[lit])))))
