@@ -32,6 +32,11 @@ PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this man
 # caught R0 fell to the footprints' (cornell-box at fov 0.01: 0.015, which no photon ever reached).
 PROBE_GROWTH = 4.0
 PROBE_MIN_PHOTONS = 4.0
+# The probe grows to at most this share of the scene's diagonal: a disc that spans the scene
+# gathers photons of surfaces the points do not see (with the light outside the furnace's
+# closed sphere, the probe caught photons on its far outer side, facing the points, and the
+# black interior rendered lit).
+PROBE_MAX_SHARE = 1.0 / 16.0
 # ... at most at this many pixels, a regular subset of the frame (R0's medians). 2^14: R0
 # within 0.4% of every pixel's on the bundled scenes at 256x256 to 3840x2160, and the
 # set-up (the probe's gather is most of it) 0.34 s against 0.67-0.93 on furnace at
@@ -280,7 +285,7 @@ class PhotonMappingPasses:
 
         The density comes from pass 0 itself: its eye pass, its photons, and an exact gather
         at PROBE_FOOTPRINTS pixel footprints (grown until the median lit point holds
-        PROBE_MIN_PHOTONS), both at a regular subset of the pixels (pixel_footprint); nothing
+        PROBE_MIN_PHOTONS, within PROBE_MAX_SHARE of the scene), both at a regular subset of the pixels (pixel_footprint); nothing
         of it is kept."""
         dev, a = self.dev, self.dev.arrays
         n = a.n_pixels
@@ -304,7 +309,7 @@ class PhotonMappingPasses:
             density = dev.read_sums()["D"][:points].copy()
             lit = density > 0.0
             caught = float(np.median(density[lit])) * math.pi * probe ** 2 if lit.any() else 0.0
-            if caught >= PROBE_MIN_PHOTONS or probe >= a.scene_diagonal:
+            if caught >= PROBE_MIN_PHOTONS or probe * PROBE_GROWTH > PROBE_MAX_SHARE * a.scene_diagonal:
                 break
             probe *= PROBE_GROWTH
         dev.times.seconds.clear()  # set-up, not rendering
