@@ -15,7 +15,12 @@ typedef struct {
     int surf;     // surface record index, SURF_NONE on a miss
 } Hit;
 
-// Ray offset that scales with the magnitude of the coordinates it is added to.
+// Ray offset that scales with the magnitude of the coordinates it is added to. Every ray
+// that leaves a surface starts this far off it along the normal, on the side it leaves to,
+// so it cannot meet that surface again; the queries below then take every hit ahead of the
+// origin (t > 0). A skip of this length along the ray as well let rays that left within it of
+// a wall cross the wall at a concave corner (a closed `gap` partition let through 1.2% of
+// the light the gap lets through).
 inline float ray_eps(float3 p) {
     return HIT_EPS_REL * fmax(1.0f, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
 }
@@ -121,7 +126,7 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
     Hit h;
     h.t = tmax;
     h.surf = SURF_NONE;
-    float tmin = ray_eps(o);
+    float tmin = 0.0f;
     int best_sphere = -1, best_tri = -1;
     bool bounded = tmax < INFINITY;
     for (int i = 0; i < g->n_spheres; ++i) {
@@ -183,7 +188,7 @@ inline Hit intersect(const SceneGeom* g, float3 o, float3 d) { return intersect_
 // until its first hit the closest-hit query visits the same nodes with the same bound, so
 // the answer is intersect_within(...).surf != SURF_NONE bit for bit.
 inline bool occluded(const SceneGeom* g, float3 o, float3 d, float tmax) {
-    float tmin = ray_eps(o);
+    float tmin = 0.0f;
     bool bounded = tmax < INFINITY;
     for (int i = 0; i < g->n_spheres; ++i) {
         if (bounded && sphere_beyond(g->spheres[i], o, tmax)) continue;
