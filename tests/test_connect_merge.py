@@ -23,7 +23,7 @@ from tests.analytic import FURNACE_L, point_plane
 from tests.conftest import render
 from tests.test_closed_scenes import assert_corners_match_mitsuba
 from worker.image_io import read_image
-from worker.integrators.base import Delta
+from worker.integrators.base import BatchAborted, Delta
 from worker.integrators.connect_merge import HybridInputs, HybridState, hybrid_estimate
 from worker.scene import bundled_scene_path, load_scene_file
 
@@ -125,6 +125,18 @@ def test_same_seed_same_sums(make_engine) -> None:
         sums.append(eng.run_batch(HybridInputs(0.05), 0, 3).sums)
     for name in sums[0]:
         np.testing.assert_array_equal(sums[0][name], sums[1][name])
+
+
+@pytest.mark.parametrize("method", ["vcm", "sppm"])
+def test_a_batch_stopped_mid_way_is_aborted_not_failed(make_engine, method: str) -> None:
+    """A job that stops wanting a batch (cancelled, ended) stops it after a pass: BatchAborted,
+    the next batch renders as usual. vcm's last kernel of a pass may still run then, and its
+    timing was read early: an OpenCL error failed the batch (seen cancelling vcm jobs)."""
+    eng = make_engine("cornell-box", resolution=(96, 96), method=method, photons_per_pass=1 << 14, seed=2)
+    inputs = eng.integrator.batch_inputs(eng.start())
+    with pytest.raises(BatchAborted):
+        eng.run_batch(inputs, 0, 3, keep_going=lambda k: False)
+    assert eng.run_batch(inputs, 0, 1).n_passes == 1
 
 
 def test_batches_add_up_in_any_order_and_split(make_engine) -> None:

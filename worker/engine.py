@@ -30,7 +30,8 @@ from worker.settings import Settings
 @dataclass
 class StageTimes:
     """Seconds spent per stage: device time from OpenCL profiling events, read once the
-    events have completed (`settle`), so timing adds no synchronisation to a pass."""
+    events have completed (`settle`, after the pass's own waits), so timing adds no
+    synchronisation to a pass."""
 
     seconds: dict[str, float] = field(default_factory=dict)
     pending: list[tuple[str, cl.Event]] = field(default_factory=list)
@@ -43,6 +44,7 @@ class StageTimes:
 
     def settle(self) -> None:
         for stage, e in self.pending:
+            e.wait()  # (done already but for a batch stopped mid-pass: vcm's camera pass may still run)
             self.add_seconds(stage, (e.profile.end - e.profile.start) * 1e-9)
         self.pending.clear()
 
