@@ -1,6 +1,7 @@
 """Scenes that render black: no light at all, light that never reaches what the camera
-sees, and nothing at all (no shapes, no lights: the scene has no size). The job must end (on its budget) with a black image and a defined error estimate:
-no NaN, no hang, no failure."""
+sees, and nothing at all (no shapes, no lights: the scene has no size). The job must end
+(on its budget) with a black image and a defined error estimate: no NaN, no hang, no
+failure."""
 
 from __future__ import annotations
 

@@ -19,8 +19,8 @@ typedef struct {
 // that leaves a surface starts this far off it along the normal, on the side it leaves to,
 // so it cannot meet that surface again; the queries below then take every hit ahead of the
 // origin (t > 0). A skip of this length along the ray as well let rays that left within it of
-// a wall cross the wall at a concave corner (a closed `gap` partition let through 1.2% of
-// the light the gap lets through).
+// a wall cross the wall at a concave corner (light tracing lit pixels beyond the wall of
+// tests/test_wall_leak.py, and `gap`'s camera room with the gap closed).
 inline float ray_eps(float3 p) {
     return HIT_EPS_REL * fmax(1.0f, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
 }

@@ -498,7 +498,8 @@ def test_obj_normals_are_read(tmp_path: Path) -> None:
 
 def test_obj_bytes_outside_utf8(tmp_path: Path) -> None:
     """A Latin-1 comment does not stop an OBJ from reading; bytes that are no OBJ at all say so."""
-    (tmp_path / "latin1.obj").write_bytes("# caf\u00e9 mod\u00e8le\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".encode("latin-1"))
+    latin1 = "# caf\u00e9 mod\u00e8le\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".encode("latin-1")
+    (tmp_path / "latin1.obj").write_bytes(latin1)
     assert load_mesh(tmp_path / "latin1.obj").triangles.tolist() == [[0, 1, 2]]
     (tmp_path / "binary.obj").write_bytes(b"\x00\x01\x02 binary \xff\xfe")
     with pytest.raises(MeshError, match="no triangles"):

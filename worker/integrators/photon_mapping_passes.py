@@ -27,7 +27,7 @@ R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
 PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints, ...
 # ... a radius grown by PROBE_GROWTH until the median lit probe point holds PROBE_MIN_PHOTONS
-# (or it spans the scene): where photons lie sparser than the probe (a close-up, a big frame), a
+# (or it would pass PROBE_MAX_SHARE of the scene): where photons lie sparser than the probe (a close-up, a big frame), a
 # point that caught one photon overstates the density by the photons it missed, and with none
 # caught R0 fell to the footprints' (cornell-box at fov 0.01: 0.015, which no photon ever reached).
 PROBE_GROWTH = 4.0
@@ -285,8 +285,8 @@ class PhotonMappingPasses:
 
         The density comes from pass 0 itself: its eye pass, its photons, and an exact gather
         at PROBE_FOOTPRINTS pixel footprints (grown until the median lit point holds
-        PROBE_MIN_PHOTONS, within PROBE_MAX_SHARE of the scene), both at a regular subset of the pixels (pixel_footprint); nothing
-        of it is kept."""
+        PROBE_MIN_PHOTONS, within PROBE_MAX_SHARE of the scene), both at a regular subset of
+        the pixels (pixel_footprint); nothing of it is kept."""
         dev, a = self.dev, self.dev.arrays
         n = a.n_pixels
         if self.settings.initial_radius is not None:
