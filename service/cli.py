@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from pydantic import ValidationError
 
@@ -45,6 +46,24 @@ def _positive(kind: type) -> Any:
             raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
         return value
     return parse
+
+
+def _count(text: str) -> int:
+    """A number of things, 0 included."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
+def _redis_url(text: str) -> str:
+    """A Redis URL (the value is not echoed back: it may hold a password)."""
+    if urlsplit(text).scheme not in ("redis", "rediss", "unix"):
+        raise argparse.ArgumentTypeError("expected a redis://, rediss:// or unix:// URL")
+    return text
 
 
 def _output(text: str) -> Path:
@@ -92,8 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="run the HTTP API (with embedded Redis and local workers by default)")
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
-    serve.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
-    serve.add_argument("--redis-url", default=os.environ.get("REDIS_URL"),
+    serve.add_argument("--workers", type=_count, default=None,
+                       help="local worker processes (default: one per core; 0: workers run elsewhere)")
+    serve.add_argument("--redis-url", type=_redis_url, default=os.environ.get("REDIS_URL"),
                        help="external Redis (default: $REDIS_URL, else an embedded one)")
     serve.add_argument("--data-dir", type=Path, default=Path(os.environ.get("PHOTONFARM_DATA", "data")),
                        help="where the embedded Redis keeps its append-only file (default: ./data)")
@@ -103,7 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_submit_parser(sub, _positive(float), _positive(int), _resolution, _output)
 
     worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
-    worker.add_argument("--redis-url", default=os.environ.get("REDIS_URL"), required="REDIS_URL" not in os.environ)
+    worker.add_argument("--redis-url", type=_redis_url, default=os.environ.get("REDIS_URL"),
+                        required="REDIS_URL" not in os.environ)
     worker.add_argument("--burst", action="store_true", help="exit when the queues are empty")
     return parser
 

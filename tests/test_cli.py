@@ -110,3 +110,15 @@ def test_convert_and_render_a_mitsuba_scene_from_anywhere(tmp_path: Path) -> Non
     bad.write_text('<scene version="3.0.0">\n  <bsdf type="hair"/>\n</scene>\n')
     proc = subprocess.run([str(PHOTONFARM), "convert", str(bad)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "line 2" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_service_flags_are_checked_before_anything_starts(tmp_path: Path) -> None:
+    """A Redis URL of another scheme, or a negative worker count: one line, exit 2 (the URL was
+    a traceback from the worker's Redis client; -1 workers started the API with none)."""
+    for args in (["worker", "--redis-url", "http://:secret@example"],
+                 ["serve", "--redis-url", "localhost:6379", "--data-dir", str(tmp_path)],
+                 ["serve", "--workers", "-1", "--data-dir", str(tmp_path)]):
+        proc = subprocess.run([str(PHOTONFARM), *args], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
+        assert proc.stderr.strip().splitlines()[-1].startswith("photonfarm"), proc.stderr
+        assert "secret" not in proc.stderr  # a URL may carry a password: it is not echoed
