@@ -302,20 +302,22 @@ class PhotonMappingPasses:
             # footprint's pixels (on every pixel, the set-up of directional-caustic at
             # 3840x2160 took 3.3 s; now 0.8 s).
             dev.zero_sums()
-            self._set_radii(np.full(n, probe), np.zeros(n), np.zeros(n))
+            self._set_radii(np.full(points, probe), np.zeros(points), np.zeros(points))  # what the gather reads
             self._build_and_gather(stored, probe, gather="exact", points=points)
             # M / (pi probe^2): photons per unit area per pass (a copy: a view kept would make the
-            # next gather sum into a new buffer, Device.batch_sums, fresh memory at 0.6 s a GB)
+            # next gather sum into a new buffer, Device.batch_sums, fresh memory at 0.6 s a GB),
+            # at the median lit point
             density = dev.read_sums()["D"][:points].copy()
-            lit = density > 0.0
-            caught = float(np.median(density[lit])) * math.pi * probe ** 2 if lit.any() else 0.0
-            if caught >= PROBE_MIN_PHOTONS or probe * PROBE_GROWTH > PROBE_MAX_SHARE * a.scene_diagonal:
+            lit = density[density > 0.0]
+            median = float(np.median(lit)) if len(lit) else 0.0
+            if median * math.pi * probe ** 2 >= PROBE_MIN_PHOTONS \
+                    or probe * PROBE_GROWTH > PROBE_MAX_SHARE * a.scene_diagonal:
                 break
             probe *= PROBE_GROWTH
         dev.times.seconds.clear()  # set-up, not rendering
         r0 = R0_FOOTPRINTS * footprint
-        if lit.any():  # else no photon reached anything the camera sees
-            r0 = max(r0, math.sqrt(R0_PHOTONS / (math.pi * float(np.median(density[lit])))))
+        if median > 0.0:  # else no photon reached anything the camera sees
+            r0 = max(r0, math.sqrt(R0_PHOTONS / (math.pi * median)))
         return {"R0": np.full(n, r0)}
 
     # -------------------------------------------------------------------- batch
