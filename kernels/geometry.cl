@@ -216,3 +216,14 @@ inline bool occluded(const SceneGeom* g, float3 o, float3 d, float tmax) {
         node = stack[--sp];
     }
 }
+
+// Whether anything lies between two points, each already off its surface on the side facing
+// the other (a shadow ray or a connection, aimed at the far point's own offset point and ending
+// there). A ray aimed at the far surface point and stopped short of it along the ray instead
+// ends beyond a wall that stands within that distance of the point, at a concave corner, and
+// sees the point through the wall.
+inline bool blocked_between(const SceneGeom* g, float3 o, float3 e) {
+    float3 d = e - o;
+    float len = length(d);
+    return len > 0.0f && occluded(g, o, d / len, len);
+}

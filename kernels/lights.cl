@@ -52,6 +52,11 @@ inline EmitterPoint sample_emitter_point(int kind, float4 r0, float4 r1, float4 
 
 inline float power_heuristic(float a, float b) { return a * a / (a * a + b * b); }
 
+// Where a shadow ray toward the light point y ends: off y along n, y's normal on the side that
+// faces the shaded point, as every ray leaves a surface (geometry.cl, blocked_between). A
+// point light takes the direction back to the shaded point, in case it sits on a surface.
+inline float3 shadow_end(float3 y, float3 n) { return y + n * ray_eps(y); }
+
 // The light sample: MIS-weighted L f cos / p from one emitter chosen by power, or 0 if
 // the emitter is occluded, behind x, or faces away. n: geometric normal on the eye's side;
 // ns: shading normal on that side.
@@ -63,42 +68,40 @@ inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, 
     float u1 = rng_float(rng), u2 = rng_float(rng);
     int kind = as_int(r0.w);
     float3 wi, li;  // direction to the light; radiance (area) or intensity / d^2 or irradiance (delta)
-    float dist, pdf = r3.w, mis = 1.0f;
+    float3 end;     // the shadow ray's end, unless the light is directional
+    float pdf = r3.w, mis = 1.0f;
     if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
         EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
         float3 y = ep.y, nl = ep.n;
         float area = ep.area;
         float3 to = y - x;
         float d2 = dot(to, to);
-        dist = sqrt(d2);
-        wi = to / dist;
+        wi = to / sqrt(d2);
         float cos_l = -dot(wi, nl);
         if (cos_l <= 0.0f || area <= 0.0f) return (float3)(0.0f);
         li = r3.xyz / (PI_F * area);
         pdf *= d2 / (area * cos_l);
         mis = power_heuristic(pdf, fmax(dot(wi, ns), 0.0f) / PI_F);
-        dist -= 2.0f * ray_eps(y);  // the shadow ray stops short of the light's own surface
+        end = shadow_end(y, nl);
     } else if (kind == EMIT_DIRECTIONAL) {
         wi = -r1.xyz;
-        dist = INFINITY;
         li = r3.xyz / (PI_F * r1.w * r1.w);  // the irradiance the emitting disc carries
     } else {  // point or spot: intensity / d^2
         float3 to = r0.xyz - x;
         float d2 = dot(to, to);
-        dist = sqrt(d2);
-        wi = to / dist;
+        wi = to / sqrt(d2);
         if (kind == EMIT_POINT) {
             li = r3.xyz / (4.0f * PI_F * d2);
         } else {
             if (-dot(wi, r1.xyz) < r1.w) return (float3)(0.0f);  // outside the cone
             li = r3.xyz / (2.0f * PI_F * (1.0f - r1.w) * d2);
         }
-        dist -= 2.0f * ray_eps(r0.xyz);
+        end = shadow_end(r0.xyz, -wi);
     }
     float cos_s = dot(wi, ns);
     if (cos_s <= 0.0f || dot(wi, n) <= 0.0f) return (float3)(0.0f);
-    Hit h = intersect(g, x + n * ray_eps(x), wi);
-    if (h.surf != SURF_NONE && h.t < dist) return (float3)(0.0f);
+    float3 o = x + n * ray_eps(x);
+    if (kind == EMIT_DIRECTIONAL ? occluded(g, o, wi, INFINITY) : blocked_between(g, o, end)) return (float3)(0.0f);
     return albedo / PI_F * li * (cos_s * mis / pdf);
 }
 

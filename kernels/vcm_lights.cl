@@ -27,10 +27,11 @@ typedef struct {
 
 typedef struct {
     float3 wi;          // toward the light
-    float dist;         // shadow-ray length (INFINITY for directional)
+    float3 end;         // the shadow ray's end (lights.cl, shadow_end), unless directional
     float3 li;          // see the table
     float pick, direct_pdf, emission_pdf, cos_light;  // emission_pdf: position x direction, no pick
     bool delta;         // point, spot, directional: a BSDF sample never finds it
+    bool directional;   // the shadow ray goes on forever
 } DirectSample;
 
 inline float total_power(__global const float4* emitters) {
@@ -87,34 +88,34 @@ inline bool sample_direct(__global const float4* emitters, __global const float*
     int kind = as_int(r0.w);
     s->pick = r3.w;
     s->delta = kind != EMIT_TRIANGLE && kind != EMIT_SPHERE;
+    s->directional = kind == EMIT_DIRECTIONAL;
     s->cos_light = 1.0f;
     if (!s->delta) {
         EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
         float3 y = ep.y, nl = ep.n;
         float area = ep.area;
         float3 to = y - x;
-        float d2 = dot(to, to), dist = sqrt(d2);
-        s->wi = to / dist;
+        float d2 = dot(to, to);
+        s->wi = to / sqrt(d2);
         s->cos_light = -dot(s->wi, nl);
         if (s->cos_light <= 0.0f || area <= 0.0f) return false;
         s->li = r3.xyz / (PI_F * area);  // Le = P_k / (pi A)
         s->direct_pdf = d2 / (area * s->cos_light);
         s->emission_pdf = s->cos_light / (PI_F * area);
-        s->dist = dist - 2.0f * ray_eps(y);  // the shadow ray stops short of the light's own surface
+        s->end = shadow_end(y, nl);
         return true;
     }
     if (kind == EMIT_DIRECTIONAL) {
         s->wi = -r1.xyz;
-        s->dist = INFINITY;
         s->li = r3.xyz / (PI_F * r1.w * r1.w);
         s->direct_pdf = 1.0f;
         s->emission_pdf = 1.0f / (PI_F * r1.w * r1.w);
         return true;
     }
     float3 to = r0.xyz - x;
-    float d2 = dot(to, to), dist = sqrt(d2);
-    s->wi = to / dist;
-    s->dist = dist - 2.0f * ray_eps(r0.xyz);
+    float d2 = dot(to, to);
+    s->wi = to / sqrt(d2);
+    s->end = shadow_end(r0.xyz, -s->wi);
     s->direct_pdf = d2;
     if (kind == EMIT_POINT) {
         s->emission_pdf = 1.0f / (4.0f * PI_F);

@@ -11,7 +11,11 @@ now and then that crosses at the wall's foot.
 
 Light tracing and bidirectional connections have no disc: nothing at all may cross. Their
 shadow rays from the lit floor within the ray offset of the wall crossed it while rays
-skipped every hit that near (geometry.cl, ray_eps): 2 pixels each, 4e-5 of mean."""
+skipped every hit that near (geometry.cl, ray_eps): 2 pixels each, 4e-5 of mean. In two
+rooms parted by a whole wall, bpt still lit 208 of 1024 pixels of the dark room: a
+connection to a light vertex, or a shadow ray to a light sample, within the ray offset of
+the wall's lit side stopped short of that point along the ray, beyond the wall (geometry.cl,
+blocked_between)."""
 
 from __future__ import annotations
 
@@ -61,10 +65,30 @@ def test_no_light_through_the_wall(make_engine, tmp_path: Path, method: str, sam
         assert adaptive.visible_fraction(state.counters) < 0.05, state.counters
 
 
+def _two_rooms_scene() -> dict:
+    """A 4 x 2 x 2 box parted at x = 2 by a whole wall; a lamp under the ceiling of the
+    x > 2 room, against the wall (its light samples too may lie within the offset of it);
+    the camera in the other room looks at the wall. Nothing can light it."""
+    def quad(corner: list[float], edge1: list[float], edge2: list[float], **extra: object) -> dict:
+        return {"type": "quad", "corner": corner, "edge1": edge1, "edge2": edge2, "material": "white", **extra}
+    return {
+        "camera": {"position": [0.15, 1.4, 1.0], "look_at": [2.0, 0.6, 1.0], "up": [0, 1, 0], "fov": 70,
+                   "resolution": [32, 32]},
+        "materials": {"white": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+        "shapes": [quad([0, 0, 0], [0, 0, 2], [4, 0, 0]), quad([0, 2, 0], [4, 0, 0], [0, 0, 2]),
+                   quad([0, 0, 0], [0, 2, 0], [4, 0, 0]), quad([0, 0, 2], [4, 0, 0], [0, 2, 0]),
+                   quad([0, 0, 0], [0, 0, 2], [0, 2, 0]), quad([4, 0, 0], [0, 2, 0], [0, 0, 2]),
+                   quad([2, 0, 0], [0, 2, 0], [0, 0, 2]),
+                   quad([2.0, 1.99, 0.8], [0.4, 0, 0], [0, 0, 0.4], emission=[40, 40, 40])],
+        "lights": [],
+    }
+
+
+@pytest.mark.parametrize("scene", [_wall_scene, _two_rooms_scene])
 @pytest.mark.parametrize("method", ["bpt", "lt"])
-def test_no_connection_through_the_wall(make_engine, tmp_path: Path, method: str) -> None:
+def test_no_connection_through_the_wall(make_engine, tmp_path: Path, method: str, scene) -> None:
     path = tmp_path / "wall.json"
-    path.write_text(json.dumps(_wall_scene()))
+    path.write_text(json.dumps(scene()))
     eng = make_engine(path, photons_per_pass=1 << 13, seed=12, method=method)
     img = image(eng, render(eng, 4))
     assert img.max() == 0.0, ((img > 0).sum(), img.max())
