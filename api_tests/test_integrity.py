@@ -141,7 +141,7 @@ def test_concurrent_submits_respect_the_active_job_limit(tmp_path: Path) -> None
             t.start()
         for t in threads:
             t.join()
-        assert codes.count(201) == MAX_ACTIVE_JOBS and codes.count(422) == 24 - MAX_ACTIVE_JOBS, codes
+        assert codes.count(201) == MAX_ACTIVE_JOBS and codes.count(429) == 24 - MAX_ACTIVE_JOBS, codes
         assert Jobs(c.redis_client).active_count() == MAX_ACTIVE_JOBS
     finally:
         c.close()

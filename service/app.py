@@ -62,7 +62,8 @@ OPEN_PATHS = ("/healthz", "/", "/openapi.json", "/docs", "/docs/oauth2-redirect"
 OPEN_PREFIXES = ("/static/", f"{DOCS_ASSETS}/")
 REASONS = {401: "missing or wrong bearer token (when PHOTONFARM_TOKEN is set)", 404: "no such job or scene",
            409: "not possible in the job's state", 413: f"body larger than {MAX_BODY_BYTES} bytes",
-           422: "a bad field, named in detail[].loc", 503: "the job store (Redis) is unavailable"}
+           422: "a bad field, named in detail[].loc", 429: "as many jobs active as the service allows; retry later",
+           503: "the job store (Redis) is unavailable"}
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
@@ -298,15 +299,15 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         try:
             job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, scene_name,
                                  max_active=MAX_ACTIVE_JOBS)
-        except JobLimitReached as exc:
-            raise _unprocessable(["body"], str(exc)) from None
+        except JobLimitReached as exc:  # not the request's fault: the same request succeeds later
+            raise HTTPException(429, detail=str(exc)) from None
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
         log.info(f"job submitted: {scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
         return job_view(jobs, jobs.get(job_id))
 
     @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
-              responses=errors(*auth, 413, 422))
+              responses=errors(*auth, 413, 422, 429))
     def submit(body: JobRequest, response: Response) -> JobView:
         def scene_loc(exc: SceneError) -> list[str | int]:
             if body.scene_name is not None:
@@ -322,7 +323,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         return create_job(parsed, base_dir, SCENES_DIR, body.settings, body.scene_name, scene_loc, response)
 
     @app.post("/v1/jobs/upload", status_code=201, response_model=JobView, dependencies=secured,
-              responses=errors(*auth, 413, 422))
+              responses=errors(*auth, 413, 422, 429))
     def submit_upload(response: Response,
                       scene: Annotated[str, Form(description="the scene file inside the upload (.json or .xml)")],
                       archive: Annotated[UploadFile | None, File(description=".zip or .tar.gz of the scene "

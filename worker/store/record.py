@@ -167,7 +167,7 @@ class Jobs:
                 try:
                     pipe.watch(keys.ACTIVE)
                     if max_active is not None and pipe.scard(keys.ACTIVE) >= max_active:
-                        raise JobLimitReached(f"at most {max_active} jobs may be active at once")
+                        raise JobLimitReached(f"at most {max_active} jobs may be active at once: retry when one ends")
                     pipe.multi()
                     pipe.hset(keys.job(job_id), mapping=fields)
                     pipe.set(keys.scene(job_id), json.dumps(scene))
