@@ -154,6 +154,10 @@ inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
     int k1 = (k + 1) & (COVERAGE_RAYS - 1);
     float s0 = cut_at(cut, k), s1 = cut_at(cut, k1);
     if (s0 == 1.0f && s1 == 1.0f) return true;  // the rim (the disc test is the caller's)
+    // Both cut at the centre (a wall within r / 255 of the point, where it meets the point's
+    // surface): the sector lies beyond it. The edge below would have no length and take every
+    // photon in the sector (a point by the foot of a partition gathered the lit room's floor).
+    if (s0 == 0.0f && s1 == 0.0f) return false;
     float a0 = phi0 + k * step, a1 = a0 + step;
     float2 p0 = s0 * r * (float2)(cos(a0), sin(a0)), p1 = s1 * r * (float2)(cos(a1), sin(a1));
     float2 e = p1 - p0, w = p - p0;
