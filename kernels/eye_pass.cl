@@ -63,7 +63,7 @@ inline bool triangle_may_reach(float3 v0, float3 e1, float3 e2, float3 x, float 
 }
 
 inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
-    float e = ray_eps(x);
+    float e = ray_eps(g, x);
     float reach = r + e;
     for (int i = 0; i < g->n_spheres; ++i) {
         float4 s = g->spheres[i];
@@ -112,7 +112,7 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
 #endif
     float3 t, b;
     onb(n, &t, &b);
-    float3 o = x + n * ray_eps(x);
+    float3 o = x + n * ray_eps(g, x);
     float2 covered = (float2)(0.0f);
     uint words[2] = {0u, 0u};
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
@@ -239,7 +239,7 @@ __kernel void eye_pass(
         if (h.smooth && shading_bounce(d, nd, h.ng, h.ns, false) == 0.0f) break;
         thr *= w;
         d = nd;
-        origin = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
+        origin = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(&g, p);
     }
     mp_pos[gid] = pos;
     mp_nrm[gid] = nrm;

@@ -15,15 +15,6 @@ typedef struct {
     int surf;     // surface record index, SURF_NONE on a miss
 } Hit;
 
-// Ray offset that scales with the magnitude of the coordinates it is added to. Every ray
-// that leaves a surface starts this far off it along the normal, on the side it leaves to,
-// so it cannot meet that surface again; the queries below then take every hit ahead of the
-// origin (t > 0). A skip of this length along the ray as well let rays that left within it of
-// a wall cross the wall at a concave corner (light tracing lit pixels beyond the wall of
-// tests/test_wall_leak.py, and `gap`'s camera room with the gap closed).
-inline float ray_eps(float3 p) {
-    return HIT_EPS_REL * fmax(1.0f, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
-}
 
 inline double sphere_distance(float4 sph, float3 o, float3 d, double tmin, double tmax) {
     double3 c = (double3)(sph.x, sph.y, sph.z);
@@ -101,7 +92,21 @@ typedef struct {
     __global const int* sphere_surf;
     int n_nodes;
     int n_spheres;
+    float eps_floor;                 // the scene's coordinate scale, at most 1 (ray_eps)
 } SceneGeom;
+
+// Ray offset that scales with the magnitude of the coordinates it is added to, and near the
+// origin with the scene's own scale (its largest coordinate, at most 1: worker/scene_arrays.py),
+// so that a scene's image does not change with its unit (a floor of 1 offset a 5 cm box by 0.2%
+// of its size and darkened its corners by 1-3%). Every ray that leaves a surface starts this far
+// off it along the normal, on the side it leaves to, so it cannot meet that surface again; the
+// queries below then take every hit ahead of the origin (t > 0). A skip of this length along the
+// ray as well let rays that left within it of a wall cross the wall at a concave corner (light
+// tracing lit pixels beyond the wall of tests/test_wall_leak.py, and `gap`'s camera room with the
+// gap closed).
+inline float ray_eps(const SceneGeom* g, float3 p) {
+    return HIT_EPS_REL * fmax(g->eps_floor, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
+}
 
 // The scene's buffers as every tracing kernel takes them, in the host's order (Device.geometry,
 // then Device.emitter_args, worker/engine.py), and the SceneGeom a kernel makes of them.
@@ -109,10 +114,11 @@ typedef struct {
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2, \
     __global const float4* tri_nrm, \
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes, \
-    __global const float4* spheres, __global const int* sphere_surf, int n_spheres, \
+    __global const float4* spheres, __global const int* sphere_surf, int n_spheres, float eps_floor, \
     __global const float4* surf_a, __global const float4* surf_b, \
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
-#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres}
+#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres, \
+                    eps_floor}
 
 // No point of the sphere lies within tmax of o: a bounded query skips it (smallppm's walls
 // are spheres of radius 1e5, so the distance is taken in double).

@@ -55,7 +55,7 @@ inline float power_heuristic(float a, float b) { return a * a / (a * a + b * b);
 // Where a shadow ray toward the light point y ends: off y along n, y's normal on the side that
 // faces the shaded point, as every ray leaves a surface (geometry.cl, blocked_between). A
 // point light takes the direction back to the shaded point, in case it sits on a surface.
-inline float3 shadow_end(float3 y, float3 n) { return y + n * ray_eps(y); }
+inline float3 shadow_end(const SceneGeom* g, float3 y, float3 n) { return y + n * ray_eps(g, y); }
 
 // The light sample: MIS-weighted L f cos / p from one emitter chosen by power, or 0 if
 // the emitter is occluded, behind x, or faces away. n: geometric normal on the eye's side;
@@ -82,7 +82,7 @@ inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, 
         li = r3.xyz / (PI_F * area);
         pdf *= d2 / (area * cos_l);
         mis = power_heuristic(pdf, fmax(dot(wi, ns), 0.0f) / PI_F);
-        end = shadow_end(y, nl);
+        end = shadow_end(g, y, nl);
     } else if (kind == EMIT_DIRECTIONAL) {
         wi = -r1.xyz;
         li = r3.xyz / (PI_F * r1.w * r1.w);  // the irradiance the emitting disc carries
@@ -96,11 +96,11 @@ inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, 
             if (-dot(wi, r1.xyz) < r1.w) return (float3)(0.0f);  // outside the cone
             li = r3.xyz / (2.0f * PI_F * (1.0f - r1.w) * d2);
         }
-        end = shadow_end(r0.xyz, -wi);
+        end = shadow_end(g, r0.xyz, -wi);
     }
     float cos_s = dot(wi, ns);
     if (cos_s <= 0.0f || dot(wi, n) <= 0.0f) return (float3)(0.0f);
-    float3 o = x + n * ray_eps(x);
+    float3 o = x + n * ray_eps(g, x);
     if (kind == EMIT_DIRECTIONAL ? occluded(g, o, wi, INFINITY) : blocked_between(g, o, end)) return (float3)(0.0f);
     return albedo / PI_F * li * (cos_s * mis / pdf);
 }
@@ -111,7 +111,7 @@ inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* su
                                    float3 x, float3 n, float3 ns, float3 albedo, Rng* rng) {
     float3 wi = sample_cosine(ns, rng_float(rng), rng_float(rng));
     if (dot(wi, n) <= 0.0f) return (float3)(0.0f);
-    Hit h = intersect(g, x + n * ray_eps(x), wi);
+    Hit h = intersect(g, x + n * ray_eps(g, x), wi);
     if (h.surf == SURF_NONE || dot(wi, h.ng) >= 0.0f) return (float3)(0.0f);  // emitters shine to their front
     float3 le = surf_b[h.surf].xyz;
     float sum_le = le.x + le.y + le.z;

@@ -108,7 +108,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __gl
     if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
         EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
         d = sample_cosine(ep.n, u3, u4);
-        o = ep.y + ep.n * ray_eps(ep.y);
+        o = ep.y + ep.n * ray_eps(g, ep.y);
     } else if (kind == EMIT_POINT) {
         o = r0.xyz;
         d = sample_sphere(u1, u2);
@@ -150,7 +150,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __gl
         if (rng_float(rng) >= survive) return;
         flux *= w / survive;
         d = nd;
-        o = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(p);
+        o = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(g, p);
     }
 }
 

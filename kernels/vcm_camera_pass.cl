@@ -37,10 +37,10 @@ inline BsdfEval camera_bsdf(const CameraVertex* x, float3 wi) {
 inline float3 next_event(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
                          int n_emitters, const CameraVertex* x, const SubPath* s, MisEtas eta, Rng* rng) {
     DirectSample ls;
-    if (!sample_direct(emitters, cdf, n_emitters, x->p, rng, &ls)) return (float3)(0.0f);
+    if (!sample_direct(g, emitters, cdf, n_emitters, x->p, rng, &ls)) return (float3)(0.0f);
     BsdfEval e = camera_bsdf(x, ls.wi);
     if (e.pdf_fwd <= 0.0f) return (float3)(0.0f);
-    float3 o = x->p + x->side * ray_eps(x->p);
+    float3 o = x->p + x->side * ray_eps(g, x->p);
     if (ls.directional ? occluded(g, o, ls.wi, INFINITY) : blocked_between(g, o, ls.end)) return (float3)(0.0f);
     float w_light = ls.delta ? 0.0f : e.pdf_fwd / (ls.pick * ls.direct_pdf);
     float w_cam = ls.emission_pdf * fabs(dot(ls.wi, x->ng)) / (ls.direct_pdf * ls.cos_light)
@@ -68,7 +68,7 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
         BsdfEval ey = bsdf_eval(as_int(ya.w), surf_b[y.surf].w, ya.xyz, y.ng, y.ns, y.wo, -dir);
         if (ey.pdf_fwd <= 0.0f) continue;
         float3 y_side = dot(y.ng, dir) < 0.0f ? y.ng : -y.ng;  // y's normal on x's side
-        if (blocked_between(g, x->p + x->side * ray_eps(x->p), y.pos + y_side * ray_eps(y.pos))) continue;
+        if (blocked_between(g, x->p + x->side * ray_eps(g, x->p), y.pos + y_side * ray_eps(g, y.pos))) continue;
         float cos_x = fabs(dot(dir, x->ng)), cos_y = fabs(dot(dir, y.ng));
         float w_light = ex.pdf_fwd * cos_y / d2 * (eta.vm + y.dVCM + y.dVC * ey.pdf_rev);
         float w_cam = ey.pdf_fwd * cos_x / d2 * (eta.vm + s->dVCM + s->dVC * ex.pdf_rev);
@@ -197,7 +197,7 @@ __kernel void vcm_camera_pass(
             }
         }
         // 5. Bounce, Russian roulette, and the quantities' update.
-        if (!subpath_bounce(&s, &h, p, sa, sb, false, eta, &rng)) break;
+        if (!subpath_bounce(&g, &s, &h, p, sa, sb, false, eta, &rng)) break;
     }
     cam_out[gid] = (float4)(radiance, merged_change);
     cam_hit[gid] = hit_any;

@@ -61,7 +61,7 @@ __kernel void vcm_light_pass(
     float n_light = (float)n_paths;
 
     // 1. Emission.
-    Emission em = sample_emission(emitters, emitter_cdf, n_emitters, &rng);
+    Emission em = sample_emission(&g, emitters, emitter_cdf, n_emitters, &rng);
     SubPath s = {em.o, em.d, em.flux, em.dVCM, em.dVC, em.dVC * eta.vc};
     int prev = -1;
 
@@ -95,7 +95,7 @@ __kernel void vcm_light_pass(
                 BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -s.d, pr.to_camera);
                 float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
                 if (e.pdf_fwd > 0.0f
-                    && !occluded(&g, p + side * ray_eps(p), pr.to_camera, pr.visible)) {
+                    && !occluded(&g, p + side * ray_eps(&g, p), pr.to_camera, pr.visible)) {
                     // Radiance f * arriving toward the camera, over the solid angle cos_y / d^2
                     // of the surface, times the pixel's importance: p_cam itself.
                     float p_cam = pr.importance * fabs(dot(pr.to_camera, h.ng)) / (pr.dist * pr.dist);
@@ -106,7 +106,7 @@ __kernel void vcm_light_pass(
             }
         }
         // 5. Bounce, Russian roulette, and the quantities' update.
-        if (!subpath_bounce(&s, &h, p, sa, sb, true, eta, &rng)) break;
+        if (!subpath_bounce(&g, &s, &h, p, sa, sb, true, eta, &rng)) break;
     }
     if (store) path_last[path] = prev;
 }

@@ -39,8 +39,8 @@ inline float total_power(__global const float4* emitters) {
     return (r3.x + r3.y + r3.z) / r3.w;
 }
 
-inline Emission sample_emission(__global const float4* emitters, __global const float* cdf, int n_emitters,
-                                Rng* rng) {
+inline Emission sample_emission(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
+                                int n_emitters, Rng* rng) {
     int k = pick_emitter(cdf, n_emitters, rng_float(rng));
     float4 r0 = emitters[4 * k], r1 = emitters[4 * k + 1], r2 = emitters[4 * k + 2], r3 = emitters[4 * k + 3];
     float u1 = rng_float(rng), u2 = rng_float(rng), u3 = rng_float(rng), u4 = rng_float(rng);
@@ -55,7 +55,7 @@ inline Emission sample_emission(__global const float4* emitters, __global const 
         float area = ep.area;
         e.o = ep.y;
         e.d = sample_cosine(n, u3, u4);
-        e.o += n * ray_eps(e.o);
+        e.o += n * ray_eps(g, e.o);
         float cos_l = fmax(dot(e.d, n), 1e-6f);
         e.dVCM = PI_F / cos_l;                   // (pick / A) / (pick / A cos_l / pi)
         e.dVC = PI_F * area / r3.w;              // cos_l / (pick / A cos_l / pi)
@@ -80,8 +80,8 @@ inline Emission sample_emission(__global const float4* emitters, __global const 
 }
 
 // A light sample seen from x; false if the emitter faces away or x is outside a spot's cone.
-inline bool sample_direct(__global const float4* emitters, __global const float* cdf, int n_emitters, float3 x,
-                          Rng* rng, DirectSample* s) {
+inline bool sample_direct(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
+                          int n_emitters, float3 x, Rng* rng, DirectSample* s) {
     int k = pick_emitter(cdf, n_emitters, rng_float(rng));
     float4 r0 = emitters[4 * k], r1 = emitters[4 * k + 1], r2 = emitters[4 * k + 2], r3 = emitters[4 * k + 3];
     float u1 = rng_float(rng), u2 = rng_float(rng);
@@ -102,7 +102,7 @@ inline bool sample_direct(__global const float4* emitters, __global const float*
         s->li = r3.xyz / (PI_F * area);  // Le = P_k / (pi A)
         s->direct_pdf = d2 / (area * s->cos_light);
         s->emission_pdf = s->cos_light / (PI_F * area);
-        s->end = shadow_end(y, nl);
+        s->end = shadow_end(g, y, nl);
         return true;
     }
     if (kind == EMIT_DIRECTIONAL) {
@@ -115,7 +115,7 @@ inline bool sample_direct(__global const float4* emitters, __global const float*
     float3 to = r0.xyz - x;
     float d2 = dot(to, to);
     s->wi = to / sqrt(d2);
-    s->end = shadow_end(r0.xyz, -s->wi);
+    s->end = shadow_end(g, r0.xyz, -s->wi);
     s->direct_pdf = d2;
     if (kind == EMIT_POINT) {
         s->emission_pdf = 1.0f / (4.0f * PI_F);

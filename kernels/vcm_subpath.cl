@@ -36,8 +36,8 @@ inline void subpath_arrive(SubPath* s, const Hit* h, float dist) {
 
 // Sample the bounce at hit point p and continue; false if the path ends. `light`: the
 // adjoint shading-normal factor of light paths (materials.cl, shading_bounce).
-inline bool subpath_bounce(SubPath* s, const Hit* h, float3 p, float4 sa, float4 sb, bool light, MisEtas eta,
-                           Rng* rng) {
+inline bool subpath_bounce(const SceneGeom* g, SubPath* s, const Hit* h, float3 p, float4 sa, float4 sb, bool light,
+                           MisEtas eta, Rng* rng) {
     BsdfSample b;
     if (!bsdf_sample(as_int(sa.w), sb.w, sa.xyz, h->ng, h->ns, s->d, rng, &b)) return false;
     float3 w = b.weight;
@@ -56,6 +56,6 @@ inline bool subpath_bounce(SubPath* s, const Hit* h, float3 p, float4 sa, float4
         s->dVCM = 1.0f / b.pdf_fwd;
     }
     s->d = b.dir;
-    s->o = p + (dot(b.dir, h->ng) > 0.0f ? h->ng : -h->ng) * ray_eps(p);
+    s->o = p + (dot(b.dir, h->ng) > 0.0f ? h->ng : -h->ng) * ray_eps(g, p);
     return true;
 }

@@ -19,7 +19,7 @@ import numpy as np
 import pyopencl as cl
 
 from kernels.contract import SumLayout
-from kernels.program import Program, create_context, i32, program_for
+from kernels.program import Program, create_context, f32, i32, program_for
 from worker.integrators import integrator_for
 from worker.integrators.base import Delta, KeepGoing, Passes, State
 from worker.scene import Scene
@@ -63,7 +63,8 @@ class Device:
         a = arrays
         self.geometry = [self.const(a.tri_v0), self.const(a.tri_e1), self.const(a.tri_e2), self.const(a.tri_nrm),
                          self.const(a.node_lo), self.const(a.node_hi), i32(len(a.node_lo)), self.const(a.spheres),
-                         self.const(a.sphere_surf), i32(len(a.spheres)), self.const(a.surf_a), self.const(a.surf_b)]
+                         self.const(a.sphere_surf), i32(len(a.spheres)), f32(a.eps_floor), self.const(a.surf_a),
+                         self.const(a.surf_b)]
         self.n_emitters = len(a.emitters) // 4 if a.emitters.any() else 0
         self.emitter_args = [self.const(a.emitters), self.const(a.emitter_cdf), i32(self.n_emitters)]
         self.camera = self.const(a.camera)

@@ -47,6 +47,7 @@ class SceneArrays:
     camera: np.ndarray  # (4, 4) float32, see CameraDesc in kernels/eye_pass.cl
     pixel_angle: float  # pixel footprint per unit distance along the view axis
     scene_diagonal: float
+    eps_floor: float  # the ray offset's scale near the origin (kernels/geometry.cl, ray_eps)
 
     @property
     def n_pixels(self) -> int:
@@ -121,6 +122,10 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     centre = 0.5 * (lo + hi)
     bound_radius = 0.5 * float(np.linalg.norm(hi - lo)) * 1.001 + 1e-6
+    # The ray offset's scale where coordinates are small: the scene's largest coordinate, at most
+    # 1 (the offset is relative beyond), so that a scene's image does not depend on its unit.
+    extent = float(np.abs(allp).max())
+    eps_floor = min(1.0, extent) if extent > 0.0 else 1.0
 
     # Emitters, each with its power (flux) for selection in proportion to power.
     rows: list[np.ndarray] = []
@@ -190,5 +195,5 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
         surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,
-        scene_diagonal=float(np.linalg.norm(hi - lo)),
+        scene_diagonal=float(np.linalg.norm(hi - lo)), eps_floor=eps_floor,
     )
