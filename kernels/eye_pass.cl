@@ -18,6 +18,14 @@
 #define NORMAL_MATCH_COS 0.7071f
 #define COVERAGE_RAYS 8  // 8: two words of 8-bit cuts (inside_cut)
 #define CUT_NONE 0xFFFFFFFFu  // every ray's cut at 255: the whole disc
+// The coverage rays reach 1 / cos(pi / COVERAGE_RAYS) of the radius: a straight wall that cuts
+// the disc then meets at least one ray (the one nearest its closest point), also where it cuts
+// only the rim between two rays, whose photons the gather would otherwise take.
+#define CUT_REACH 1.0824f
+
+// A ray's cut in units of r from its 8-bit code: 255, no cut within the reach (a ray that found
+// none is taken to end at the reach: between it and a cut ray the wall lies beyond that edge).
+inline float cut_at_q(uint q) { return q == 255u ? CUT_REACH : (float)q / 255.0f * CUT_REACH; }
 #define OWN_SURFACE_COS 0.9999  /* the point's normal is the sphere's (inward) normal */
 
 // Share of the kernel weight of the tangent disc (radius r about x, normal n) that lies on
@@ -40,13 +48,13 @@ inline float cover_share(float s) {
 
 // Whether the coverage rays could meet anything that cuts the disc: a cheap conservative
 // test, so that the rays are cast only near walls (most points find coverage 1). The rays
-// run in the plane at height e = ray_eps(x) above the point, and reach at most r. A shape
-// cannot stop one if it lies farther than r from their origin, or wholly on one side of
+// run in the plane at height e = ray_eps(x) above the point, and reach CUT_REACH r. A shape
+// cannot stop one if it lies farther than that from their origin, or wholly on one side of
 // that plane (the point's own wall when it is convex or flat, every triangle of a flat
 // floor), or if it is the concave sphere the point lies on (normal along its radius) with
-// a radius of at least 2r: a chord shorter than r turns its normal by under 30 degrees, so
-// any hit matches. When this says no, every ray would give s = 1 and the coverage is
-// exactly (1, 1), so the image is the same bit for bit as with every disc traced.
+// a radius of at least 2r: a chord shorter than CUT_REACH r turns its normal by under 32
+// degrees, so any hit matches. When this says no, every ray would find no cut and the
+// coverage is exactly (1, 1), so the image is the same bit for bit as with every disc traced.
 inline bool plane_splits(float lowest, float highest, float e) { return lowest < 2.0f * e && highest > 0.5f * e; }
 
 // Whether triangle (v0, v0 + e1, v0 + e2) may come within `reach` of x: its bounding box
@@ -64,7 +72,7 @@ inline bool triangle_may_reach(float3 v0, float3 e1, float3 e2, float3 x, float 
 
 inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
     float e = ray_eps(g, x);
-    float reach = r + e;
+    float reach = CUT_REACH * r + e;
     for (int i = 0; i < g->n_spheres; ++i) {
         float4 s = g->spheres[i];
         double3 f = convert_double3(x) - (double3)(s.x, s.y, s.z);
@@ -118,14 +126,15 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
-        Hit h = intersect_within(g, o, u, r);  // only what cuts the disc matters: the BVH prunes the rest
+        float reach = CUT_REACH * r;
+        Hit h = intersect_within(g, o, u, reach);  // only what cuts the disc matters: the BVH prunes the rest
         uint q = 255u;
-        if (h.surf != SURF_NONE && h.t < r) {
+        if (h.surf != SURF_NONE && h.t < reach) {
             float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
-            if (dot(nh, n) <= NORMAL_MATCH_COS) q = (uint)(h.t / r * 255.0f);
+            if (dot(nh, n) <= NORMAL_MATCH_COS) q = (uint)(h.t / reach * 255.0f);
         }
-        float s = (float)q / 255.0f;  // the gather counts photons up to this cut (inside_cut)
         words[k >> 2] |= q << (8 * (k & 3));
+        float s = fmin(cut_at_q(q), 1.0f);  // the gather counts photons up to the cut (inside_cut)
         float s_half = fmin(2.0f * s, 1.0f);
         covered += smooth ? (float2)(cover_share(s), cover_share(s_half)) : (float2)(s * s, s_half * s_half);
     }
@@ -141,7 +150,7 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
 // not count: it would be light leaking through the wall, amplified by the smaller coverage.
 inline float cut_at(uint4 cut, int k) {
     uint word = (k & 4) ? cut.y : cut.x;
-    return (float)((word >> (8 * (k & 3))) & 0xFFu) / 255.0f;
+    return cut_at_q((word >> (8 * (k & 3))) & 0xFFu);
 }
 
 inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
@@ -153,10 +162,10 @@ inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
     int k = (int)floor((atan2(p.y, p.x) - phi0) / step) & (COVERAGE_RAYS - 1);  // between rays k and k + 1
     int k1 = (k + 1) & (COVERAGE_RAYS - 1);
     float s0 = cut_at(cut, k), s1 = cut_at(cut, k1);
-    if (s0 == 1.0f && s1 == 1.0f) return true;  // the rim (the disc test is the caller's)
-    // Both cut at the centre (a wall within r / 255 of the point, where it meets the point's
-    // surface): the sector lies beyond it. The edge below would have no length and take every
-    // photon in the sector (a point by the foot of a partition gathered the lit room's floor).
+    if (s0 == CUT_REACH && s1 == CUT_REACH) return true;  // the rim (the disc test is the caller's)
+    // Both cut at the centre (a wall within the cut's quantum of the point, where it meets the
+    // point's surface): the sector lies beyond it. The edge below would have no length and take
+    // every photon in the sector (a point by the foot of a partition gathered the lit room's floor).
     if (s0 == 0.0f && s1 == 0.0f) return false;
     float a0 = phi0 + k * step, a1 = a0 + step;
     float2 p0 = s0 * r * (float2)(cos(a0), sin(a0)), p1 = s1 * r * (float2)(cos(a1), sin(a1));

@@ -178,7 +178,8 @@ def _unpack_dirs(bits: np.ndarray) -> np.ndarray:
 
 def _inside_cut(cut: np.ndarray, n: np.ndarray, v: np.ndarray, r: float) -> bool:
     """kernels/eye_pass.cl inside_cut, for one point and photon: within the polygon of the
-    coverage rays' cut points (8 rays, 8 bits each; the rim between two uncut rays)."""
+    coverage rays' cut points (8 rays, 8 bits each over CUT_REACH r, 255 for a ray that found
+    no cut: its end; the rim between two such rays; nothing between two cut at the centre)."""
     if int(cut[0]) & int(cut[1]) == 0xFFFFFFFF:
         return True
     s = 1.0 if n[2] >= 0.0 else -1.0  # materials.cl onb (Duff et al. 2017)
@@ -190,9 +191,13 @@ def _inside_cut(cut: np.ndarray, n: np.ndarray, v: np.ndarray, r: float) -> bool
     step, phi0 = 2.0 * math.pi / 8, float(np.array(cut[2], np.uint32).view(np.float32))
     k = math.floor((math.atan2(p[1], p[0]) - phi0) / step) & 7
     k1 = (k + 1) & 7
-    cuts = [((int(cut[j >> 2]) >> (8 * (j & 3))) & 0xFF) / 255.0 for j in (k, k1)]
-    if cuts == [1.0, 1.0]:
+    reach = 1.0 / math.cos(math.pi / 8)
+    codes = [(int(cut[j >> 2]) >> (8 * (j & 3))) & 0xFF for j in (k, k1)]
+    if codes == [255, 255]:
         return True
+    if codes == [0, 0]:
+        return False
+    cuts = [code / 255.0 * reach if code < 255 else reach for code in codes]
     angles = (phi0 + k * step, phi0 + (k + 1) * step)
     p0, p1 = (q * r * np.array([math.cos(x), math.sin(x)]) for q, x in zip(cuts, angles))
     e, w = p1 - p0, p - p0
