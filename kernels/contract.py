@@ -57,8 +57,12 @@ MAX_BOUNCES = 4096
 # The hybrid integrator (kernels/vcm_*.cl): light-tracing splats land on any pixel, so
 # they are summed with 64-bit integer atomics in fixed point (no float atomics on PoCL;
 # integer addition is associative, so the sum is the same bit for bit whatever the order).
-# One unit is 2^-SPLAT_FRACTION_BITS of radiance: 3.7e-9 per splat, far below any noise,
-# and a pixel holds up to 2^(63 - SPLAT_FRACTION_BITS) = 3.4e10 per pass (more saturates).
+# One unit is 2^-SPLAT_FRACTION_BITS of the scene's radiance scale (SceneArrays.radiance_scale:
+# its brightest light's radiance, or what a delta light gives a white surface): 3.7e-9 of it per
+# splat, far below any noise, and a pixel holds up to 2^(63 - SPLAT_FRACTION_BITS) = 3.4e10 of
+# it per pass (more saturates). A unit of radiance whatever the scene's units lost pixels of a
+# Cornell box whose lamp was 1e-11 bright (tests/test_connect_merge.py), and would saturate
+# where a pixel passes 3.4e10.
 SPLAT_FRACTION_BITS = 28
 # Stage timing of the hybrid passes (bench/engine_speed.py): bits of the kernels' `skip`
 # argument that leave a technique's evaluation out while every MIS weight stays the
@@ -130,7 +134,6 @@ def build_options(layout: SumLayout) -> list[str]:
         "DEPOSIT_CACHE": DEPOSIT_CACHE,
         "COVERAGE_PRETEST": COVERAGE_PRETEST,
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
-        "SPLAT_SCALE": repr(float(2 ** SPLAT_FRACTION_BITS)),
         **{f"SKIP_{name.upper()}": bit for name, bit in HYBRID_SKIP.items()},
         **borrowed,
         **layout.defines(),

@@ -30,12 +30,13 @@ inline LightVertex load_light_vertex(__global const float4* lv_pos, __global con
     return v;
 }
 
-// Add rgb radiance to a pixel's fixed-point splat accumulator.
-inline void splat(__global volatile long* acc, int pixel, float3 value) {
+// Add rgb radiance to a pixel's fixed-point splat accumulator (`scale` units a radiance,
+// kernels/contract.py SPLAT_FRACTION_BITS).
+inline void splat(__global volatile long* acc, int pixel, float3 value, float scale) {
     __global volatile long* a = acc + 3 * pixel;
-    atom_add(a, convert_long_sat_rte(value.x * SPLAT_SCALE));
-    atom_add(a + 1, convert_long_sat_rte(value.y * SPLAT_SCALE));
-    atom_add(a + 2, convert_long_sat_rte(value.z * SPLAT_SCALE));
+    atom_add(a, convert_long_sat_rte(value.x * scale));
+    atom_add(a + 1, convert_long_sat_rte(value.y * scale));
+    atom_add(a + 2, convert_long_sat_rte(value.z * scale));
 }
 
 __kernel void vcm_light_pass(
@@ -49,7 +50,8 @@ __kernel void vcm_light_pass(
     __global float4* lv_pos, __global float4* lv_thr, __global float4* lv_wo, __global float4* lv_ng,
     __global float4* lv_ns, __global ulong* lv_key, __global int* lv_prev, __global int* path_last,
     __global volatile uint* lv_count,
-    __global volatile long* splats)  // per pixel rgb, fixed point
+    __global volatile long* splats,  // per pixel rgb, fixed point
+    float splat_scale)               // fixed-point units per unit of radiance
 {
     uint path = (uint)get_global_id(0);
     if (path >= n_paths) return;
@@ -101,7 +103,7 @@ __kernel void vcm_light_pass(
                     float p_cam = pr.importance * fabs(dot(pr.to_camera, h.ng)) / (pr.dist * pr.dist);
                     float w = connect ? 1.0f / (1.0f + p_cam / n_light * (eta.vm + s.dVCM + s.dVC * e.pdf_rev))
                                       : 1.0f;
-                    splat(splats, pr.pixel, arriving * e.f * (p_cam / n_light * w));
+                    splat(splats, pr.pixel, arriving * e.f * (p_cam / n_light * w), splat_scale);
                 }
             }
         }

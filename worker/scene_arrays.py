@@ -48,6 +48,7 @@ class SceneArrays:
     pixel_angle: float  # pixel footprint per unit distance along the view axis
     scene_diagonal: float
     eps_floor: float  # the ray offset's scale near the origin (kernels/geometry.cl, ray_eps)
+    radiance_scale: float  # the brightest light's radiance, or what a delta light gives across the scene
 
     @property
     def n_pixels(self) -> int:
@@ -127,9 +128,20 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     extent = float(np.abs(allp).max())
     eps_floor = min(1.0, extent) if extent > 0.0 else 1.0
 
-    # Emitters, each with its power (flux) for selection in proportion to power.
+    # Emitters, each with its power (flux) for selection in proportion to power, and each light's
+    # radiance scale (SceneArrays.radiance_scale): an area light's radiance; a point or spot
+    # light's intensity, and a directional light's irradiance, as the radiance of a white
+    # surface they light face on, at the camera's or its look-at point's distance from the light
+    # (whichever is larger: furnace's light is at the camera) for the first two (not the scene's
+    # size: smallppm's walls are spheres of radius 1e5).
     rows: list[np.ndarray] = []
     powers: list[np.ndarray] = []
+    radiances: list[float] = []
+    diagonal = float(np.linalg.norm(hi - lo))
+
+    def delta_radiance(intensity: float, position: tuple[float, float, float]) -> float:
+        d = max(float(np.linalg.norm(np.subtract(position, p))) for p in (scene.camera.position, scene.camera.look_at))
+        return intensity / (math.pi * d ** 2)
 
     def add(kind: int, r0: tuple, r1: tuple, r2: tuple, power: np.ndarray) -> None:
         rec = np.zeros((4, 4), np.float32)
@@ -143,6 +155,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         if shape.emission is None or max(shape.emission) <= 0.0:
             continue
         le = np.array(shape.emission, np.float64)
+        radiances.append(float(le.mean()))
         if isinstance(shape, Sphere):
             area = 4.0 * math.pi * shape.radius ** 2
             add(EMIT_SPHERE, tuple(shape.center), (0, 0, 0, 0), (0, 0, 0, shape.radius), math.pi * le * area)
@@ -156,13 +169,18 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         power = np.array(getattr(light, "power", (0, 0, 0)), np.float64)
         if isinstance(light, PointLight):
             add(EMIT_POINT, tuple(light.position), (0, 0, 0, 0), (0, 0, 0, 0), power)
+            radiances.append(delta_radiance(float(power.mean()) / (4.0 * math.pi), light.position))
         elif isinstance(light, SpotLight):
             axis = np.array(light.direction) / np.linalg.norm(light.direction)
-            add(EMIT_SPOT, tuple(light.position), (*axis, math.cos(math.radians(light.cone_angle))), (0, 0, 0, 0), power)
+            cos_cone = math.cos(math.radians(light.cone_angle))
+            add(EMIT_SPOT, tuple(light.position), (*axis, cos_cone), (0, 0, 0, 0), power)
+            radiances.append(delta_radiance(float(power.mean()) / (2.0 * math.pi * (1.0 - cos_cone)), light.position))
         else:
             axis = np.array(light.direction) / np.linalg.norm(light.direction)
             power = np.array(light.irradiance, np.float64) * math.pi * bound_radius ** 2
             add(EMIT_DIRECTIONAL, tuple(centre - axis * bound_radius), (*axis, bound_radius), (0, 0, 0, 0), power)
+            radiances.append(float(np.mean(light.irradiance)) / math.pi)
+    radiance_scale = max((r for r in radiances if r > 0.0), default=1.0)
 
     weights = np.array([p.sum() for p in powers], np.float64)
     keep = weights > 0.0
@@ -195,5 +213,5 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
         surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,
-        scene_diagonal=float(np.linalg.norm(hi - lo)), eps_floor=eps_floor,
+        scene_diagonal=diagonal, eps_floor=eps_floor, radiance_scale=radiance_scale,
     )

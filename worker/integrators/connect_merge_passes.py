@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyopencl as cl
 
+from kernels.contract import SPLAT_FRACTION_BITS
 from kernels.program import f32, i32, u32, u64
 from worker.integrators import camera_problem
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
@@ -43,6 +44,7 @@ class ConnectMergePasses:
         self.cam_hit = device.buffer(4 * n)
         self.splats = device.buffer(24 * n)
         device.fill(self.splats, np.int64(0), 3 * n)
+        self.splat_scale = f32(2.0 ** SPLAT_FRACTION_BITS / device.arrays.radiance_scale)  # fixed point per radiance
         self.path_last = device.buffer(4 * self.n_light)
         self.lv_count = device.buffer(4)
         self.capacity = 0
@@ -83,7 +85,7 @@ class ConnectMergePasses:
                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces),
                 u32(self.n_light), u32(self.capacity), i32(it.connects), i32(it.merges), f32(eta_vcm),
                 i32(self.stores), u32(self.skip), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns,
-                self.lv_key, self.lv_prev, self.path_last, self.lv_count, self.splats))
+                self.lv_key, self.lv_prev, self.path_last, self.lv_count, self.splats, self.splat_scale))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.lv_count)
             dev.times.add("light", events)
@@ -130,7 +132,7 @@ class ConnectMergePasses:
             f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.grid_pos, self.cam_out,
             self.cam_hit)
         finish = dev.program.launch(dev.queue, "vcm_finish", a.n_pixels, i32(a.n_pixels), self.cam_out,
-                                    self.cam_hit, self.splats, dev.batch_sums)
+                                    self.cam_hit, self.splats, self.splat_scale, dev.batch_sums)
         dev.times.add("camera", [cam])
         dev.times.add("finish", [finish])
 
