@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 from worker.image_io import read_channels, read_image, read_metadata
+from worker.queue_worker import BURST_PATIENCE_SECONDS
 
 PHOTONFARM = Path(sys.executable).parent / "photonfarm"
 SMALL = ["--resolution", "16x16", "--photons-per-pass", "4096"]
@@ -122,3 +124,19 @@ def test_service_flags_are_checked_before_anything_starts(tmp_path: Path) -> Non
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
         assert proc.stderr.strip().splitlines()[-1].startswith("photonfarm"), proc.stderr
         assert "secret" not in proc.stderr  # a URL may carry a password: it is not echoed
+
+
+def test_a_burst_worker_gives_up_on_a_redis_it_cannot_reach() -> None:
+    """A --burst worker is there to drain the queues and exit: with Redis out of reach (here a
+    port nothing listens on) it retries, backing off, and exits 1 after BURST_PATIENCE_SECONDS
+    with that said in its log. It waited forever."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    start = time.monotonic()
+    proc = subprocess.run([str(PHOTONFARM), "worker", "--burst", "--redis-url", f"redis://127.0.0.1:{port}"],
+                          capture_output=True, text=True, timeout=BURST_PATIENCE_SECONDS + 40)
+    took = time.monotonic() - start
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert "gives up" in proc.stderr.strip().splitlines()[-1], proc.stderr[-2000:]
+    assert BURST_PATIENCE_SECONDS <= took < BURST_PATIENCE_SECONDS + 30, took

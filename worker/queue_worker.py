@@ -5,8 +5,10 @@ included): scenes travel inline.
 SimpleWorker runs every batch in this process (no fork), so the OpenCL context and
 compiled kernels live across batches. A lost Redis connection (a Redis restart) is not
 fatal, wherever it strikes (RQ's own loop quits on errors it does not handle): the worker
-waits and starts its loop again; its batch in flight, if any, is re-issued by
-the reaper when its lease expires. A worker asked to stop (SIGTERM, SIGINT) finishes or
+waits (1, 2, 4 ... up to RETRY_MAX_SECONDS while Redis stays away) and starts its loop
+again; its batch in flight, if any, is re-issued by the reaper when its lease expires. A
+`--burst` worker, there to drain the queues and exit, gives up with exit status 1 once
+Redis has been out of reach for BURST_PATIENCE_SECONDS (a wrong URL waited forever). A worker asked to stop (SIGTERM, SIGINT) finishes or
 abandons its batch and exits; it never goes on retrying a Redis that went away with it.
 
 A worker runs at a lower CPU priority (nice NICE): where it shares a machine with the API
@@ -45,6 +47,8 @@ from worker.store.connection import connect
 log = logging.getLogger("photonfarm.worker")
 TASKS = ("worker.tasks.run_batch",)  # the only functions a queued job may name
 NICE = int(os.environ.get("PHOTONFARM_WORKER_NICE", "10"))  # added to the worker process's niceness
+RETRY_MAX_SECONDS = 8.0  # the longest wait between attempts to reach Redis (and so to resume after it)
+BURST_PATIENCE_SECONDS = 20.0  # a --burst worker gives up once Redis has been out of reach this long
 
 
 class BatchJob(Job):
@@ -82,6 +86,8 @@ def run_worker(redis_url: str, burst: bool = False) -> int:
     os.nice(NICE)  # before any thread starts: the heartbeat and PoCL's threads inherit it
     conn = connect(redis_url)
     _handle_stop_signals()
+    unreachable_since: float | None = None  # when Redis was first out of reach, this time
+    wait = 1.0  # before the next attempt: doubles while Redis stays out of reach
     while not BatchWorker.stopping.is_set():
         name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"  # says where it runs
         beat = Heartbeat(Leases(conn), name).start()
@@ -93,15 +99,24 @@ def run_worker(redis_url: str, burst: bool = False) -> int:
                 return 0
             # RQ's loop also ends, logging it, on an error it does not handle (Redis gone while
             # it files a job's end among them): unless asked to stop, a new loop starts.
-            reason = "its work loop ended"
+            reason, unreachable_since, wait = "its work loop ended", None, 1.0
         except (redis.ConnectionError, redis.TimeoutError, redis.BusyLoadingError) as exc:
             reason = f"redis unavailable: {exc}"
+            unreachable_since = unreachable_since or time.monotonic()
         finally:
             beat.stop()
         _handle_stop_signals()
         if BatchWorker.stopping.is_set():
             break
-        log.warning("%s; starting again in 1 s", reason)
-        time.sleep(1.0)
+        away = 0.0 if unreachable_since is None else time.monotonic() - unreachable_since
+        if burst and away >= BURST_PATIENCE_SECONDS:
+            log.error("%s; out of reach for %.0f s, so this --burst worker gives up", reason, away)
+            return 1
+        if burst and unreachable_since is not None:
+            wait = min(wait, BURST_PATIENCE_SECONDS - away)  # one last attempt at the patience's end
+        log.warning("%s; starting again in %.0f s", reason, wait)
+        time.sleep(wait)
+        if unreachable_since is not None:
+            wait = min(RETRY_MAX_SECONDS, 2.0 * wait)
     log.info("stopped")
     return 0
