@@ -125,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
     worker.add_argument("--redis-url", type=_redis_url, default=os.environ.get("REDIS_URL"),
                         required="REDIS_URL" not in os.environ)
-    worker.add_argument("--burst", action="store_true", help="exit when the queues are empty")
+    worker.add_argument("--burst", action="store_true",
+                        help="exit when the queues are empty (status 1 if Redis stays out of reach)")
     return parser
 
 
