@@ -2,7 +2,8 @@
 (kernels/geometry.cl, ray_eps) is relative to the coordinates:
 - it had a floor of 1 near the origin: the Cornell box built in metres at 5.5 cm had its rays
   leave surfaces 0.2% of its size off, and its corners came out 1-3% darker (10% at 5.5 mm).
-  The floor is now the scene's own scale (at most 1);
+  The floor is now the scene's own scale (at most 1), taken where rays start and land (a
+  sphere's nearest point to the origin, not its bounds: smallppm at 1e-5 came out 1% dark);
 - it was 1e-4 of the largest coordinate: the box moved 18 of its sizes away from the origin had
   its corners 2-3.5% darker (10% at 180 sizes). It is now 1e-5, still some 80 float32 ulps."""
 
@@ -18,26 +19,40 @@ from tests.conftest import image, render
 from worker.scene import bundled_scene_path
 
 
-def _scaled_cornell_box(scale: float) -> dict:
-    scene = json.loads(bundled_scene_path("cornell-box").read_text())
+def _scaled(name: str, scale: float) -> dict:
+    """A bundled scene in another unit: every length times `scale`, a point light's power times
+    scale^2 (the same irradiance at the scaled distances)."""
+    scene = json.loads(bundled_scene_path(name).read_text())
+    camera = scene["camera"]
     for key in ("position", "look_at"):
-        scene["camera"][key] = [v * scale for v in scene["camera"][key]]
+        camera[key] = [v * scale for v in camera[key]]
+    if "near_clip" in camera:
+        camera["near_clip"] *= scale
     for shape in scene["shapes"]:
-        for key in ("corner", "edge1", "edge2"):
-            shape[key] = [v * scale for v in shape[key]]
+        for key in ("corner", "edge1", "edge2", "center"):
+            if key in shape:
+                shape[key] = [v * scale for v in shape[key]]
+        if "radius" in shape:
+            shape["radius"] *= scale
+    for light in scene["lights"]:
+        light["position"] = [v * scale for v in light["position"]]
+        light["power"] = [v * scale * scale for v in light["power"]]
     return scene
 
 
+@pytest.mark.parametrize("name", ["cornell-box", "smallppm"])
 @pytest.mark.parametrize("method", ["sppm", "bpt"])
-def test_the_image_does_not_depend_on_the_scenes_unit(make_engine, tmp_path: Path, method: str) -> None:
+def test_the_image_does_not_depend_on_the_scenes_unit(make_engine, tmp_path: Path, name: str, method: str) -> None:
+    """The box given in millimetres, then in metres and in 100 m units; smallppm's room (its walls
+    spheres of radius 1e5, which must not set the room's scale) likewise."""
     images = {}
-    for scale in (1.0, 1e-4, 1e-5):  # millimetres as given; then the box in metres, and in 100 m units
-        path = tmp_path / f"box_{scale}.json"
-        path.write_text(json.dumps(_scaled_cornell_box(scale)))
+    for scale in (1.0, 1e-4, 1e-5):
+        path = tmp_path / f"scene_{scale}.json"
+        path.write_text(json.dumps(_scaled(name, scale)))
         eng = make_engine(path, resolution=(32, 32), photons_per_pass=1 << 14, seed=5, method=method)
         images[scale] = image(eng, render(eng, 4)).mean(axis=-1)
     # The same seed traces the same paths up to rounding: the images agree far within their noise.
-    # The box's lower corners (the bottom rows' ends) are where the offset showed.
+    # The lower corners (the bottom rows' ends) are where the offset showed.
     corners = np.s_[-4:, list(range(4)) + list(range(28, 32))]
     for scale in (1e-4, 1e-5):
         whole = images[scale].mean() / images[1.0].mean()

@@ -123,9 +123,15 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     centre = 0.5 * (lo + hi)
     bound_radius = 0.5 * float(np.linalg.norm(hi - lo)) * 1.001 + 1e-6
-    # The ray offset's scale where coordinates are small: the scene's largest coordinate, at most
-    # 1 (the offset is relative beyond), so that a scene's image does not depend on its unit.
-    extent = float(np.abs(allp).max())
+    # The ray offset's scale where coordinates are small, so that a scene's image does not depend
+    # on its unit: the largest coordinate of where rays start and land (triangle corners, lights,
+    # the camera, and each sphere's point nearest the origin: a wall made of a sphere of radius
+    # 1e5, as in smallppm, is where its surface is, not where its centre is), at most 1 (the
+    # offset is relative beyond).
+    reach = [np.abs(tris).max(initial=0.0), np.abs(scene.camera.position).max(), np.abs(scene.camera.look_at).max()]
+    reach += [abs(float(np.linalg.norm(s.center)) - s.radius) for s in scene.shapes if isinstance(s, Sphere)]
+    reach += [np.abs(light.position).max() for light in scene.lights if not isinstance(light, DirectionalLight)]
+    extent = float(max(reach))
     eps_floor = min(1.0, extent) if extent > 0.0 else 1.0
 
     # Emitters, each with its power (flux) for selection in proportion to power, and each light's
