@@ -22,11 +22,11 @@
 // the disc then meets at least one ray (the one nearest its closest point), also where it cuts
 // only the rim between two rays, whose photons the gather would otherwise take.
 #define CUT_REACH 1.0824f
+#define OWN_SURFACE_COS 0.9999  /* the point's normal is the sphere's (inward) normal */
 
 // A ray's cut in units of r from its 8-bit code: 255, no cut within the reach (a ray that found
 // none is taken to end at the reach: between it and a cut ray the wall lies beyond that edge).
 inline float cut_at_q(uint q) { return q == 255u ? CUT_REACH : (float)q / 255.0f * CUT_REACH; }
-#define OWN_SURFACE_COS 0.9999  /* the point's normal is the sphere's (inward) normal */
 
 // Share of the kernel weight of the tangent disc (radius r about x, normal n) that lies on
 // the point's own surface: where a concave corner's wall cuts the disc, no photon of this
@@ -121,12 +121,12 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
     float3 t, b;
     onb(n, &t, &b);
     float3 o = x + n * ray_eps(g, x);
+    float reach = CUT_REACH * r;
     float2 covered = (float2)(0.0f);
     uint words[2] = {0u, 0u};
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
-        float reach = CUT_REACH * r;
         Hit h = intersect_within(g, o, u, reach);  // only what cuts the disc matters: the BVH prunes the rest
         uint q = 255u;
         if (h.surf != SURF_NONE && h.t < reach) {

@@ -15,7 +15,6 @@ typedef struct {
     int surf;     // surface record index, SURF_NONE on a miss
 } Hit;
 
-
 inline double sphere_distance(float4 sph, float3 o, float3 d, double tmin, double tmax) {
     double3 c = (double3)(sph.x, sph.y, sph.z);
     double3 f = convert_double3(o) - c;
@@ -95,11 +94,11 @@ typedef struct {
     float eps_floor;                 // the scene's coordinate scale, at most 1 (ray_eps)
 } SceneGeom;
 
-// Ray offset that scales with the magnitude of the coordinates it is added to (1e-5 of it, some
-// 80 float32 ulps; 1e-4 darkened the corners of a Cornell box moved 18 of its sizes from the
-// origin by 2-3.5%), and near the origin with the scene's own scale (its largest coordinate, at
-// most 1: worker/scene_arrays.py), so that a scene's image does not change with its unit (a
-// floor of 1 offset a 5 cm box by 0.2% of its size and darkened its corners by 1-3%). Every ray that leaves a surface starts this far
+// Ray offset: 1e-5 of the magnitude of the coordinates it is added to (some 80 float32 ulps;
+// 1e-4 darkened the corners of a Cornell box moved 18 of its sizes from the origin by 2-3.5%),
+// and near the origin 1e-5 of the scene's own scale (eps_floor, worker/scene_arrays.py), so that
+// the image does not change with the scene's unit (a floor of 1 offset a 5 cm box by 0.2% of
+// its size and darkened its corners by 1-3%). Every ray that leaves a surface starts this far
 // off it along the normal, on the side it leaves to, so it cannot meet that surface again; the
 // queries below then take every hit ahead of the origin (t > 0). A skip of this length along the
 // ray as well let rays that left within it of a wall cross the wall at a concave corner (light

@@ -1,9 +1,10 @@
 // End of a hybrid pass: per pixel, the pass's radiance is the camera side (vcm_camera_pass.cl)
-// plus the light-tracing splats (fixed point in units of 1 / splat_scale, vcm_light_pass.cl). It adds to the batch's
-// per-pixel sums (kernels/contract.py layout, sums.cl): C the radiance, and where the layout has
-// them, Y2 the squared luminance of the pass's sample (the variance of the per-pass
-// samples), H the passes whose camera ray hit a surface, and Mh, Mh2 the change of the merged estimate from radius r/2 to r and its
-// square (the bias term). The splat accumulators are cleared for the next pass.
+// plus the light-tracing splats (fixed point, splat_scale units a radiance: vcm_light_pass.cl).
+// It adds to the batch's per-pixel sums (kernels/contract.py layout, sums.cl): C the radiance,
+// and where the layout has them, Y2 the squared luminance of the pass's sample (the variance of
+// the per-pass samples), H the passes whose camera ray hit a surface, and Mh, Mh2 the change of
+// the merged estimate from radius r/2 to r and its square (the bias term). The splat
+// accumulators are cleared for the next pass.
 
 __kernel void vcm_finish(int n_pixels, __global const float4* cam_out, __global const int* cam_hit,
                          __global long* splats, float splat_scale, __global double* batch_sums) {

@@ -70,8 +70,8 @@ def _two_rooms_scene() -> dict:
 
 
 @pytest.mark.parametrize("scene, radius", [(_wall_scene, 0.4), (_two_rooms_scene, 0.1)])
-@pytest.mark.parametrize("method, settings", [("sppm", {}), ("sppm", {"sampler": "adaptive"}), ("sppm", {"direct": "nee"}),
-                                              ("vcm", {})])
+@pytest.mark.parametrize("method, settings", [("sppm", {}), ("sppm", {"sampler": "adaptive"}),
+                                              ("sppm", {"direct": "nee"}), ("vcm", {})])
 def test_no_light_through_the_wall(make_engine, tmp_path: Path, scene, radius: float, method: str,
                                    settings: dict) -> None:
     """With vcm, the same for merging: its light vertices on the lit floor beyond the wall."""
