@@ -125,6 +125,7 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
     float reach = CUT_REACH * r;
     float2 covered = (float2)(0.0f);
     uint words[2] = {0u, 0u};
+    uint q_min = 255u;  // the nearest cut
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
@@ -135,11 +136,15 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
             if (dot(nh, n) <= NORMAL_MATCH_COS) q = (uint)(h.t / reach * 255.0f);
         }
         words[k >> 2] |= q << (8 * (k & 3));
+        q_min = min(q_min, q);
         float s = fmin(cut_at_q(q), 1.0f);  // the gather counts photons up to the cut (inside_cut)
         float s_half = fmin(2.0f * s, 1.0f);
         covered += smooth ? (float2)(cover_share(s), cover_share(s_half)) : (float2)(s * s, s_half * s_half);
     }
-    *cut = (uint4)(words[0], words[1], as_uint(phi0), 0u);
+    // w: the radius, in units of r, of a circle every edge of inside_cut lies beyond (an edge
+    // between cuts at s_min r and farther, 2 pi / COVERAGE_RAYS apart, comes no nearer than
+    // s_min r sin(2 pi / COVERAGE_RAYS)): a photon within it is inside with no angle to take.
+    *cut = (uint4)(words[0], words[1], as_uint(phi0), as_uint(cut_at_q(q_min) * CUT_INNER));
     return covered / COVERAGE_RAYS;
 }
 
@@ -156,13 +161,7 @@ inline float cut_at(uint4 cut, int k) {
 
 inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
     if ((cut.x & cut.y) == CUT_NONE) return true;
-    // Within s_min r sin(2 pi / COVERAGE_RAYS) of the point (s_min the nearest cut) every edge
-    // below lies farther off (an edge between cuts at s_min r and beyond, 2 pi / COVERAGE_RAYS
-    // apart, comes no nearer), so the photon is inside: no angle to take (a quick answer
-    // for most photons of a point near a wall; the same answer bit for bit).
-    uint4 shift = (uint4)(0u, 8u, 16u, 24u);
-    uint4 lo = min((cut.xxxx >> shift) & 0xFFu, (cut.yyyy >> shift) & 0xFFu);
-    float inner = cut_at_q(min(min(lo.x, lo.y), min(lo.z, lo.w))) * r * CUT_INNER;
+    float inner = as_float(cut.w) * r;  // within it, inside (disc_coverage): most photons near a wall
     if (dot(v, v) < inner * inner) return true;
     float3 t, b;
     onb(n, &t, &b);
