@@ -48,7 +48,7 @@ class SceneArrays:
     pixel_angle: float  # pixel footprint per unit distance along the view axis
     scene_diagonal: float
     eps_floor: float  # the ray offset's scale near the origin (kernels/geometry.cl, ray_eps)
-    radiance_scale: float  # the brightest light's radiance, or what a delta light gives across the scene
+    radiance_scale: float  # the brightest light's radiance, or what a delta light gives a white surface
 
     @property
     def n_pixels(self) -> int:
@@ -143,7 +143,6 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     rows: list[np.ndarray] = []
     powers: list[np.ndarray] = []
     radiances: list[float] = []
-    diagonal = float(np.linalg.norm(hi - lo))
 
     def delta_radiance(intensity: float, position: tuple[float, float, float]) -> float:
         d = max(float(np.linalg.norm(np.subtract(position, p))) for p in (scene.camera.position, scene.camera.look_at))
@@ -219,5 +218,5 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
         surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,
-        scene_diagonal=diagonal, eps_floor=eps_floor, radiance_scale=radiance_scale,
+        scene_diagonal=float(np.linalg.norm(hi - lo)), eps_floor=eps_floor, radiance_scale=radiance_scale,
     )
