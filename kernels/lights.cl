@@ -7,6 +7,19 @@
 // worker/scene_arrays.py). Area emitters (triangles, spheres) are Lambertian, shining from
 // their front side with radiance Le = power / (pi area).
 //
+// The light sample (sample_direct), shared by SPPM's next-event estimation and the hybrid
+// integrator's, whose MIS weights (vcm_lights.cl, vcm_camera_pass.cl) also need the pdf
+// of emitting toward x. Pdfs leave out the selection probability `pick`. Per kind, with A
+// the emitter's area:
+//   kind         position pdf   direction pdf       direct pdf (NEE)       li (NEE)
+//   triangle,    1 / A          cos_l / pi          d^2 / (A cos_l)        Le = P / (pi A)
+//   sphere                                          (solid angle)          (radiance)
+//   point        delta          1 / (4 pi)          d^2 (delta position)   P / (4 pi) (intensity)
+//   spot         delta          1 / (2 pi (1-c))    d^2                    P / (2 pi (1-c))
+//   directional  1 / (pi R^2)   delta               1 (delta direction)    P / (pi R^2) (irradiance)
+// (directional: a disc of radius R facing the light's direction covers the scene). The
+// NEE estimate is then f cos li / (pick direct_pdf) for every kind.
+//
 // Direct light at a diffuse point x (albedo rho, f = rho / pi) is estimated per pass by
 // one light sample and one cosine-weighted BSDF sample. Delta lights (point, spot,
 // directional) give L f cos / p with no MIS (a BSDF sample never hits them); area lights
@@ -57,52 +70,91 @@ inline float power_heuristic(float a, float b) { return a * a / (a * a + b * b);
 // point light takes the direction back to the shaded point, in case it sits on a surface.
 inline float3 shadow_end(const SceneGeom* g, float3 y, float3 n) { return y + n * ray_eps(g, y); }
 
-// The light sample: MIS-weighted L f cos / p from one emitter chosen by power, or 0 if
-// the emitter is occluded, behind x, or faces away. n: geometric normal on the eye's side;
-// ns: shading normal on that side.
-inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
-                           int n_emitters, float total_power, float3 x, float3 n, float3 ns, float3 albedo,
-                           Rng* rng) {
+// A light sample seen from a point x.
+typedef struct {
+    float3 wi;          // toward the light
+    float3 end;         // the shadow ray's end (shadow_end), unless directional
+    float3 li;          // the table above
+    float pick, direct_pdf, emission_pdf, cos_light;  // emission_pdf: position x direction, no pick
+    bool delta;         // point, spot, directional: a BSDF sample never finds it
+    bool directional;   // the shadow ray goes on forever
+} DirectSample;
+
+// The emitters' total power P.
+inline float total_power(__global const float4* emitters) {
+    float4 r3 = emitters[3];  // any record: its power / its probability
+    return (r3.x + r3.y + r3.z) / r3.w;
+}
+
+// A light sample seen from x; false if the emitter faces away or x is outside a spot's cone.
+inline bool sample_direct(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
+                          int n_emitters, float3 x, Rng* rng, DirectSample* s) {
     int k = pick_emitter(cdf, n_emitters, rng_float(rng));
     float4 r0 = emitters[4 * k], r1 = emitters[4 * k + 1], r2 = emitters[4 * k + 2], r3 = emitters[4 * k + 3];
     float u1 = rng_float(rng), u2 = rng_float(rng);
     int kind = as_int(r0.w);
-    float3 wi, li;  // direction to the light; radiance (area) or intensity / d^2 or irradiance (delta)
-    float3 end;     // the shadow ray's end, unless the light is directional
-    float pdf = r3.w, mis = 1.0f;
-    if (kind == EMIT_TRIANGLE || kind == EMIT_SPHERE) {
+    s->pick = r3.w;
+    s->delta = kind != EMIT_TRIANGLE && kind != EMIT_SPHERE;
+    s->directional = kind == EMIT_DIRECTIONAL;
+    s->cos_light = 1.0f;
+    if (!s->delta) {
         EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
         float3 y = ep.y, nl = ep.n;
         float area = ep.area;
         float3 to = y - x;
         float d2 = dot(to, to);
-        wi = to / sqrt(d2);
-        float cos_l = -dot(wi, nl);
-        if (cos_l <= 0.0f || area <= 0.0f) return (float3)(0.0f);
-        li = r3.xyz / (PI_F * area);
-        pdf *= d2 / (area * cos_l);
-        mis = power_heuristic(pdf, fmax(dot(wi, ns), 0.0f) / PI_F);
-        end = shadow_end(g, y, nl);
-    } else if (kind == EMIT_DIRECTIONAL) {
-        wi = -r1.xyz;
-        li = r3.xyz / (PI_F * r1.w * r1.w);  // the irradiance the emitting disc carries
-    } else {  // point or spot: intensity / d^2
-        float3 to = r0.xyz - x;
-        float d2 = dot(to, to);
-        wi = to / sqrt(d2);
-        if (kind == EMIT_POINT) {
-            li = r3.xyz / (4.0f * PI_F * d2);
-        } else {
-            if (-dot(wi, r1.xyz) < r1.w) return (float3)(0.0f);  // outside the cone
-            li = r3.xyz / (2.0f * PI_F * (1.0f - r1.w) * d2);
-        }
-        end = shadow_end(g, r0.xyz, -wi);
+        s->wi = to / sqrt(d2);
+        s->cos_light = -dot(s->wi, nl);
+        if (s->cos_light <= 0.0f || area <= 0.0f) return false;
+        s->li = r3.xyz / (PI_F * area);  // Le = P_k / (pi A)
+        s->direct_pdf = d2 / (area * s->cos_light);
+        s->emission_pdf = s->cos_light / (PI_F * area);
+        s->end = shadow_end(g, y, nl);
+        return true;
     }
-    float cos_s = dot(wi, ns);
-    if (cos_s <= 0.0f || dot(wi, n) <= 0.0f) return (float3)(0.0f);
-    float3 o = x + n * ray_eps(g, x);
-    if (kind == EMIT_DIRECTIONAL ? occluded(g, o, wi, INFINITY) : blocked_between(g, o, end)) return (float3)(0.0f);
-    return albedo / PI_F * li * (cos_s * mis / pdf);
+    if (kind == EMIT_DIRECTIONAL) {
+        s->wi = -r1.xyz;
+        s->li = r3.xyz / (PI_F * r1.w * r1.w);
+        s->direct_pdf = 1.0f;
+        s->emission_pdf = 1.0f / (PI_F * r1.w * r1.w);
+        return true;
+    }
+    float3 to = r0.xyz - x;
+    float d2 = dot(to, to);
+    s->wi = to / sqrt(d2);
+    s->end = shadow_end(g, r0.xyz, -s->wi);
+    s->direct_pdf = d2;
+    if (kind == EMIT_POINT) {
+        s->emission_pdf = 1.0f / (4.0f * PI_F);
+    } else {
+        if (-dot(s->wi, r1.xyz) < r1.w) return false;  // outside the cone
+        s->emission_pdf = 1.0f / (2.0f * PI_F * (1.0f - r1.w));
+    }
+    s->li = r3.xyz * s->emission_pdf;  // intensity
+    return true;
+}
+
+// Whether the shadow ray of light sample `s` from o (off the shaded surface) is blocked.
+inline bool shadowed(const SceneGeom* g, float3 o, const DirectSample* s) {
+    return s->directional ? occluded(g, o, s->wi, INFINITY) : blocked_between(g, o, s->end);
+}
+
+// Selection times position pdf of the area emitter point a camera path hit, with emission
+// Le there: pick / A = (P_k / P) / A = pi sum(Le) / P (Lambertian emitters).
+inline float hit_emitter_pdf_area(float3 le, float power) { return PI_F * (le.x + le.y + le.z) / power; }
+
+// The light sample: MIS-weighted f cos li / (pick direct_pdf) from one emitter chosen by
+// power, or 0 if the emitter is occluded, behind x, or faces away. n: geometric normal on
+// the eye's side; ns: shading normal on that side.
+inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
+                           int n_emitters, float3 x, float3 n, float3 ns, float3 albedo, Rng* rng) {
+    DirectSample s;
+    if (!sample_direct(g, emitters, cdf, n_emitters, x, rng, &s)) return (float3)(0.0f);
+    float cos_s = dot(s.wi, ns);
+    if (cos_s <= 0.0f || dot(s.wi, n) <= 0.0f || shadowed(g, x + n * ray_eps(g, x), &s)) return (float3)(0.0f);
+    float pdf = s.pick * s.direct_pdf;
+    float mis = s.delta ? 1.0f : power_heuristic(pdf, cos_s / PI_F);
+    return albedo / PI_F * s.li * (cos_s * mis / pdf);
 }
 
 // The BSDF sample: a cosine-weighted ray from x that collects the emission it hits,
@@ -116,7 +168,7 @@ inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* su
     float3 le = surf_b[h.surf].xyz;
     float sum_le = le.x + le.y + le.z;
     if (sum_le <= 0.0f) return (float3)(0.0f);
-    float p_light = PI_F * sum_le * h.t * h.t / (total_power * -dot(wi, h.ng));
+    float p_light = hit_emitter_pdf_area(le, total_power) * h.t * h.t / -dot(wi, h.ng);
     float p_bsdf = dot(wi, ns) / PI_F;
     return albedo * le * power_heuristic(p_bsdf, p_light);  // f cos / p_bsdf = albedo
 }
@@ -126,8 +178,6 @@ inline float3 direct_light(const SceneGeom* g, __global const float4* surf_b, __
                            __global const float* cdf, int n_emitters, float3 x, float3 n, float3 ns, float3 albedo,
                            Rng* rng) {
     if (n_emitters == 0) return (float3)(0.0f);
-    float4 r3 = emitters[3];  // any record gives the total power: its power / its probability
-    float total_power = (r3.x + r3.y + r3.z) / r3.w;
-    return sample_light(g, emitters, cdf, n_emitters, total_power, x, n, ns, albedo, rng)
-         + sample_bsdf_emission(g, surf_b, total_power, x, n, ns, albedo, rng);
+    return sample_light(g, emitters, cdf, n_emitters, x, n, ns, albedo, rng)
+         + sample_bsdf_emission(g, surf_b, total_power(emitters), x, n, ns, albedo, rng);
 }

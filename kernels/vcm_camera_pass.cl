@@ -40,8 +40,7 @@ inline float3 next_event(const SceneGeom* g, __global const float4* emitters, __
     if (!sample_direct(g, emitters, cdf, n_emitters, x->p, rng, &ls)) return (float3)(0.0f);
     BsdfEval e = camera_bsdf(x, ls.wi);
     if (e.pdf_fwd <= 0.0f) return (float3)(0.0f);
-    float3 o = x->p + x->side * ray_eps(g, x->p);
-    if (ls.directional ? occluded(g, o, ls.wi, INFINITY) : blocked_between(g, o, ls.end)) return (float3)(0.0f);
+    if (shadowed(g, x->p + x->side * ray_eps(g, x->p), &ls)) return (float3)(0.0f);
     float w_light = ls.delta ? 0.0f : e.pdf_fwd / (ls.pick * ls.direct_pdf);
     float w_cam = ls.emission_pdf * fabs(dot(ls.wi, x->ng)) / (ls.direct_pdf * ls.cos_light)
                 * (eta.vm + s->dVCM + s->dVC * e.pdf_rev);
