@@ -25,20 +25,29 @@
    (tests/analytic.py patch_scene) at fov 6, 2 and 0.6 (V_c about 0.0084, 0.0011,
    0.00011): the noise of two seeds (no reference needed at this size) and, on the patch,
    the error against its closed form. This is where adaptive.mutates's MIN_GAIN comes from.
+5. (`--bound`, alone) the most any sampler of F = V / V_c could gain at equal time, from a
+   uniform pass's own stage times (device seconds) and V_c: such a sampler's visible paths
+   are distributed as uniform tracing's visible ones, so at equal visible paths it leaves
+   the eye pass, the gather and the visible paths' trace and build as they are. An ideal one
+   (invisible paths free) takes T - (1 - V_c)(trace + build) a pass; the paper's kernel (a
+   traced path finds a new visible one gain x V_c times as often as uniform tracing,
+   adaptive.gain; only visible paths stored), with free visibility tests and independent
+   samples, T - trace (1 - 1 / gain) - build (1 - V_c). A time gain X lowers the error at
+   most by sqrt(X) (all of it noise; SPPM's shrinking radius gives less), so 2x needs X >= 4.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
 again; they add no new path, so when this is not well above V_c the chains cannot win.
 
     python -m bench.adaptive [--full] [--smoke] [--visibility-only] [--reference-seconds S] [--photons-per-pass P]
-        [--equal-paths-passes N] [--defaults]
+        [--equal-paths-passes N] [--defaults] [--bound]
 
 Error: the relative RMS of bench/error_vs_time.py against its cached references
 (bench/reference/<scene>-<W>x<H>.exr); the zoom levels get their own references (two
 long uniform SPPM runs, as bench/make_reference.py makes them) on first use. `--smoke`
 runs everything tiny (a few seconds a scene) to check the script, its figures mean nothing.
 Writes bench/out/adaptive.json and bench/out/adaptive_<scene>.png (with --smoke,
-adaptive-smoke*). Timing figures need a quiet machine.
+adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json. Timing figures need a quiet machine.
 """
 
 from __future__ import annotations
@@ -297,6 +306,53 @@ def defaults(smoke: bool) -> None:
     defaults_chart(report, prefix)
 
 
+BOUND_SIDES = (64, 128, 256)
+BOUND_PASSES = 4  # timed passes, after 2 (the probe's and the kernels' first launch)
+
+
+def stage_bound(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict:
+    """Part 5 (module docstring) for one case: a uniform pass's device seconds by stage, V_c
+    (the pass that judges one draw in VISIBILITY_SAMPLE, untimed) and the two time bounds."""
+    eng = engine(scene, res, photons, sampler="adaptive")
+    times = eng.device.times
+    with min_gain(math.inf):  # never mutate: every pass is the uniform photon pass
+        state = render(eng, passes=2)
+        times.settle()
+        times.seconds.clear()
+        state = render(eng, passes=2 + passes, state=state)
+    times.settle()
+    stage = {k: v / passes for k, v in times.seconds.items()}
+    total, trace, build = sum(stage.values()), stage["trace"], stage["build"]
+    v_c = adaptive.visible_fraction(state.counters)
+    gain = adaptive.gain(v_c, Settings.model_fields["target_acceptance"].default)
+    ideal = total / (total - (1.0 - v_c) * (trace + build))
+    chains = total / (total - trace * max(0.0, 1.0 - 1.0 / gain) - build * (1.0 - v_c))
+    return {"resolution": list(res), "stage_seconds": stage, "pass_seconds": total, "visible_fraction": v_c,
+            "gain": gain, "time_gain_ideal": ideal, "time_gain_chains": chains,
+            "error_gain_ideal": math.sqrt(ideal), "error_gain_chains": math.sqrt(chains)}
+
+
+def bound(smoke: bool) -> None:
+    """Part 5: bench/out/adaptive_bound.json."""
+    sides, photons, passes, prefix = BOUND_SIDES, DEFAULTS_PHOTONS, BOUND_PASSES, "adaptive"
+    if smoke:
+        sides, photons, passes, prefix = (32,), 1 << 12, 1, "adaptive-smoke"
+    cases = {name: load_scene_file(bundled_scene_path(name))[0] for name in ("gap", "cornell-box")}
+    cases.update({f"{ZOOM_SCENE} fov {fov:g}": zoomed(fov) for fov in (5.0, 1.25)})
+    report: dict = {}
+    for name, scene in cases.items():
+        for side in sides:
+            res = resolution(ZOOM_SCENE if name.startswith(ZOOM_SCENE) else name, side)
+            row = stage_bound(scene, res, photons, passes)
+            report[f"{name} {side}"] = row
+            print(f"{name} {side} px: pass {row['pass_seconds']:.3f} s, V_c {row['visible_fraction']:.3f}, gain "
+                  f"{row['gain']:.2f}; time gain at most {row['time_gain_ideal']:.2f} (ideal), "
+                  f"{row['time_gain_chains']:.2f} (the chains); error gain at most {row['error_gain_ideal']:.2f}, "
+                  f"{row['error_gain_chains']:.2f}", flush=True)
+    write_json(prefix + "_bound", {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "photons_per_pass": photons,
+                                   "timed_passes": passes, "cases": report})
+
+
 def chart(name: str, curves: dict[str, list], v_c: float | None, prefix: str) -> None:
     import matplotlib.pyplot as plt
 
@@ -322,9 +378,13 @@ def main() -> None:
     parser.add_argument("--equal-paths-passes", type=int, default=64, help="part 3: passes per sampler")
     parser.add_argument("--only", nargs="*", help="cases of parts 2 and 3 to run (default: all)")
     parser.add_argument("--defaults", action="store_true", help="part 4 alone: the service's defaults")
+    parser.add_argument("--bound", action="store_true", help="part 5 alone: the most a sampler of V could gain")
     args = parser.parse_args()
     if args.defaults:
         defaults(args.smoke)
+        return
+    if args.bound:
+        bound(args.smoke)
         return
     side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
     photons = args.photons_per_pass
