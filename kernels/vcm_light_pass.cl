@@ -14,7 +14,8 @@
 // path's previous stored vertex (a list from path_last[path] back to -1) and a key
 // (path << 12 | bounce): the camera pass visits a path's vertices by the list and a grid
 // cell's vertices sorted by key, so the order of float sums never depends on the slots.
-// Splats are summed in fixed point with 64-bit integer atomics (SPLAT_SCALE, contract.py).
+// Splats are summed in fixed point with 64-bit integer atomics, in units of the scene's radiance scale
+// (`splat_scale`; worker/scene_arrays.py radiance_scale, contract.py SPLAT_FRACTION_BITS).
 
 typedef struct {
     float3 pos, thr, wo, ng, ns;  // wo: back along the light path

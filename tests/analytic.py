@@ -10,6 +10,12 @@ point-plane: a point light of intensity I = Phi/(4 pi) at height h above a Lambe
 plane of albedo rho. With s the distance from the foot of the light, d^2 = h^2 + s^2 and
 C = rho I h / pi:  L = C d^-3,  grad L = -3 C (x, 0, z) d^-5,
 lap L = C (9 s^2 - 6 h^2) d^-7  (the Laplacian within the plane).
+
+glowing box: a closed box whose walls all emit Le and reflect diffusely with albedo rho.
+Radiance leaves every wall point as Le + rho L_in, and L_in = L everywhere solves it:
+L = Le / (1 - rho), in every direction. Lossless specular objects inside (a mirror, glass
+of albedo 1) leave that field as it is: a mirror sends L on as L, and glass's reflected
+and transmitted shares (its radiance n^2 L inside, L again once out) add up to L.
 """
 
 from __future__ import annotations
@@ -122,6 +128,56 @@ def closed_sphere_scene(albedo: tuple[float, float, float], power: float = FURNA
         "shapes": [{"type": "sphere", "center": [0, 0, 0], "radius": 1.0, "material": "wall"}],
         "lights": [{"type": "point", "position": [0, 0, 0], "power": [power] * 3}],
     }
+
+
+GLOW = {"le": 1.0, "rho": 0.5}
+GLOW_SPHERES = ((( -0.4, -0.4, -0.2), 0.3, "mirror"), ((0.4, -0.3, -0.3), 0.35, "glass"))  # centre, radius, material
+
+
+def glowing_box_scene(resolution: tuple[int, int] = (48, 48)) -> dict:
+    """GLOW: the cube [-1, 1]^3 of six inward-facing glowing walls, a mirror ball and a glass
+    ball inside (GLOW_SPHERES), seen from inside: Le / (1 - rho) at every pixel."""
+    # Each wall: corner, edge1, edge2 with edge1 x edge2 pointing into the box (the front side).
+    walls = [((-1, -1, -1), (0, 0, 2), (2, 0, 0)), ((-1, 1, -1), (2, 0, 0), (0, 0, 2)),
+             ((-1, -1, -1), (0, 2, 0), (0, 0, 2)), ((1, -1, -1), (0, 0, 2), (0, 2, 0)),
+             ((-1, -1, -1), (2, 0, 0), (0, 2, 0)), ((-1, -1, 1), (0, 2, 0), (2, 0, 0))]
+    return {
+        "camera": {"position": [0, 0, 0.9], "look_at": [0, -0.2, 0], "fov": 70, "resolution": list(resolution)},
+        "materials": {"wall": {"type": "diffuse", "albedo": [GLOW["rho"]] * 3}, "mirror": {"type": "mirror"},
+                      "glass": {"type": "glass", "ior": 1.5}},
+        "shapes": [{"type": "quad", "corner": list(c), "edge1": list(e1), "edge2": list(e2), "material": "wall",
+                    "emission": [GLOW["le"]] * 3} for c, e1, e2 in walls]
+                  + [{"type": "sphere", "center": list(c), "radius": r, "material": m} for c, r, m in GLOW_SPHERES],
+        "lights": [],
+    }
+
+
+def glowing_box_views(eng: Engine, sub: int = 4) -> dict[str, np.ndarray]:
+    """Boolean masks (pixels,) for glowing_box_scene: the pixels whose sub x sub camera rays,
+    and those of the 8 pixels around them, all first meet the mirror ball, the glass ball,
+    or neither (the walls). The neighbours keep a pixel's jittered rays, which reach its
+    edges, and light tracing's splats, which land anywhere in it, off the other views."""
+    w, h = eng.arrays.width, eng.arrays.height
+    o, d = camera_rays(eng, sub)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    nearest = np.full(d.shape[:2], np.inf)
+    first = np.full(d.shape[:2], -1)
+    for k, (c, r, _) in enumerate(GLOW_SPHERES):
+        oc = o - np.asarray(c)
+        b = (d @ oc)
+        disc = b * b - (oc @ oc - r * r)
+        t = np.where(disc > 0.0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+        closer = (t > 0.0) & (t < nearest)
+        nearest, first = np.where(closer, t, nearest), np.where(closer, k, first)
+    per_pixel = first.reshape(h, sub, w, sub).transpose(0, 2, 1, 3).reshape(h * w, sub * sub)
+    def wholly(k: int) -> np.ndarray:
+        full = np.pad((per_pixel == k).all(axis=1).reshape(h, w), 1)
+        around = np.stack([full[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+        return around.all(axis=0).ravel()
+
+    views = {m: wholly(k) for k, (_, _, m) in enumerate(GLOW_SPHERES)}
+    views["walls"] = wholly(-1)
+    return views
 
 
 def spot_plane_scene(resolution: tuple[int, int] = (64, 64)) -> dict:
