@@ -15,7 +15,8 @@ glowing box: a closed box whose walls all emit Le and reflect diffusely with alb
 Radiance leaves every wall point as Le + rho L_in, and L_in = L everywhere solves it:
 L = Le / (1 - rho), in every direction. Lossless specular objects inside (a mirror, glass
 of albedo 1) leave that field as it is: a mirror sends L on as L, and glass's reflected
-and transmitted shares (its radiance n^2 L inside, L again once out) add up to L.
+and transmitted shares (its radiance n^2 L inside, L again once out) add up to L. So does a
+ball that glows and reflects as the walls do (a sphere emitter).
 """
 
 from __future__ import annotations
@@ -131,31 +132,33 @@ def closed_sphere_scene(albedo: tuple[float, float, float], power: float = FURNA
 
 
 GLOW = {"le": 1.0, "rho": 0.5}
-GLOW_SPHERES = ((( -0.4, -0.4, -0.2), 0.3, "mirror"), ((0.4, -0.3, -0.3), 0.35, "glass"))  # centre, radius, material
+# Centre, radius, material: a mirror ball, a glass ball, and a ball that glows and reflects as the walls do.
+GLOW_SPHERES = (((-0.4, -0.4, -0.2), 0.3, "mirror"), ((0.4, -0.3, -0.3), 0.35, "glass"), ((0.0, 0.45, -0.4), 0.25, "glow"))
 
 
 def glowing_box_scene(resolution: tuple[int, int] = (48, 48)) -> dict:
-    """GLOW: the cube [-1, 1]^3 of six inward-facing glowing walls, a mirror ball and a glass
-    ball inside (GLOW_SPHERES), seen from inside: Le / (1 - rho) at every pixel."""
+    """GLOW: the cube [-1, 1]^3 of six inward-facing glowing walls, a mirror ball, a glass ball
+    and a glowing ball inside (GLOW_SPHERES), seen from inside: Le / (1 - rho) at every pixel."""
     # Each wall: corner, edge1, edge2 with edge1 x edge2 pointing into the box (the front side).
     walls = [((-1, -1, -1), (0, 0, 2), (2, 0, 0)), ((-1, 1, -1), (2, 0, 0), (0, 0, 2)),
              ((-1, -1, -1), (0, 2, 0), (0, 0, 2)), ((1, -1, -1), (0, 0, 2), (0, 2, 0)),
              ((-1, -1, -1), (2, 0, 0), (0, 2, 0)), ((-1, -1, 1), (0, 2, 0), (2, 0, 0))]
     return {
         "camera": {"position": [0, 0, 0.9], "look_at": [0, -0.2, 0], "fov": 70, "resolution": list(resolution)},
-        "materials": {"wall": {"type": "diffuse", "albedo": [GLOW["rho"]] * 3}, "mirror": {"type": "mirror"},
+        "materials": {"wall": {"type": "diffuse", "albedo": [GLOW["rho"]] * 3},
+                      "glow": {"type": "diffuse", "albedo": [GLOW["rho"]] * 3}, "mirror": {"type": "mirror"},
                       "glass": {"type": "glass", "ior": 1.5}},
         "shapes": [{"type": "quad", "corner": list(c), "edge1": list(e1), "edge2": list(e2), "material": "wall",
                     "emission": [GLOW["le"]] * 3} for c, e1, e2 in walls]
-                  + [{"type": "sphere", "center": list(c), "radius": r, "material": m} for c, r, m in GLOW_SPHERES],
+                  + [{"type": "sphere", "center": list(c), "radius": r, "material": m}
+                     | ({"emission": [GLOW["le"]] * 3} if m == "glow" else {}) for c, r, m in GLOW_SPHERES],
         "lights": [],
     }
 
 
 def glowing_box_views(eng: Engine, sub: int = 4) -> dict[str, np.ndarray]:
-    """Boolean masks (pixels,) for glowing_box_scene: the pixels whose sub x sub camera rays,
-    and those of the 8 pixels around them, all first meet the mirror ball, the glass ball,
-    or neither (the walls). The neighbours keep a pixel's jittered rays, which reach its
+    """Boolean masks (pixels,) for glowing_box_scene, by the ball's material: the pixels whose sub x sub camera rays, and those of the 8 pixels around them, all first
+    meet that ball, or none (the box's walls: "walls"). The neighbours keep a pixel's jittered rays, which reach its
     edges, and light tracing's splats, which land anywhere in it, off the other views."""
     w, h = eng.arrays.width, eng.arrays.height
     o, d = camera_rays(eng, sub)
