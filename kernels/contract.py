@@ -77,6 +77,15 @@ PHOTON_RECORD_NAMES = ("S", "D", "M", "H", "LD")
 # that could cut the disc (kernels/eye_pass.cl, disc_may_be_cut); 0 casts them at every
 # point, which must give the same coverage bit for bit (tests/test_disc_coverage.py).
 COVERAGE_PRETEST = 1
+# Surfaces match when their normals lie within 45 degrees: the gather counts only photons on
+# a surface matching the measurement point's (kernels/spatial_hash.cl), and the gather disc
+# is only as large as that surface, which continues across a triangle edge only to a
+# neighbour whose normal matches (worker/adjacency.py). The eye pass walks at most
+# EXTENT_STEPS triangles from the point's own to find where its surface ends (a convex
+# edge; kernels/eye_pass.cl, surface_extent); a surface of finer triangles than that within
+# the disc is taken to run on.
+NORMAL_MATCH_COS = 0.7071
+EXTENT_STEPS = 8
 
 
 @dataclass(frozen=True)
@@ -133,6 +142,8 @@ def build_options(layout: SumLayout) -> list[str]:
         "PSS_DIM": PSS_DIM,
         "DEPOSIT_CACHE": DEPOSIT_CACHE,
         "COVERAGE_PRETEST": COVERAGE_PRETEST,
+        "NORMAL_MATCH_COS": f"{NORMAL_MATCH_COS!r}f",
+        "EXTENT_STEPS": EXTENT_STEPS,
         **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
         **{f"SKIP_{name.upper()}": bit for name, bit in HYBRID_SKIP.items()},
         **borrowed,

@@ -11,11 +11,9 @@
 // index (so PPM's fixed points still get a new light sample every pass); SUM_LD2, where
 // the layout has it, adds the square of the pass's Ld luminance for the error estimate.
 
-// Surfaces match when their normals lie within 45 degrees: the gather counts only photons
-// on a surface matching the measurement point's (spatial_hash.cl), and the disc is only
-// as large as that surface. A smooth surface of curvature radius rho turns its normal by
-// r / rho across a disc of radius r, so it keeps every photon while r < 0.78 rho.
-#define NORMAL_MATCH_COS 0.7071f
+// Surfaces match when their normals lie within 45 degrees (NORMAL_MATCH_COS, contract.py). A
+// smooth surface of curvature radius rho turns its normal by r / rho across a disc of radius
+// r, so it keeps every photon while r < 0.78 rho.
 #define COVERAGE_RAYS 8  // 8: two words of 8-bit cuts (inside_cut)
 #define CUT_NONE 0xFFFFFFFFu  // every ray's cut at 255: the whole disc
 // The coverage rays reach 1 / cos(pi / COVERAGE_RAYS) of the radius: a straight wall that cuts
@@ -29,22 +27,60 @@
 // none is taken to end at the reach: between it and a cut ray the wall lies beyond that edge).
 inline float cut_at_q(uint q) { return q == 255u ? CUT_REACH : (float)q / 255.0f * CUT_REACH; }
 
+// Ray k's cut, in units of r (cut_at_q), from the cut's words.
+inline float cut_at(uint4 cut, int k) {
+    uint word = (k & 4) ? cut.y : cut.x;
+    return cut_at_q((word >> (8 * (k & 3))) & 0xFFu);
+}
+
 // Share of the kernel weight of the tangent disc (radius r about x, normal n) that lies on
-// the point's own surface: where a concave corner's wall cuts the disc, no photon of this
-// surface lies beyond it, and without the correction the estimate there is dark by that
-// share (half the weight at the corner line). Polar integration of the kernel over the
-// disc, cut where a ray along the surface meets a non-matching surface, in COVERAGE_RAYS
-// equally spaced directions turned by a random angle (an unbiased quadrature of the
-// covered weight):  G(s) = int_0^s K(t) t dt / int_0^1 K(t) t dt
-//                        = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7.
-// A surface that ends in empty space (a convex edge) is not detected. The cuts (8 bits a
-// ray) and the rays' turn go to `cut`, for the gather (inside_cut). Returns the coverage
-// of the disc of radius r and (same rays) of radius r/2, for the error estimate's second
-// gather radius (spatial_hash.cl). `smooth` false: the share of the disc's area instead,
-// G(s) = s^2, for a uniform kernel (vcm's merging, vcm_camera_pass.cl).
+// the point's own surface: where a concave corner's wall cuts the disc, or the surface ends
+// in empty space (a convex edge: a table top's rim), no photon of this surface lies beyond,
+// and without the correction the estimate there is dark by that share (half the weight at
+// the line). COVERAGE_RAYS rays along the surface, equally spaced and turned by a random
+// angle, each find their cut: where a ray meets a non-matching surface, or where the
+// point's surface ends (surface_extent), whichever is nearer. The cuts (8 bits a ray) and
+// the rays' turn go to `cut`; the gather counts the photons on the centre's side of the
+// chords that join neighbouring cuts (inside_cut), and the coverage is the kernel weight
+// of exactly that part (sector_cover: 4 Gauss points a sector, along each the weight
+// within the chord's distance, G(s) = int_0^s K(t) t dt / int_0^1 K(t) t dt
+// = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7). Taken by ray instead (G of each ray's own cut),
+// it counted the slivers between a chord and the disc's rim that the gather leaves out:
+// 2% dark at a straight edge with the smooth kernel, 5% with the uniform one. Returns the
+// coverage of the disc of radius r and (same cuts) of radius r/2, for the error estimate's
+// second gather radius (spatial_hash.cl). `smooth` false: the share of the disc's area
+// instead, G(s) = s^2, for a uniform kernel (vcm's merging, vcm_camera_pass.cl).
 inline float cover_share(float s) {
     float s2 = s * s;
     return s2 * (3.5f + s2 * s * (-14.0f + s * (17.5f - 6.0f * s)));
+}
+
+// Gauss-Legendre nodes of a sector's angle (4 points on [0, 1]: their angles' cos and sin
+// for a sector of 2 pi / COVERAGE_RAYS, and their weights, summing to 1).
+__constant float SECTOR_COS[4] = {0.99851352f, 0.96659819f, 0.86471718f, 0.74459627f};
+__constant float SECTOR_SIN[4] = {0.05450462f, 0.25629657f, 0.50225910f, 0.66751509f};
+__constant float SECTOR_WEIGHT[4] = {0.17392742f, 0.32607258f, 0.32607258f, 0.17392742f};
+
+// The share of the kernel weight (G: cover_share, or s^2 for a uniform kernel) of one
+// sector of the disc, between rays cut at s0 and s1 (units of r), that lies in the part
+// inside_cut counts: on the centre's side of the chord joining the cut points, within the
+// disc; and the same within r/2. In the sector's frame the first ray is the x axis; along
+// a direction e the chord is met at rho = cross(d, -p0) / -cross(d, e), d = p1 - p0.
+inline float2 sector_cover(float s0, float s1, bool smooth) {
+    if (s0 == CUT_REACH && s1 == CUT_REACH) return (float2)(1.0f);  // no chord: the whole sector
+    if (s0 == 0.0f && s1 == 0.0f) return (float2)(0.0f);             // beyond a wall at the point
+    float2 p0 = (float2)(s0, 0.0f), p1 = s1 * (float2)(0.70710678f, 0.70710678f);
+    float2 d = p1 - p0;
+    float towards = d.y * p0.x - d.x * p0.y;  // cross(d, -p0) >= 0: the centre is inside
+    float2 covered = (float2)(0.0f);
+    for (int j = 0; j < 4; ++j) {
+        float approach = d.y * SECTOR_COS[j] - d.x * SECTOR_SIN[j];  // -cross(d, e)
+        float rho = approach > 0.0f ? fmax(towards, 0.0f) / approach : INFINITY;
+        float s = fmin(rho, 1.0f), s_half = fmin(2.0f * rho, 1.0f);
+        covered += SECTOR_WEIGHT[j] * (smooth ? (float2)(cover_share(s), cover_share(s_half))
+                                              : (float2)(s * s, s_half * s_half));
+    }
+    return covered;
 }
 
 // Whether the coverage rays could meet anything that cuts the disc: a cheap conservative
@@ -110,41 +146,121 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
     }
 }
 
-inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, bool smooth, Rng* rng, uint4* cut) {
+// How far the point's own surface runs from x along u (a unit vector in its tangent plane),
+// up to `reach`: a walk from triangle `tri` across the edges the direction leaves through,
+// to the neighbour on the same surface (worker/adjacency.py), until an edge with none (a
+// convex edge, or a fold past NORMAL_MATCH_COS) or `reach`. u is turned into each
+// triangle's plane; the distance is summed along the walk. Past EXTENT_STEPS triangles the
+// surface is taken to run on (a fine mesh), as it is on a sphere (tri < 0: closed).
+inline float surface_extent(const SceneGeom* g, int tri, float3 x, float3 u, float reach) {
+    float3 p = x;
+    float travelled = 0.0f;
+    int from = -1;
+    for (int step = 0; step < EXTENT_STEPS && tri >= 0; ++step) {
+        float3 a[3];
+        a[0] = g->tri_v0[tri].xyz;
+        a[1] = a[0] + g->tri_e1[tri].xyz;
+        a[2] = a[0] + g->tri_e2[tri].xyz;
+        float3 nt = normalize(cross(a[1] - a[0], a[2] - a[0]));
+        float3 w = u - dot(u, nt) * nt;
+        float lw = length(w);
+        if (lw < 1e-6f) return travelled;  // the surface turns square to the direction: it ends
+        w /= lw;
+        // The edge the walk leaves through: the nearest whose outward normal (edge x nt) w goes along.
+        int4 adj = g->tri_adj[tri];
+        int across[3] = {adj.x, adj.y, adj.z};
+        float leave = INFINITY;
+        int edge = -1;
+        for (int j = 0; j < 3; ++j) {
+            if (across[j] == from && from >= 0) continue;  // the edge it came in by
+            float3 out = cross(a[(j + 1) % 3] - a[j], nt);
+            float along = dot(w, out);
+            if (along <= 0.0f) continue;
+            float s = dot(a[j] - p, out) / along;
+            if (s < leave) { leave = s; edge = j; }
+        }
+        if (edge < 0) return travelled;
+        travelled += fmax(leave, 0.0f);
+        if (travelled >= reach) return reach;
+        from = tri;
+        tri = across[edge];
+        if (tri < 0) return travelled;  // the surface ends at this edge
+        p += fmax(leave, 0.0f) * w;
+    }
+    return reach;
+}
+
+// Whether x lies within `reach` of an edge of triangle `tri` where its surface ends (the
+// distance to the edge's line: never more than to the edge).
+inline bool near_open_edge(const SceneGeom* g, int tri, float3 x, float reach) {
+    int4 adj = g->tri_adj[tri];
+    int across[3] = {adj.x, adj.y, adj.z};
+    float3 a0 = g->tri_v0[tri].xyz;
+    float3 a[3] = {a0, a0 + g->tri_e1[tri].xyz, a0 + g->tri_e2[tri].xyz};
+    for (int j = 0; j < 3; ++j) {
+        if (across[j] >= 0) continue;
+        float3 d = a[(j + 1) % 3] - a[j], c = cross(x - a[j], d);
+        if (dot(c, c) < reach * reach * dot(d, d)) return true;
+    }
+    return false;
+}
+
+// Whether the disc of radius `reach` about x, on triangle `tri`, may reach an edge where its
+// surface ends: one of that triangle's or of its neighbours' (tri_adj) lies within `reach`.
+// Only the triangles that tri_adj.w marks near such an edge are looked at; an edge farther
+// along a mesh than the neighbours is not looked for (the disc is then taken whole).
+inline bool disc_leaves_surface(const SceneGeom* g, int tri, float3 x, float reach) {
+    if (tri < 0 || g->tri_adj[tri].w == 0) return false;
+    if (near_open_edge(g, tri, x, reach)) return true;
+    int4 adj = g->tri_adj[tri];
+    return (adj.x >= 0 && near_open_edge(g, adj.x, x, reach)) || (adj.y >= 0 && near_open_edge(g, adj.y, x, reach))
+        || (adj.z >= 0 && near_open_edge(g, adj.z, x, reach));
+}
+
+inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, int tri, float r, bool smooth, Rng* rng,
+                            uint4* cut) {
     *cut = (uint4)(CUT_NONE, CUT_NONE, 0u, 0u);
     if (r <= 0.0f) return (float2)(1.0f);
     // Drawn whether or not the rays are cast, so the pretest leaves the path's later random
     // numbers (vcm's camera path goes on) as they were.
     float phi0 = rng_float(rng) * (2.0f * PI_F / COVERAGE_RAYS);
+    float reach = CUT_REACH * r;
+    bool edged = disc_leaves_surface(g, tri, x, reach);  // exact: the same with or without the pretest
+    bool walled = true;
 #if COVERAGE_PRETEST
-    if (!disc_may_be_cut(g, x, n, r)) return (float2)(1.0f);
+    walled = disc_may_be_cut(g, x, n, r);
+    if (!walled && !edged) return (float2)(1.0f);
 #endif
     float3 t, b;
     onb(n, &t, &b);
     float3 o = x + n * ray_eps(g, x);
-    float reach = CUT_REACH * r;
-    float2 covered = (float2)(0.0f);
     uint words[2] = {0u, 0u};
     uint q_min = 255u;  // the nearest cut
     for (int k = 0; k < COVERAGE_RAYS; ++k) {
         float phi = phi0 + k * (2.0f * PI_F / COVERAGE_RAYS);
         float3 u = cos(phi) * t + sin(phi) * b;
-        Hit h = intersect_within(g, o, u, reach);  // only what cuts the disc matters: the BVH prunes the rest
-        uint q = 255u;
-        if (h.surf != SURF_NONE && h.t < reach) {
-            float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
-            if (dot(nh, n) <= NORMAL_MATCH_COS) q = (uint)(h.t / reach * 255.0f);
+        // The cut: a wall the ray meets, or the end of the point's surface, whichever is nearer.
+        float end = edged ? surface_extent(g, tri, x, u, reach) : reach;
+        if (walled) {
+            Hit h = intersect_within(g, o, u, end);  // only what cuts the disc matters: the BVH prunes the rest
+            if (h.surf != SURF_NONE && h.t < end) {
+                float3 nh = dot(u, h.ng) < 0.0f ? h.ng : -h.ng;
+                if (dot(nh, n) <= NORMAL_MATCH_COS) end = h.t;
+            }
         }
+        uint q = end < reach ? (uint)(end / reach * 255.0f) : 255u;
         words[k >> 2] |= q << (8 * (k & 3));
         q_min = min(q_min, q);
-        float s = fmin(cut_at_q(q), 1.0f);  // the gather counts photons up to the cut (inside_cut)
-        float s_half = fmin(2.0f * s, 1.0f);
-        covered += smooth ? (float2)(cover_share(s), cover_share(s_half)) : (float2)(s * s, s_half * s_half);
     }
     // w: the radius, in units of r, of a circle every edge of inside_cut lies beyond (an edge
     // between cuts at s_min r and farther, 2 pi / COVERAGE_RAYS apart, comes no nearer than
     // s_min r sin(2 pi / COVERAGE_RAYS)): a photon within it is inside with no angle to take.
     *cut = (uint4)(words[0], words[1], as_uint(phi0), as_uint(cut_at_q(q_min) * CUT_INNER));
+    if (q_min == 255u) return (float2)(1.0f);
+    // The kernel weight of the part the gather counts (inside_cut), sector by sector.
+    float2 covered = (float2)(0.0f);
+    for (int k = 0; k < COVERAGE_RAYS; ++k)
+        covered += sector_cover(cut_at(*cut, k), cut_at(*cut, (k + 1) & (COVERAGE_RAYS - 1)), smooth);
     return covered / COVERAGE_RAYS;
 }
 
@@ -154,11 +270,6 @@ inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, float r, boo
 // divides by the kernel weight of that part, so a photon beyond it (e.g. on the same plane
 // behind a wall through the disc: a floor running under a partition into a lit room) must
 // not count: it would be light leaking through the wall, amplified by the smaller coverage.
-inline float cut_at(uint4 cut, int k) {
-    uint word = (k & 4) ? cut.y : cut.x;
-    return cut_at_q((word >> (8 * (k & 3))) & 0xFFu);
-}
-
 inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
     if ((cut.x & cut.y) == CUT_NONE) return true;
     float inner = as_float(cut.w) * r;  // within it, inside (disc_coverage): most photons near a wall
@@ -240,7 +351,7 @@ __kernel void eye_pass(
         if (type == MAT_DIFFUSE) {
             float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
             pos = (float4)(p, 1.0f);
-            float2 cover = disc_coverage(&g, p, n, radius[gid], true, &rng, &cut);
+            float2 cover = disc_coverage(&g, p, n, h.tri, radius[gid], true, &rng, &cut);
             nrm = (float4)(n, cover.y);
             wgt = (float4)(thr * sa.xyz / PI_F, cover.x);
             if (nee) {

@@ -13,6 +13,7 @@ typedef struct {
     float3 ns;    // shading normal, on ng's side: ng itself unless the mesh has normals
     bool smooth;  // ns is interpolated (ns == ng bit for bit otherwise)
     int surf;     // surface record index, SURF_NONE on a miss
+    int tri;      // the triangle hit, or -1 (a sphere, or a miss)
 } Hit;
 
 inline double sphere_distance(float4 sph, float3 o, float3 d, double tmin, double tmax) {
@@ -85,6 +86,8 @@ typedef struct {
     __global const float4* tri_e1;   // w: 1 if the triangle has shading normals
     __global const float4* tri_e2;
     __global const float4* tri_nrm;  // 3 rows per triangle: corner normals (smooth triangles only)
+    __global const int4* tri_adj;    // the triangle across each edge on the same surface, or -1;
+                                     // w: 1 if an edge where the surface ends is near (worker/adjacency.py)
     __global const float4* node_lo;  // see worker/bvh.py for the layout
     __global const float4* node_hi;
     __global const float4* spheres;  // xyz centre, w radius
@@ -112,12 +115,12 @@ inline float ray_eps(const SceneGeom* g, float3 p) {
 // then Device.emitter_args, worker/engine.py), and the SceneGeom a kernel makes of them.
 #define SCENE_PARAMS \
     __global const float4* tri_v0, __global const float4* tri_e1, __global const float4* tri_e2, \
-    __global const float4* tri_nrm, \
+    __global const float4* tri_nrm, __global const int4* tri_adj, \
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes, \
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres, float eps_floor, \
     __global const float4* surf_a, __global const float4* surf_b, \
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
-#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres, \
+#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, tri_adj, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres, \
                     eps_floor}
 
 // No point of the sphere lies within tmax of o: a bounded query skips it (smallppm's walls
@@ -132,6 +135,7 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
     Hit h;
     h.t = tmax;
     h.surf = SURF_NONE;
+    h.tri = -1;
     float tmin = 0.0f;
     int best_sphere = -1, best_tri = -1;
     bool bounded = tmax < INFINITY;
@@ -165,6 +169,7 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
         }
     }
     if (best_tri >= 0) {
+        h.tri = best_tri;
         float4 e1 = g->tri_e1[best_tri];
         h.ng = normalize(cross(e1.xyz, g->tri_e2[best_tri].xyz));
         h.surf = as_int(g->tri_v0[best_tri].w);

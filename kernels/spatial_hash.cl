@@ -205,7 +205,7 @@ typedef struct {
 // A photon at p counts for the query at x (normal n, radius^2 r2) if it lies in the
 // disc's ball (photon_near), has arrived on the side the eye sees, and lies on a surface
 // that matches the point's (photon_matches; its incoming direction and surface normal,
-// unit vectors; NORMAL_MATCH_COS, eye_pass.cl). The last test keeps a concave corner
+// unit vectors; NORMAL_MATCH_COS, contract.py). The last test keeps a concave corner
 // from gathering the photons of the perpendicular wall (10% too bright against Mitsuba in
 // the Cornell box's corners); the disc coverage measured in the eye pass then
 // renormalises the estimate for the part of the disc beyond that wall, and only photons

@@ -184,7 +184,7 @@ __kernel void vcm_camera_pass(
                 float3 m = merge_light_vertices(&x, &s, eta, r2, cut, inv_cell, mask, cell_start, cell_count, grid_pos,
                                                 lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);
                 if (any(m != 0.0f)) {  // the share of the discs on x's own surface (eye_pass.cl)
-                    float2 cover = fmax(disc_coverage(&g, x.p, x.side, radius, false, &rng, &cut), MIN_COVERAGE);
+                    float2 cover = fmax(disc_coverage(&g, x.p, x.side, h.tri, radius, false, &rng, &cut), MIN_COVERAGE);
                     if ((cut.x & cut.y) != CUT_NONE)  // a wall cuts the disc: only its covered part counts
                         m = merge_light_vertices(&x, &s, eta, r2, cut, inv_cell, mask, cell_start, cell_count,
                                                  grid_pos, lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, &half_sum);

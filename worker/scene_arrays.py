@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from kernels.contract import EMITTERS, MATERIALS
+from worker.adjacency import triangle_neighbours
 from worker.bvh import build_bvh
 from worker.scene import (
     SCENES_DIR,
@@ -36,6 +37,7 @@ class SceneArrays:
     tri_e1: np.ndarray  # w = 1 where the triangle has shading normals
     tri_e2: np.ndarray
     tri_nrm: np.ndarray  # (3 T, 4) float32 corner normals where tri_e1.w = 1; empty if no triangle has any
+    tri_adj: np.ndarray  # (T, 4) int32 neighbours across the edges on the same surface (worker/adjacency.py)
     node_lo: np.ndarray  # (nodes, 4) float32, see worker/bvh.py
     node_hi: np.ndarray
     spheres: np.ndarray  # (S, 4) float32 centre + radius
@@ -213,8 +215,13 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     camera = np.array([[*pos, cam.near_clip], [*forward, cam.aperture_radius],
                        [*(right * tan_x), focus], [*(up * tan_y), 0.0]], np.float32)
 
+    # Each triangle's neighbours on its surface, from its corners as the kernels make them.
+    v0, e1, e2 = tri_v0[:, :3], tri_e1[:, :3], tri_e2[:, :3]
+    tri_adj = triangle_neighbours(np.stack([v0, v0 + e1, v0 + e2], axis=1))
+
     return SceneArrays(
         width=width, height=height, tri_v0=tri_v0, tri_e1=tri_e1, tri_e2=tri_e2, tri_nrm=tri_nrm,
+        tri_adj=tri_adj,
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
         surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,
