@@ -41,9 +41,13 @@ def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
 
     # Corners by position (the same float32 bits: the same corner), then each edge once per
     # triangle: (triangle, edge j, its corners' ids), keyed by the sorted pair of ids.
-    positive_zero = corners.reshape(-1, 3) + np.float32(0.0)  # -0.0 and 0.0: one corner
-    _, corner_id = np.unique(positive_zero.view(np.uint32), axis=0, return_inverse=True)
-    corner_id = corner_id.reshape(n, 3).astype(np.int64)
+    bits = (corners.reshape(-1, 3) + np.float32(0.0)).view(np.uint32)  # -0.0 and 0.0: one corner
+    order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))  # (np.unique by rows: 14x slower)
+    first = np.ones(len(order), bool)
+    first[1:] = (bits[order[1:]] != bits[order[:-1]]).any(axis=1)
+    corner_id = np.empty(len(order), np.int64)
+    corner_id[order] = np.cumsum(first) - 1
+    corner_id = corner_id.reshape(n, 3)
     tri = np.repeat(np.arange(n), 3)
     edge = np.tile(np.arange(3), n)
     a, b = corner_id[tri, edge], corner_id[tri, (edge + 1) % 3]
