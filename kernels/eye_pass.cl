@@ -158,9 +158,7 @@ inline float surface_extent(const SceneGeom* g, int tri, float3 x, float3 u, flo
     int from = -1;
     for (int step = 0; step < EXTENT_STEPS && tri >= 0; ++step) {
         float3 a[3];
-        a[0] = g->tri_v0[tri].xyz;
-        a[1] = a[0] + g->tri_e1[tri].xyz;
-        a[2] = a[0] + g->tri_e2[tri].xyz;
+        triangle_corners(g, tri, a);
         float3 nt = normalize(cross(a[1] - a[0], a[2] - a[0]));
         float3 w = u - dot(u, nt) * nt;
         float lw = length(w);
@@ -195,8 +193,8 @@ inline float surface_extent(const SceneGeom* g, int tri, float3 x, float3 u, flo
 inline bool near_open_edge(const SceneGeom* g, int tri, float3 x, float reach) {
     int4 adj = g->tri_adj[tri];
     int across[3] = {adj.x, adj.y, adj.z};
-    float3 a0 = g->tri_v0[tri].xyz;
-    float3 a[3] = {a0, a0 + g->tri_e1[tri].xyz, a0 + g->tri_e2[tri].xyz};
+    float3 a[3];
+    triangle_corners(g, tri, a);
     for (int j = 0; j < 3; ++j) {
         if (across[j] >= 0) continue;
         float3 d = a[(j + 1) % 3] - a[j], c = cross(x - a[j], d);
@@ -210,11 +208,13 @@ inline bool near_open_edge(const SceneGeom* g, int tri, float3 x, float reach) {
 // Only the triangles that tri_adj.w marks near such an edge are looked at; an edge farther
 // along a mesh than the neighbours is not looked for (the disc is then taken whole).
 inline bool disc_leaves_surface(const SceneGeom* g, int tri, float3 x, float reach) {
-    if (tri < 0 || g->tri_adj[tri].w == 0) return false;
-    if (near_open_edge(g, tri, x, reach)) return true;
+    if (tri < 0) return false;
     int4 adj = g->tri_adj[tri];
-    return (adj.x >= 0 && near_open_edge(g, adj.x, x, reach)) || (adj.y >= 0 && near_open_edge(g, adj.y, x, reach))
-        || (adj.z >= 0 && near_open_edge(g, adj.z, x, reach));
+    if (adj.w == 0) return false;
+    int around[4] = {tri, adj.x, adj.y, adj.z};
+    for (int j = 0; j < 4; ++j)
+        if (around[j] >= 0 && near_open_edge(g, around[j], x, reach)) return true;
+    return false;
 }
 
 inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, int tri, float r, bool smooth, Rng* rng,

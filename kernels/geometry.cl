@@ -111,6 +111,14 @@ inline float ray_eps(const SceneGeom* g, float3 p) {
     return HIT_EPS_REL * fmax(g->eps_floor, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
 }
 
+// Triangle `tri`'s corners v0, v0 + e1, v0 + e2 (edge j runs from corner j to corner j + 1:
+// the order of tri_adj's neighbours, worker/adjacency.py).
+inline void triangle_corners(const SceneGeom* g, int tri, float3 a[3]) {
+    a[0] = g->tri_v0[tri].xyz;
+    a[1] = a[0] + g->tri_e1[tri].xyz;
+    a[2] = a[0] + g->tri_e2[tri].xyz;
+}
+
 // The scene's buffers as every tracing kernel takes them, in the host's order (Device.geometry,
 // then Device.emitter_args, worker/engine.py), and the SceneGeom a kernel makes of them.
 #define SCENE_PARAMS \
