@@ -205,8 +205,8 @@ inline bool near_open_edge(const SceneGeom* g, int tri, float3 x, float reach) {
 
 // Whether the disc of radius `reach` about x, on triangle `tri`, may reach an edge where its
 // surface ends: one of that triangle's or of its neighbours' (tri_adj) lies within `reach`.
-// Only the triangles that tri_adj.w marks near such an edge are looked at; an edge farther
-// along a mesh than the neighbours is not looked for (the disc is then taken whole).
+// Only the triangles that tri_adj.w marks as having such an edge themselves or in a neighbour
+// are looked at; an edge farther along a mesh is not looked for (the disc is then taken whole).
 inline bool disc_leaves_surface(const SceneGeom* g, int tri, float3 x, float reach) {
     if (tri < 0) return false;
     int4 adj = g->tri_adj[tri];

@@ -21,16 +21,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.contract import EXTENT_STEPS, NORMAL_MATCH_COS
+from kernels.contract import NORMAL_MATCH_COS
 
 NO_NEIGHBOUR = -1
 
 
 def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
     """(T, 4) int32: columns 0-2 the triangle across edge j (corner j to corner j + 1, corners
-    v0, v0 + e1, v0 + e2) on the same surface, or NO_NEIGHBOUR; column 3 is 1 where a walk
-    of at most EXTENT_STEPS triangles from this one can reach an edge where its surface ends
-    (the eye pass walks only from those)."""
+    v0, v0 + e1, v0 + e2) on the same surface, or NO_NEIGHBOUR; column 3 is 1 where the
+    triangle or a neighbour has an edge where its surface ends (the eye pass looks for such
+    an edge near a point only there: kernels/eye_pass.cl, disc_leaves_surface)."""
     n = len(tris)
     out = np.full((n, 4), NO_NEIGHBOUR, np.int32)
     if n == 0:
@@ -42,11 +42,11 @@ def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
     # Corners by position (the same float32 bits: the same corner), then each edge once per
     # triangle: (triangle, edge j, its corners' ids), keyed by the sorted pair of ids.
     bits = (corners.reshape(-1, 3) + np.float32(0.0)).view(np.uint32)  # -0.0 and 0.0: one corner
-    order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))  # (np.unique by rows: 14x slower)
-    first = np.ones(len(order), bool)
-    first[1:] = (bits[order[1:]] != bits[order[:-1]]).any(axis=1)
-    corner_id = np.empty(len(order), np.int64)
-    corner_id[order] = np.cumsum(first) - 1
+    by_position = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))  # (np.unique by rows: 14x slower)
+    new_corner = np.ones(len(by_position), bool)
+    new_corner[1:] = (bits[by_position[1:]] != bits[by_position[:-1]]).any(axis=1)
+    corner_id = np.empty(len(by_position), np.int64)
+    corner_id[by_position] = np.cumsum(new_corner) - 1
     corner_id = corner_id.reshape(n, 3)
     tri = np.repeat(np.arange(n), 3)
     edge = np.tile(np.arange(3), n)
@@ -69,13 +69,8 @@ def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
     out[t1[match], edge[first][match]] = t2[match]
     out[t2[match], edge[second][match]] = t1[match]
 
-    # Triangles within EXTENT_STEPS steps of an edge where the surface ends.
-    near = (out[:, :3] == NO_NEIGHBOUR).any(axis=1)
-    for _ in range(EXTENT_STEPS):
-        across = out[:, :3]
-        spread = near | (near[np.maximum(across, 0)] & (across != NO_NEIGHBOUR)).any(axis=1)
-        if np.array_equal(spread, near):
-            break
-        near = spread
-    out[:, 3] = near
+    # Triangles that have, or whose neighbours have, an edge where the surface ends.
+    across = out[:, :3]
+    ends = (across == NO_NEIGHBOUR).any(axis=1)
+    out[:, 3] = ends | (ends[np.maximum(across, 0)] & (across != NO_NEIGHBOUR)).any(axis=1)
     return out
