@@ -86,8 +86,8 @@ typedef struct {
     __global const float4* tri_e1;   // w: 1 if the triangle has shading normals
     __global const float4* tri_e2;
     __global const float4* tri_nrm;  // 3 rows per triangle: corner normals (smooth triangles only)
-    __global const int4* tri_adj;    // the triangle across each edge on the same surface, or -1;
-                                     // w: 1 if it or a neighbour has an edge where the surface ends (worker/adjacency.py)
+    __global const int4* tri_adj;    // the triangle across each edge on the same surface, or -1; w: 1 if
+                                     // it or a neighbour has an edge where the surface ends (worker/adjacency.py)
     __global const float4* node_lo;  // see worker/bvh.py for the layout
     __global const float4* node_hi;
     __global const float4* spheres;  // xyz centre, w radius
@@ -128,8 +128,8 @@ inline void triangle_corners(const SceneGeom* g, int tri, float3 a[3]) {
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres, float eps_floor, \
     __global const float4* surf_a, __global const float4* surf_b, \
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
-#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, tri_adj, node_lo, node_hi, spheres, sphere_surf, n_nodes, n_spheres, \
-                    eps_floor}
+#define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, tri_adj, node_lo, node_hi, spheres, sphere_surf, n_nodes, \
+                    n_spheres, eps_floor}
 
 // No point of the sphere lies within tmax of o: a bounded query skips it (smallppm's walls
 // are spheres of radius 1e5, so the distance is taken in double).
