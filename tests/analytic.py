@@ -133,7 +133,8 @@ def closed_sphere_scene(albedo: tuple[float, float, float], power: float = FURNA
 
 GLOW = {"le": 1.0, "rho": 0.5}
 # Centre, radius, material: a mirror ball, a glass ball, and a ball that glows and reflects as the walls do.
-GLOW_SPHERES = (((-0.4, -0.4, -0.2), 0.3, "mirror"), ((0.4, -0.3, -0.3), 0.35, "glass"), ((0.0, 0.45, -0.4), 0.25, "glow"))
+GLOW_SPHERES = (((-0.4, -0.4, -0.2), 0.3, "mirror"), ((0.4, -0.3, -0.3), 0.35, "glass"),
+                ((0.0, 0.45, -0.4), 0.25, "glow"))
 
 
 def glowing_box_scene(resolution: tuple[int, int] = (48, 48)) -> dict:
@@ -157,9 +158,11 @@ def glowing_box_scene(resolution: tuple[int, int] = (48, 48)) -> dict:
 
 
 def glowing_box_views(eng: Engine, sub: int = 4) -> dict[str, np.ndarray]:
-    """Boolean masks (pixels,) for glowing_box_scene, by the ball's material: the pixels whose sub x sub camera rays, and those of the 8 pixels around them, all first
-    meet that ball, or none (the box's walls: "walls"). The neighbours keep a pixel's jittered rays, which reach its
-    edges, and light tracing's splats, which land anywhere in it, off the other views."""
+    """Boolean masks (pixels,) for glowing_box_scene, by the ball's material: the pixels whose
+    sub x sub camera rays, and those of the 8 pixels around them, all first meet that ball,
+    or none (the box's walls: "walls"). The neighbours keep a pixel's jittered rays, which
+    reach its edges, and light tracing's splats, which land anywhere in it, off the other
+    views."""
     w, h = eng.arrays.width, eng.arrays.height
     o, d = camera_rays(eng, sub)
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
