@@ -47,7 +47,8 @@ Error: the relative RMS of bench/error_vs_time.py against its cached references
 long uniform SPPM runs, as bench/make_reference.py makes them) on first use. `--smoke`
 runs everything tiny (a few seconds a scene) to check the script, its figures mean nothing.
 Writes bench/out/adaptive.json and bench/out/adaptive_<scene>.png (with --smoke,
-adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json. Timing figures need a quiet machine.
+adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json.
+Timing figures need a quiet machine.
 """
 
 from __future__ import annotations
