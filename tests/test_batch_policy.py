@@ -11,7 +11,7 @@ import pytest
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_PATH_SHARE, MERGE_SHARE, REFRESH_SECONDS,
                                  FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes, checkpoint_tiles, fold_interval,
-                                 paced_batches, recent_pass_seconds, round_seconds)
+                                 paced_batches, recent_pass_seconds, round_seconds, tail_share)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -65,6 +65,14 @@ def test_the_last_passes_are_split_among_the_workers(workers: int, left: int) ->
     n = batch_passes(0.1, 0.0, workers=workers, passes_left=left)
     assert n == -(-left // workers)
     assert batch_passes(0.1, 0.0, workers=workers, passes_left=1000) == round(BATCH_TARGET_SECONDS / 0.1)
+
+
+def test_the_tail_is_rounded_to_the_earlier_end() -> None:
+    """15 passes left, the other worker's batch due in 7.1 s, 1.4 s a pass: the even end is
+    10.04 passes off. Rounded up (11), this worker would end at 15.4 s and the other at
+    12.7 s (4 passes); 10 ends both by 14.1 s."""
+    assert tail_share(15, 1.4, 2, [7.1]) == 10
+    assert tail_share(16, 1.4, 2, [7.1]) == 11  # 11 and 5: 15.4 and 14.1 s; 10 and 6 would end at 15.5 s
 
 
 def _tail(workers: int, pass_seconds: float, merge: float, fold: float, total: int) -> tuple[list[int], list[float]]:

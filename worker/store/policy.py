@@ -145,10 +145,12 @@ def tail_share(passes_left: int, pass_seconds: float, workers: int, others_due: 
     and the job's other `workers - 1` end together: each other worker renders from when its
     in-flight batch is due (`others_due`, seconds from now; one without a batch is free now),
     and all at `pass_seconds` a pass. The end T solves T + sum over the others of
-    max(0, T - due) = passes_left * pass_seconds (filled in order of due time); this batch
-    takes T / pass_seconds passes, rounded up. With every other worker free that is an
-    equal split; with the others busy for long, more of the tail, in fewer batches (each
-    batch costs a merge and a fold round whatever its passes). Untimed: an equal split."""
+    max(0, T - due) = passes_left * pass_seconds (filled in order of due time). This batch
+    takes T / pass_seconds passes rounded up, or one fewer where that ends the job sooner
+    (`_tail_end`: a pass is whole, so rounding up can leave this worker a pass behind the
+    others). With every other worker free that is an equal split; with the others busy for
+    long, more of the tail, in fewer batches (each batch costs a merge and a fold round
+    whatever its passes). Untimed: an equal split."""
     others = max(1, workers) - 1
     if pass_seconds <= 0.0 or others == 0:
         return -(-passes_left // (others + 1))
@@ -160,7 +162,21 @@ def tail_share(passes_left: int, pass_seconds: float, workers: int, others_due: 
         if end <= d:
             break
         busy += 1
-    return min(passes_left, max(1, math.ceil(end / pass_seconds - 1e-6)))
+    n = min(passes_left, max(1, math.ceil(end / pass_seconds - 1e-6)))
+    if n > 1 and _tail_end(n - 1, passes_left, pass_seconds, due) < _tail_end(n, passes_left, pass_seconds, due):
+        return n - 1
+    return n
+
+
+def _tail_end(n: int, passes_left: int, pass_seconds: float, due: Sequence[float]) -> float:
+    """When a job's last delivery comes if this batch takes `n` of its last `passes_left`
+    passes and the others take the rest a pass at a time, each pass to whichever of them is
+    free first (`due`: when each is free; all at `pass_seconds` a pass)."""
+    free = list(due)
+    for _ in range(passes_left - n):
+        i = free.index(min(free))
+        free[i] += pass_seconds
+    return max([n * pass_seconds, *free])
 
 
 # ------------------------------------------------------------- the termination rule
