@@ -82,10 +82,10 @@ COVERAGE_PRETEST = 1
 # is only as large as that surface, which continues across a triangle edge only to a
 # neighbour whose normal matches (worker/adjacency.py). The eye pass walks at most
 # EXTENT_STEPS triangles from the point's own to find where its surface ends (a convex
-# edge; kernels/eye_pass.cl, surface_extent); a surface of finer triangles than that within
-# the disc is taken to run on.
+# edge; kernels/eye_pass.cl, surface_extent); a surface that runs on past them is taken to
+# run on.
 NORMAL_MATCH_COS = 0.7071
-EXTENT_STEPS = 8
+EXTENT_STEPS = 64
 
 
 @dataclass(frozen=True)

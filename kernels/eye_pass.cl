@@ -151,7 +151,7 @@ inline bool disc_may_be_cut(const SceneGeom* g, float3 x, float3 n, float r) {
 // to the neighbour on the same surface (worker/adjacency.py), until an edge with none (a
 // convex edge, or a fold past NORMAL_MATCH_COS) or `reach`. u is turned into each
 // triangle's plane; the distance is summed along the walk. Past EXTENT_STEPS triangles the
-// surface is taken to run on (a fine mesh), as it is on a sphere (tri < 0: closed).
+// surface is taken to run on (a mesh finer still), as it is on a sphere (tri < 0: closed).
 inline float surface_extent(const SceneGeom* g, int tri, float3 x, float3 u, float reach) {
     float3 p = x;
     float travelled = 0.0f;
@@ -204,17 +204,19 @@ inline bool near_open_edge(const SceneGeom* g, int tri, float3 x, float reach) {
 }
 
 // Whether the disc of radius `reach` about x, on triangle `tri`, may reach an edge where its
-// surface ends: one of that triangle's or of its neighbours' (tri_adj) lies within `reach`.
-// Only the triangles that tri_adj.w marks as having such an edge themselves or in a neighbour
-// are looked at; an edge farther along a mesh is not looked for (the disc is then taken whole).
+// surface ends. tri_adj.w is a bound per triangle (worker/adjacency.py, far_edge_bounds): its
+// size how near the triangle comes to such an edge beyond its neighbours (a fine mesh), its
+// sign whether the triangle or a neighbour has one, which is then tested from x itself.
 inline bool disc_leaves_surface(const SceneGeom* g, int tri, float3 x, float reach) {
     if (tri < 0) return false;
     int4 adj = g->tri_adj[tri];
-    if (adj.w == 0) return false;
-    int around[4] = {tri, adj.x, adj.y, adj.z};
-    for (int j = 0; j < 4; ++j)
-        if (around[j] >= 0 && near_open_edge(g, around[j], x, reach)) return true;
-    return false;
+    float bound = as_float(adj.w);
+    if (signbit(bound)) {
+        int around[4] = {tri, adj.x, adj.y, adj.z};
+        for (int j = 0; j < 4; ++j)
+            if (around[j] >= 0 && near_open_edge(g, around[j], x, reach)) return true;
+    }
+    return fabs(bound) < reach;
 }
 
 inline float2 disc_coverage(const SceneGeom* g, float3 x, float3 n, int tri, float r, bool smooth, Rng* rng,

@@ -15,22 +15,37 @@ fold beyond 45 degrees, an edge shared by three or more. A surface split where i
 end (coplanar quads that share no corners) only cuts the disc at a line with photons on
 both sides; the estimate counts the disc's covered part and its photons alike, so it loses
 photons there, not its expectation.
+
+A point walks only where its disc may reach such an edge. On its own triangle and its
+neighbours the eye pass tests the edges themselves; farther along a mesh (a fine mesh: the
+disc spans many triangles) it reads a bound the host computes once per triangle
+(`far_edge_bounds`): how near any point of the triangle can come to an edge where its
+surface ends, on a triangle beyond its neighbours.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.spatial import cKDTree
 
-from kernels.contract import NORMAL_MATCH_COS
+from kernels.contract import EXTENT_STEPS, NORMAL_MATCH_COS
 
 NO_NEIGHBOUR = -1
+# far_edge_bounds looks at this many edge samples nearest a triangle at most (when the
+# nearest ones belong to the triangle, its neighbours or another surface), and queries this
+# many triangles at a time.
+NEAREST_SAMPLES = 32
+QUERY_CHUNK = 1 << 16
 
 
 def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
     """(T, 4) int32: columns 0-2 the triangle across edge j (corner j to corner j + 1, corners
-    v0, v0 + e1, v0 + e2) on the same surface, or NO_NEIGHBOUR; column 3 is 1 where the
-    triangle or a neighbour has an edge where its surface ends (the eye pass looks for such
-    an edge near a point only there: kernels/eye_pass.cl, disc_leaves_surface)."""
+    v0, v0 + e1, v0 + e2) on the same surface, or NO_NEIGHBOUR; column 3 the float32 bits of
+    `far_edge_bounds`, negative where the triangle or a neighbour has an edge where its
+    surface ends (kernels/eye_pass.cl, disc_leaves_surface: it tests such edges near a point
+    only there, and walks farther only where the bound lies within the disc's reach)."""
     n = len(tris)
     out = np.full((n, 4), NO_NEIGHBOUR, np.int32)
     if n == 0:
@@ -69,8 +84,97 @@ def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
     out[t1[match], edge[first][match]] = t2[match]
     out[t2[match], edge[second][match]] = t1[match]
 
-    # Triangles that have, or whose neighbours have, an edge where the surface ends.
+    # Triangles that have, or whose neighbours have, an edge where the surface ends: the
+    # bound's sign (-0.0 where it is 0).
     across = out[:, :3]
     ends = (across == NO_NEIGHBOUR).any(axis=1)
-    out[:, 3] = ends | (ends[np.maximum(across, 0)] & (across != NO_NEIGHBOUR)).any(axis=1)
+    near = ends | (ends[np.maximum(across, 0)] & (across != NO_NEIGHBOUR)).any(axis=1)
+    far = far_edge_bounds(corners, across)
+    out[:, 3] = np.where(near, -far, far).view(np.int32)
     return out
+
+
+def far_edge_bounds(corners: np.ndarray, across: np.ndarray) -> np.ndarray:
+    """(T,) float32: for each triangle a lower bound on the distance from any of its points to
+    an edge where its surface ends (no neighbour across it) on another triangle of its
+    surface (connected through neighbours) that is not one of its neighbours; inf where the
+    eye pass's walk cannot reach one (none, or EXTENT_STEPS triangles away or more: the walk
+    moves a triangle a step)."""
+    n = len(corners)
+    bound = np.full(n, np.inf, np.float32)
+    # Surfaces: triangles connected through neighbours. One of 2 triangles has none beyond
+    # its neighbours (a quad), so only larger ones are looked at.
+    t, j = np.nonzero(across != NO_NEIGHBOUR)
+    _, surface = connected_components(coo_matrix((np.ones(len(t), np.int8), (t, across[t, j])), shape=(n, n)),
+                                      directed=False)
+    large = np.bincount(surface)[surface] > 2
+    t, j = np.nonzero((across == NO_NEIGHBOUR) & large[:, None])
+    if len(t) == 0:
+        return bound
+    # Steps from the triangles with such an edge (a source joined to each), as far as the walk goes.
+    rows = np.concatenate([np.nonzero(across != NO_NEIGHBOUR)[0], np.full(len(t), n)])
+    cols = np.concatenate([across[across != NO_NEIGHBOUR], t])
+    walk = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n + 1, n + 1))
+    steps = dijkstra(walk, directed=False, indices=n, unweighted=True, limit=EXTENT_STEPS + 1)[:n] - 1
+    queried = large & (steps < EXTENT_STEPS)
+    # Each surface on its own.
+    by_surface = np.argsort(surface[t], kind="stable")
+    t, j = t[by_surface], j[by_surface]
+    tri_order = np.nonzero(queried)[0]
+    tri_order = tri_order[np.argsort(surface[tri_order], kind="stable")]
+    edge_runs = np.searchsorted(surface[t], np.unique(surface[t]))
+    tri_runs = np.searchsorted(surface[tri_order], surface[t][edge_runs])
+    tri_ends = np.searchsorted(surface[tri_order], surface[t][edge_runs], side="right")
+    for e0, e1, q0, q1 in zip(edge_runs, [*edge_runs[1:], len(t)], tri_runs, tri_ends):
+        if q1 > q0:
+            tris = tri_order[q0:q1]
+            bound[tris] = _nearest_open_edge(corners, across, t[e0:e1], j[e0:e1], tris)
+    return bound
+
+
+def _nearest_open_edge(corners: np.ndarray, across: np.ndarray, edge_tri: np.ndarray, edge_j: np.ndarray,
+                       tris: np.ndarray) -> np.ndarray:
+    """far_edge_bounds on one surface: its open edges (triangle, edge) and the triangles to
+    bound. From samples along the edges, spaced at most h apart (h the median edge length):
+    the nearest sample not on the triangle or a neighbour, less h / 2, less the triangle's
+    reach from its centroid. A triangle whose NEAREST_SAMPLES nearest are all on itself or
+    its neighbours takes the farthest of them. No farther than the walk goes
+    (EXTENT_STEPS triangles of the surface's median size): a search beyond would visit most
+    of the tree, and the bound is then that distance."""
+    p0 = corners[edge_tri, edge_j].astype(np.float64)
+    p1 = corners[edge_tri, (edge_j + 1) % 3].astype(np.float64)
+    length = np.linalg.norm(p1 - p0, axis=1)
+    h = max(float(np.median(length)), 1e-30)
+    pieces = np.maximum(1, np.ceil(length / h)).astype(np.int64)
+    edge = np.repeat(np.arange(len(edge_tri)), pieces + 1)
+    step = np.arange(len(edge)) - np.repeat(np.cumsum(pieces + 1) - (pieces + 1), pieces + 1)
+    f = (step / pieces[edge])[:, None]
+    owner = edge_tri[edge]
+    tree = cKDTree(p0[edge] * (1.0 - f) + p1[edge] * f)
+
+    centre = corners[tris].astype(np.float64).mean(axis=1)
+    spread = np.linalg.norm(corners[tris] - centre[:, None, :], axis=2).max(axis=1)
+    horizon = EXTENT_STEPS * float(np.median(spread))
+    nearest = np.full(len(tris), np.inf)  # inf: none within the horizon
+    todo = np.arange(len(tris))
+    widest = min(NEAREST_SAMPLES, len(owner))
+    for k in (1, widest):
+        left = []
+        for lo in range(0, len(todo), QUERY_CHUNK):
+            rows = todo[lo:lo + QUERY_CHUNK]
+            dist, idx = tree.query(centre[rows], k=k, distance_upper_bound=horizon)
+            dist, idx = dist.reshape(len(rows), k), idx.reshape(len(rows), k)
+            seen = idx < len(owner)  # within the horizon
+            who = owner[np.where(seen, idx, 0)]
+            counts = seen & (who != tris[rows, None]) & (who[:, :, None] != across[tris[rows]][:, None, :]).all(axis=2)
+            first = counts.argmax(axis=1)
+            found = counts[np.arange(len(rows)), first]
+            nearest[rows[found]] = dist[np.arange(len(rows)), first][found]
+            if k == widest:  # the farthest seen bounds the rest
+                nearest[rows[~found]] = dist[~found, -1]
+            else:  # a wider look where the nearest sample lies within the horizon and does not count
+                left.append(rows[~found & seen[:, 0]])
+        todo = np.concatenate(left) if left else todo[:0]
+        if len(todo) == 0:
+            break
+    return np.maximum(0.0, (np.minimum(nearest, horizon) - 0.5 * h - spread) * (1.0 - 1e-6))
