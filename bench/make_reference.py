@@ -14,6 +14,14 @@ what the error estimator bounds (tests/test_error_estimation.py).
 bench/mitsuba_peer.py), N samples per pixel for each of the two seeds:
 
     python -m bench.make_reference cornell-box --resolution 96x96 --mitsuba-spp 4096 --out cornell-box-corners-96x96
+
+With --photon-only, Mitsuba renders each chunk twice with the same seed: the scene, and the
+scene with every diffuse albedo 0, which leaves exactly the emission seen directly or through
+specular and glossy surfaces (our eye pass's Ld: it stops at the first diffuse surface). The
+difference is the photon-density part; the two share their camera rays, so pixels that see a
+light's edge subtract their coverage noise away:
+
+    python -m bench.make_reference cornell-caustics --resolution 48x48 --mitsuba-spp 65536 --photon-only
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ from kernels.contract import LUMINANCE
 from service.cli import _resolution
 from worker.image_io import write_image
 from worker.render_loop import render as render_passes
-from worker.scene import bundled_scene_path, load_scene_file
+from worker.scene import Diffuse, Scene, bundled_scene_path, load_scene_file
 
 
 def render(scene: str, resolution: tuple[int, int] | None, photons: int, seed: int, seconds: float,
@@ -40,15 +48,29 @@ def render(scene: str, resolution: tuple[int, int] | None, photons: int, seed: i
     return rgb.reshape(eng.arrays.height, eng.arrays.width, 3), st.passes
 
 
-def render_mitsuba(scene: str, resolution: tuple[int, int] | None, spp: int, seed: int) -> tuple[np.ndarray, float]:
-    """Mitsuba path tracing in chunks of 256 spp (each its own seed): (image, seconds)."""
+def seen_emission_scene(scene: Scene) -> Scene:
+    """The scene with no diffuse reflection: what remains is the emission a camera sees
+    directly or through specular and glossy surfaces."""
+    black = {name: m.model_copy(update={"albedo": (0.0, 0.0, 0.0)}) if isinstance(m, Diffuse) else m
+             for name, m in scene.materials.items()}
+    return scene.model_copy(update={"materials": black})
+
+
+def render_mitsuba(scene: str, resolution: tuple[int, int] | None, spp: int, seed: int,
+                   photon_only: bool = False) -> tuple[np.ndarray, float]:
+    """Mitsuba path tracing in chunks of 256 spp (each its own seed): (image, seconds); with
+    `photon_only`, less the emission seen directly (`seen_emission_scene`, same seeds)."""
     parsed, base = load_scene_file(bundled_scene_path(scene))
     res = resolution or parsed.camera.resolution
     total, seconds = np.zeros((res[1], res[0], 3)), 0.0
     chunks = max(1, spp // 256)
     for k in range(chunks):
-        img, t = mitsuba_render(parsed, base, res, spp // chunks, "path", seed=seed * 1_000_000 + k)
+        chunk_seed = seed * 1_000_000 + k
+        img, t = mitsuba_render(parsed, base, res, spp // chunks, "path", seed=chunk_seed)
         total, seconds = total + img, seconds + t
+        if photon_only:
+            img, t = mitsuba_render(seen_emission_scene(parsed), base, res, spp // chunks, "path", seed=chunk_seed)
+            total, seconds = total - img, seconds + t
     return total / chunks, seconds
 
 
@@ -64,7 +86,8 @@ def main() -> None:
     parser.add_argument("--out", help="file name without suffix (default: SCENE-WxH)")
     args = parser.parse_args()
     if args.mitsuba_spp:
-        runs = [render_mitsuba(args.scene, args.resolution, args.mitsuba_spp, seed) for seed in args.seeds]
+        runs = [render_mitsuba(args.scene, args.resolution, args.mitsuba_spp, seed, args.photon_only)
+                for seed in args.seeds]
     else:
         runs = [render(args.scene, args.resolution, args.photons_per_pass, seed, args.seconds, args.photon_only)
                 for seed in args.seeds]
@@ -79,7 +102,9 @@ def main() -> None:
         info = {"scene": args.scene, "resolution": [ref.shape[1], ref.shape[0]],
                 "method": "mitsuba path tracer (scalar_rgb, max_depth -1, box filter), independent of photonfarm",
                 "spp_per_run": args.mitsuba_spp, "seeds": list(args.seeds), "seconds_per_run": [passes_a, passes_b],
-                "quantity": "radiance", "estimated_luminance_rms_error": own_error}
+                "quantity": "photon-density radiance S/E only (less the emission seen directly: the same seeds with "
+                            "every diffuse albedo 0)" if args.photon_only else "radiance",
+                "estimated_luminance_rms_error": own_error}
     else:
         info = {"scene": args.scene, "resolution": [ref.shape[1], ref.shape[0]], "method": "sppm", "gather": "exact",
                 "alpha": 0.7, "photons_per_pass": args.photons_per_pass, "passes": [passes_a, passes_b],

@@ -21,6 +21,7 @@ from worker.stats import Accumulators
 LAYOUT = sum_layout(error_estimation=True)
 
 REFERENCE = Path(__file__).resolve().parent.parent / "bench" / "reference" / "cornell-caustics-48x48.exr"
+COVERAGE_SEEDS = (31, 32, 33)
 
 
 def test_kernel_constants_are_the_disc_moments_of_K() -> None:
@@ -101,8 +102,8 @@ def test_point_plane_laplacian_converges_to_the_analytic_one(make_engine) -> Non
 
 
 def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[int], resolution=None,  # noqa: ANN001
-              photons: int = 1 << 15) -> dict:
-    eng = make_engine(scene, resolution=resolution, photons_per_pass=photons, seed=31, gather=gather)
+              photons: int = 1 << 15, seed: int = 31) -> dict:
+    eng = make_engine(scene, resolution=resolution, photons_per_pass=photons, seed=seed, gather=gather)
     truth = truth_of(eng)
     st = eng.start()
     out = {}
@@ -124,19 +125,24 @@ def _cornell_reference(eng) -> np.ndarray:  # noqa: ANN001
 @pytest.mark.parametrize("scene, truth_of, resolution, photons", [
     ("furnace", lambda eng: FURNACE_L, None, 1 << 15),
     ("point-plane", lambda eng: point_plane(eng)[0], None, 1 << 15),
-    # 2^12 photons per pass: the reference then has ~1000x the photons of the runs it checks
+    # 2^12 photons per pass: the reference (Mitsuba's path tracer, bench/make_reference.py
+    # --photon-only) has an own error a fifth of the runs' it checks
     ("cornell-caustics", _cornell_reference, (48, 48), 1 << 12),
 ])
 def test_coverage_is_within_five_points_of_the_nominal_confidence(make_engine, scene, truth_of, resolution,
                                                                     photons) -> None:
     """Fig. 6.6: the share of pixels whose bound is at least the actual error, against an
-    analytic answer or a long reference run (bench/reference), at 50% and 90% over many
-    pass counts. Exact gather: the stochastic hash's heavier-tailed samples need more
-    passes before the t interval holds (tested below, charted in bench/)."""
-    coverage = _coverage(make_engine, scene, truth_of, "exact", [8, 24, 64], resolution, photons)
+    analytic answer or an independent reference (bench/reference), at 50% and 90% over many
+    pass counts, the mean of COVERAGE_SEEDS runs: one run's share moves by about 2 points from
+    seed to seed (its pixels share photons), a mean of three by about 1. Exact gather: the
+    stochastic hash's heavier-tailed samples need more passes before the t interval holds
+    (tested below, charted in bench/)."""
+    runs = [_coverage(make_engine, scene, truth_of, "exact", [8, 24, 64], resolution, photons, seed)
+            for seed in COVERAGE_SEEDS]
+    coverage = {key: float(np.mean([run[key] for run in runs])) for key in runs[0]}
     rms_error = coverage.pop("rms_error")
     for (passes, confidence), share in coverage.items():
-        assert abs(share - confidence) <= 0.05, (passes, confidence, share, coverage)
+        assert abs(share - confidence) <= 0.05, (passes, confidence, share, runs)
     if scene == "cornell-caustics":  # the reference's own error must be well below what it checks
         own = json.loads(REFERENCE.with_suffix(".json").read_text())["estimated_luminance_rms_error"]
         assert own < 0.4 * rms_error, (own, rms_error)
