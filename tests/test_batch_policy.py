@@ -11,7 +11,8 @@ import pytest
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_PATH_SHARE, MERGE_SHARE, REFRESH_SECONDS,
                                  FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes, checkpoint_tiles, fold_interval,
-                                 paced_batches, recent_pass_seconds, round_seconds, tail_share)
+                                 _tail_end, paced_batches, recent_pass_seconds, round_seconds,
+                                 tail_share)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:
@@ -73,6 +74,21 @@ def test_the_tail_is_rounded_to_the_earlier_end() -> None:
     12.7 s (4 passes); 10 ends both by 14.1 s."""
     assert tail_share(15, 1.4, 2, [7.1]) == 10
     assert tail_share(16, 1.4, 2, [7.1]) == 11  # 11 and 5: 15.4 and 14.1 s; 10 and 6 would end at 15.5 s
+
+
+def test_the_tail_end_is_that_of_handing_out_passes_one_at_a_time() -> None:
+    """_tail_end gives the others their passes in bulk (a tail of 10^6 passes on 100 workers
+    costs what one of 10 does); the end is the same as a pass at a time to whichever is free
+    first."""
+    rng = np.random.default_rng(5)
+    for _ in range(2000):
+        due = sorted(rng.uniform(0.0, 10.0, rng.integers(1, 7)).tolist())
+        pass_seconds, left = float(rng.uniform(0.1, 2.0)), int(rng.integers(1, 60))
+        n = int(rng.integers(1, left + 1))
+        free = list(due)
+        for _ in range(left - n):
+            free[free.index(min(free))] += pass_seconds
+        assert _tail_end(n, left, pass_seconds, due) == pytest.approx(max([n * pass_seconds, *free]), abs=1e-9)
 
 
 def _tail(workers: int, pass_seconds: float, merge: float, fold: float, total: int) -> tuple[list[int], list[float]]:

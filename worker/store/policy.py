@@ -6,6 +6,7 @@ and writes what they decide.
 
 from __future__ import annotations
 
+import heapq
 import math
 import os
 from collections.abc import Sequence
@@ -156,26 +157,37 @@ def tail_share(passes_left: int, pass_seconds: float, workers: int, others_due: 
         return -(-passes_left // (others + 1))
     due = sorted(max(0.0, d) for d in others_due)[:others]
     due = [0.0] * (others - len(due)) + due  # workers without an in-flight batch are free now
-    work, end, busy = passes_left * pass_seconds, 0.0, 1
-    for i, d in enumerate(due + [math.inf]):
-        end = (work + sum(due[:i])) / busy
-        if end <= d:
-            break
-        busy += 1
+    end = _fill_level(passes_left * pass_seconds, due, 1)
     n = min(passes_left, max(1, math.ceil(end / pass_seconds - 1e-6)))
     if n > 1 and _tail_end(n - 1, passes_left, pass_seconds, due) < _tail_end(n, passes_left, pass_seconds, due):
         return n - 1
     return n
 
 
+def _fill_level(work: float, due: Sequence[float], free: int) -> float:
+    """The end T at which `free` workers free now and the others, free from `due` (sorted),
+    together finish `work` seconds of passes: T free + sum of max(0, T - d) = work."""
+    end = 0.0
+    for i, d in enumerate([*due, math.inf]):
+        if free + i > 0:
+            end = (work + sum(due[:i])) / (free + i)
+            if end <= d:
+                break
+    return end
+
+
 def _tail_end(n: int, passes_left: int, pass_seconds: float, due: Sequence[float]) -> float:
     """When a job's last delivery comes if this batch takes `n` of its last `passes_left`
-    passes and the others take the rest a pass at a time, each pass to whichever of them is
-    free first (`due`: when each is free; all at `pass_seconds` a pass)."""
-    free = list(due)
-    for _ in range(passes_left - n):
-        i = free.index(min(free))
-        free[i] += pass_seconds
+    passes and the other workers (free from `due`, sorted) the rest, each pass to whichever
+    is free first: in bulk up to the level at which they would all be busy, then a pass at a
+    time (fewer than one per worker)."""
+    left = passes_left - n
+    level = _fill_level(left * pass_seconds, due, 0)
+    takes = [max(0, math.floor((level - d) / pass_seconds)) for d in due]
+    free = [d + k * pass_seconds for d, k in zip(due, takes)]
+    heapq.heapify(free)
+    for _ in range(left - sum(takes)):
+        heapq.heapreplace(free, free[0] + pass_seconds)
     return max([n * pass_seconds, *free])
 
 
