@@ -34,8 +34,8 @@ from kernels.contract import EXTENT_STEPS, NORMAL_MATCH_COS
 
 NO_NEIGHBOUR = -1
 # far_edge_bounds looks at this many edge samples nearest a triangle at most (when the
-# nearest ones belong to the triangle, its neighbours or another surface), and queries this
-# many triangles at a time.
+# nearest ones belong to the triangle or its neighbours), and queries this many triangles at
+# a time.
 NEAREST_SAMPLES = 32
 QUERY_CHUNK = 1 << 16
 
@@ -99,7 +99,16 @@ def far_edge_bounds(corners: np.ndarray, across: np.ndarray) -> np.ndarray:
     an edge where its surface ends (no neighbour across it) on another triangle of its
     surface (connected through neighbours) that is not one of its neighbours; inf where the
     eye pass's walk cannot reach one (none, or EXTENT_STEPS triangles away or more: the walk
-    moves a triangle a step)."""
+    moves a triangle a step).
+
+    From samples along those edges, spaced at most h apart (h the median open edge's length
+    on the surface): the nearest sample not on the triangle or a neighbour, less h / 2, less
+    the triangle's reach from its centroid; where the NEAREST_SAMPLES nearest are all on it or
+    its neighbours, the farthest of them. No farther than the walk goes (EXTENT_STEPS
+    triangles of the surface's median size, its horizon): a search beyond would visit most
+    of the tree, and the bound is then the horizon. All surfaces share one k-d tree, each
+    scaled to a horizon of 1 and set 3 apart along a fourth axis, so a search within the
+    horizon stays on its own surface."""
     n = len(corners)
     bound = np.full(n, np.inf, np.float32)
     # Surfaces: triangles connected through neighbours. One of 2 triangles has none beyond
@@ -116,65 +125,71 @@ def far_edge_bounds(corners: np.ndarray, across: np.ndarray) -> np.ndarray:
     cols = np.concatenate([across[across != NO_NEIGHBOUR], t])
     walk = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n + 1, n + 1))
     steps = dijkstra(walk, directed=False, indices=n, unweighted=True, limit=EXTENT_STEPS + 1)[:n] - 1
-    queried = large & (steps < EXTENT_STEPS)
-    # Each surface on its own.
-    by_surface = np.argsort(surface[t], kind="stable")
-    t, j = t[by_surface], j[by_surface]
-    tri_order = np.nonzero(queried)[0]
-    tri_order = tri_order[np.argsort(surface[tri_order], kind="stable")]
-    edge_runs = np.searchsorted(surface[t], np.unique(surface[t]))
-    tri_runs = np.searchsorted(surface[tri_order], surface[t][edge_runs])
-    tri_ends = np.searchsorted(surface[tri_order], surface[t][edge_runs], side="right")
-    for e0, e1, q0, q1 in zip(edge_runs, [*edge_runs[1:], len(t)], tri_runs, tri_ends):
-        if q1 > q0:
-            tris = tri_order[q0:q1]
-            bound[tris] = _nearest_open_edge(corners, across, t[e0:e1], j[e0:e1], tris)
-    return bound
+    tris = np.nonzero(large & (steps < EXTENT_STEPS))[0]
+    if len(tris) == 0:
+        return bound
 
-
-def _nearest_open_edge(corners: np.ndarray, across: np.ndarray, edge_tri: np.ndarray, edge_j: np.ndarray,
-                       tris: np.ndarray) -> np.ndarray:
-    """far_edge_bounds on one surface: its open edges (triangle, edge) and the triangles to
-    bound. From samples along the edges, spaced at most h apart (h the median edge length):
-    the nearest sample not on the triangle or a neighbour, less h / 2, less the triangle's
-    reach from its centroid. A triangle whose NEAREST_SAMPLES nearest are all on itself or
-    its neighbours takes the farthest of them. No farther than the walk goes
-    (EXTENT_STEPS triangles of the surface's median size): a search beyond would visit most
-    of the tree, and the bound is then that distance."""
-    p0 = corners[edge_tri, edge_j].astype(np.float64)
-    p1 = corners[edge_tri, (edge_j + 1) % 3].astype(np.float64)
-    length = np.linalg.norm(p1 - p0, axis=1)
-    h = max(float(np.median(length)), 1e-30)
-    pieces = np.maximum(1, np.ceil(length / h)).astype(np.int64)
-    edge = np.repeat(np.arange(len(edge_tri)), pieces + 1)
-    step = np.arange(len(edge)) - np.repeat(np.cumsum(pieces + 1) - (pieces + 1), pieces + 1)
-    f = (step / pieces[edge])[:, None]
-    owner = edge_tri[edge]
-    tree = cKDTree(p0[edge] * (1.0 - f) + p1[edge] * f)
-
+    # Each surface's sample spacing h and horizon, from its open edges and its triangles.
     centre = corners[tris].astype(np.float64).mean(axis=1)
     spread = np.linalg.norm(corners[tris] - centre[:, None, :], axis=2).max(axis=1)
-    horizon = EXTENT_STEPS * float(np.median(spread))
+    p0 = corners[t, j].astype(np.float64)
+    p1 = corners[t, (j + 1) % 3].astype(np.float64)
+    length = np.linalg.norm(p1 - p0, axis=1)
+    h = _median_by(length, surface[t], len(surface))
+    horizon = np.maximum(EXTENT_STEPS * _median_by(spread, surface[tris], len(surface)), 1e-30)
+
+    # The samples, each surface scaled to its horizon and set apart from the others.
+    pieces = np.maximum(1, np.ceil(length / np.maximum(h[surface[t]], 1e-30))).astype(np.int64)
+    edge = np.repeat(np.arange(len(t)), pieces + 1)
+    step = np.arange(len(edge)) - np.repeat(np.cumsum(pieces + 1) - (pieces + 1), pieces + 1)
+    f = (step / pieces[edge])[:, None]
+    owner = t[edge]
+    tree = cKDTree(_scaled(p0[edge] * (1.0 - f) + p1[edge] * f, surface[owner], horizon))
+
+    # Per triangle: the nearest sample beyond itself and its neighbours. The nearest sample
+    # of all is that for most triangles; the rest look at more.
+    at = _scaled(centre, surface[tris], horizon)
     nearest = np.full(len(tris), np.inf)  # inf: none within the horizon
     todo = np.arange(len(tris))
     widest = min(NEAREST_SAMPLES, len(owner))
     for k in (1, widest):
         left = []
         for lo in range(0, len(todo), QUERY_CHUNK):
-            rows = todo[lo:lo + QUERY_CHUNK]
-            dist, idx = tree.query(centre[rows], k=k, distance_upper_bound=horizon)
-            dist, idx = dist.reshape(len(rows), k), idx.reshape(len(rows), k)
+            part = todo[lo:lo + QUERY_CHUNK]
+            dist, idx = tree.query(at[part], k=k, distance_upper_bound=1.0)
+            dist, idx = dist.reshape(len(part), k), idx.reshape(len(part), k)
             seen = idx < len(owner)  # within the horizon
             who = owner[np.where(seen, idx, 0)]
-            counts = seen & (who != tris[rows, None]) & (who[:, :, None] != across[tris[rows]][:, None, :]).all(axis=2)
+            tri = tris[part]
+            counts = seen & (who != tri[:, None]) & (who[:, :, None] != across[tri][:, None, :]).all(axis=2)
             first = counts.argmax(axis=1)
-            found = counts[np.arange(len(rows)), first]
-            nearest[rows[found]] = dist[np.arange(len(rows)), first][found]
+            found = counts[np.arange(len(part)), first]
+            nearest[part[found]] = dist[np.arange(len(part)), first][found]
             if k == widest:  # the farthest seen bounds the rest
-                nearest[rows[~found]] = dist[~found, -1]
+                nearest[part[~found]] = dist[~found, -1]
             else:  # a wider look where the nearest sample lies within the horizon and does not count
-                left.append(rows[~found & seen[:, 0]])
+                left.append(part[~found & seen[:, 0]])
         todo = np.concatenate(left) if left else todo[:0]
         if len(todo) == 0:
             break
-    return np.maximum(0.0, (np.minimum(nearest, horizon) - 0.5 * h - spread) * (1.0 - 1e-6))
+    reach = horizon[surface[tris]]
+    bound[tris] = np.maximum(0.0, (np.minimum(nearest, 1.0) * reach - 0.5 * h[surface[tris]] - spread) * (1.0 - 1e-6))
+    return bound
+
+
+def _median_by(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """(n_groups,) the median of `values` in each group (the upper one of an even count; 0
+    for a group with none)."""
+    order = np.lexsort((values, groups))
+    counts = np.bincount(groups, minlength=n_groups)
+    starts = np.cumsum(counts) - counts
+    out = np.zeros(n_groups)
+    has = counts > 0
+    out[has] = values[order][starts[has] + counts[has] // 2]
+    return out
+
+
+def _scaled(points: np.ndarray, surface: np.ndarray, horizon: np.ndarray) -> np.ndarray:
+    """Points of each surface in units of its horizon, with the surface 3 horizons apart from
+    the next along a fourth axis: (N, 4)."""
+    return np.column_stack([points / horizon[surface][:, None], 3.0 * surface])
