@@ -101,7 +101,6 @@ def test_neighbours_continue_a_surface_and_end_it_at_folds_and_rims() -> None:
     assert triangle_neighbours(hinge(60.0))[0, 2] == NO_NEIGHBOUR  # a fold past 45 degrees
 
 
-
 def test_a_meshs_shared_vertices_join_its_triangles() -> None:
     """The square as a 10 x 10 mesh: its rim's 40 edges are its only open ones. Matched on the
     corners as the kernels make them (v0 + e1 in float32), 80 were: neighbours' corners
@@ -109,6 +108,7 @@ def test_a_meshs_shared_vertices_join_its_triangles() -> None:
     across the surface, and walks everywhere)."""
     arrays = compile_scene(Scene.model_validate(square(10)), Path("."))
     assert (arrays.tri_adj[:, :3] == NO_NEIGHBOUR).sum() == 40
+
 
 def _sheet_with_hole(cells: int, hole: tuple[int, int]) -> np.ndarray:
     """A unit square in the plane z = 0 as cells x cells quads (two triangles each), less the
