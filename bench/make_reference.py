@@ -64,12 +64,13 @@ def render_mitsuba(scene: str, resolution: tuple[int, int] | None, spp: int, see
     res = resolution or parsed.camera.resolution
     total, seconds = np.zeros((res[1], res[0], 3)), 0.0
     chunks = max(1, spp // 256)
+    seen = seen_emission_scene(parsed) if photon_only else None
     for k in range(chunks):
         chunk_seed = seed * 1_000_000 + k
         img, t = mitsuba_render(parsed, base, res, spp // chunks, "path", seed=chunk_seed)
         total, seconds = total + img, seconds + t
-        if photon_only:
-            img, t = mitsuba_render(seen_emission_scene(parsed), base, res, spp // chunks, "path", seed=chunk_seed)
+        if seen is not None:
+            img, t = mitsuba_render(seen, base, res, spp // chunks, "path", seed=chunk_seed)
             total, seconds = total - img, seconds + t
     return total / chunks, seconds
 

@@ -86,8 +86,8 @@ typedef struct {
     __global const float4* tri_e1;   // w: 1 if the triangle has shading normals
     __global const float4* tri_e2;
     __global const float4* tri_nrm;  // 3 rows per triangle: corner normals (smooth triangles only)
-    __global const int4* tri_adj;    // the triangle across each edge on the same surface, or -1; w: 1 if
-                                     // it or a neighbour has an edge where the surface ends (worker/adjacency.py)
+    __global const int4* tri_adj;    // the triangle across each edge on the same surface, or -1; w: the
+                                     // float bits of its far-edge bound (worker/adjacency.py; eye_pass.cl)
     __global const float4* node_lo;  // see worker/bvh.py for the layout
     __global const float4* node_hi;
     __global const float4* spheres;  // xyz centre, w radius

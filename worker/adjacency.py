@@ -113,16 +113,16 @@ def far_edge_bounds(corners: np.ndarray, across: np.ndarray) -> np.ndarray:
     bound = np.full(n, np.inf, np.float32)
     # Surfaces: triangles connected through neighbours. One of 2 triangles has none beyond
     # its neighbours (a quad), so only larger ones are looked at.
-    t, j = np.nonzero(across != NO_NEIGHBOUR)
-    _, surface = connected_components(coo_matrix((np.ones(len(t), np.int8), (t, across[t, j])), shape=(n, n)),
+    linked, _ = np.nonzero(across != NO_NEIGHBOUR)
+    neighbour = across[across != NO_NEIGHBOUR]
+    _, surface = connected_components(coo_matrix((np.ones(len(linked), np.int8), (linked, neighbour)), shape=(n, n)),
                                       directed=False)
     large = np.bincount(surface)[surface] > 2
     t, j = np.nonzero((across == NO_NEIGHBOUR) & large[:, None])
     if len(t) == 0:
         return bound
     # Steps from the triangles with such an edge (a source joined to each), as far as the walk goes.
-    rows = np.concatenate([np.nonzero(across != NO_NEIGHBOUR)[0], np.full(len(t), n)])
-    cols = np.concatenate([across[across != NO_NEIGHBOUR], t])
+    rows, cols = np.concatenate([linked, np.full(len(t), n)]), np.concatenate([neighbour, t])
     walk = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n + 1, n + 1))
     steps = dijkstra(walk, directed=False, indices=n, unweighted=True, limit=EXTENT_STEPS + 1)[:n] - 1
     tris = np.nonzero(large & (steps < EXTENT_STEPS))[0]
