@@ -258,6 +258,32 @@ def test_an_overlay_is_dropped_once_another_folder_checkpoints(servers: list[Emb
     _assert_folded_once(store, job_id, made)
 
 
+def test_a_checkpoint_writes_a_nodes_tiles_together_or_not_at_all(servers: list[EmbeddedRedis],
+                                                                   deltas: tuple) -> None:
+    """A checkpoint writes a node's tiles a few to a transaction (the node fsyncs its
+    append-only file once per transaction). Where another folder wrote one of them first,
+    none of that transaction's tiles is written (here node 0's second tile; the first one,
+    written alone before, then held the batch in a state no record counts), the other
+    nodes' are, and the next rounds fold the batch once into every tile."""
+    store, job_id, made = _fresh_job(servers, deltas, 1)
+    _merge(store, job_id, made[0])
+    assert store.fold(job_id) is not None  # a round in memory, no tile written (its delta is under half the state)
+    record = store.get(job_id)
+    tiling = store.tiling(record)
+    assert overlay_module.OVERLAYS.current(job_id).versions == {k: 0 for k in range(tiling.count)}
+    first, second = tiling.by_node()[0]
+    assert state_module.TILES_PER_TRIP >= 2  # both in one transaction
+    node = store.tiles.nodes[0]
+    node.hincrby(keys.tile(job_id, second, "meta"), "version", 1)  # another folder's checkpoint of it
+    with pytest.raises(state_module.FoldContended), overlay_module.OVERLAYS.writing(job_id):
+        store.tiles.checkpoint(job_id, tiling, record.integrator, list(range(tiling.count)))
+    for k in range(tiling.count):
+        written = store.tiles.nodes[tiling.node(k)].scard(keys.tile(job_id, k, "folded"))
+        assert written == (0 if k in (first, second) else len(made)), k
+    node.hincrby(keys.tile(job_id, second, "meta"), "version", -1)  # as it was: no other folder wrote it
+    _assert_folded_once(store, job_id, made)
+
+
 def _merge_and_checkpoint(urls: list[str], job_id: str, deltas_file: str, i: int) -> None:
     store = _store(urls)
     _merge(store, job_id, pickle.loads(Path(deltas_file).read_bytes())[i])
