@@ -190,19 +190,38 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
 
 
 def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpoint: bool) -> None:
-    """One fold round, SIGKILLed as it encodes its (tiles_before_kill + 1)-th tile: that
-    tile's state in the checkpoint (after every tile's inputs), else its inputs."""
-    name = "encode_state" if checkpoint else "encode_inputs"
-    real, spans = getattr(state_module, name), []
+    """One fold round, SIGKILLed mid-write: with `checkpoint`, once the first transaction of
+    its checkpoint (a node's tiles, after every tile's inputs) is written and before any
+    other node's, the record counting nothing; else as it encodes its (tiles_before_kill +
+    1)-th tile's inputs."""
+    if checkpoint:
+        real_checkpoint, real_write = state_module.TiledState.checkpoint, state_module.TiledState._on_versions
+        one_at_a_time, checkpointing = threading.Lock(), threading.Event()
 
-    def encode(*args):  # noqa: ANN002, ANN202
-        if args[-1] not in spans:  # a tile's span (its state is encoded twice: written, cached)
-            spans.append(args[-1])
-            if len(spans) == tiles_before_kill + 1:
+        def checkpoint_then_die(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            checkpointing.set()
+            return real_checkpoint(self, *args, **kwargs)
+
+        def write(self, *args):  # noqa: ANN001, ANN002, ANN202
+            if not checkpointing.is_set():  # the inputs
+                return real_write(self, *args)
+            with one_at_a_time:  # the first node's transaction alone, then the end
+                real_write(self, *args)
                 os.kill(os.getpid(), signal.SIGKILL)
-        return real(*args)
 
-    setattr(state_module, name, encode)
+        state_module.TiledState.checkpoint = checkpoint_then_die
+        state_module.TiledState._on_versions = write
+    else:
+        real, spans = state_module.encode_inputs, []
+
+        def encode_inputs(*args):  # noqa: ANN002, ANN202
+            if args[-1] not in spans:
+                spans.append(args[-1])
+                if len(spans) == tiles_before_kill + 1:
+                    os.kill(os.getpid(), signal.SIGKILL)
+            return real(*args)
+
+        state_module.encode_inputs = encode_inputs
     policy.CHECKPOINT_PENDING_SHARE = float("inf")  # a round in memory unless told to checkpoint
     _store(urls).fold(job_id, checkpoint=checkpoint)
 
@@ -226,8 +245,9 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
     tiling = store.tiling(record)
     versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
                 for k in range(tiling.count)]
-    if checkpoint:  # the nodes are written at once, a thread each: the folder died after 1 to 3 tiles
-        assert set(versions) == {0, 1} and 1 <= sum(versions) <= 3, versions
+    if checkpoint:  # the folder died once one node's transaction (its two tiles) was written
+        assert sorted(versions) == [0, 0, 0, 0, 1, 1], versions
+        assert all(len({versions[k] for k in ks}) == 1 for ks in tiling.by_node().values()), versions
     else:  # a round in memory writes only the inputs: the tiles are as the last checkpoint left them
         assert set(versions) == {0}, versions
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 4
