@@ -35,6 +35,7 @@ from worker.store.policy import FINAL, REFRESH_SECONDS
 
 SCENE = "furnace"
 SAMPLE_SECONDS = 0.25
+REWRITE_START_SLACK = 1.5  # seconds: INFO gives a rewrite's age in whole seconds
 
 
 def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
@@ -54,14 +55,22 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
             accepted: list[float] = []  # when each batch was accepted (to a sample)
             servers = [redis.Redis.from_url(s.url) for s in (c.redis, *c.shards)]
             rewriting: list[list[float]] = []  # append-only-file rewrites (any server): [start, end]
+            current: dict[int, list[float]] = {}  # each server's latest rewrite in `rewriting`
             while True:
                 record = jobs.get(job_id)
                 now = time.time()
                 accepted += [now] * (record.merges - len(accepted))
-                if any(s.info("persistence")["aof_rewrite_in_progress"] for s in servers):
-                    if not rewriting or rewriting[-1][1] < now - 1.5 * SAMPLE_SECONDS:
-                        rewriting.append([now, now])
-                    rewriting[-1][1] = now
+                for i, server in enumerate(servers):
+                    info = server.info("persistence")
+                    if info["aof_rewrite_in_progress"]:
+                        # A rewrite is known by its server and start (its age in whole seconds),
+                        # so one seen in samples that came late (a busy server answers late)
+                        # stays one rewrite.
+                        start = now - info["aof_current_rewrite_time_sec"]
+                        if i not in current or abs(current[i][0] - start) > REWRITE_START_SLACK:
+                            current[i] = [start, now]
+                            rewriting.append(current[i])
+                        current[i][1] = now
                 if record.folded_at and (not rounds or record.folded_at != rounds[-1]["end"]):
                     rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
                                    "passes": record.image_passes})
