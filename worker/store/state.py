@@ -91,6 +91,11 @@ INPUT_READS = 20
 INPUT_RETRY_SECONDS = 0.05
 
 
+def _trips(tiles: list[int]) -> list[list[int]]:
+    """`tiles` cut into runs of at most TILES_PER_TRIP, in order."""
+    return [tiles[at:at + TILES_PER_TRIP] for at in range(0, len(tiles), TILES_PER_TRIP)]
+
+
 class FoldContended(Exception):
     """Another folder changed a tile during this round: it has the lease now."""
 
@@ -181,8 +186,7 @@ class TiledState:
         memory cap), the nodes at once; results by tile."""
         def trips(node: int, tiles: list[int]) -> dict[int, list[Any]]:
             out: dict[int, list[Any]] = {}
-            for at in range(0, len(tiles), TILES_PER_TRIP):
-                ks = tiles[at:at + TILES_PER_TRIP]
+            for ks in _trips(tiles):
                 pipe = self.nodes[node].pipeline(transaction=False)
                 counts = []
                 for k in ks:
@@ -377,9 +381,8 @@ class TiledState:
         not one each, because the node writes and fsyncs its append-only file once per
         transaction: a tile's 3 MB checkpoint alone took 11.4 s a GB there, four together 5.0
         (bench/RESULTS.md, the 4K refresh)."""
-        tiles = list(versions)
-        for at in range(0, len(tiles), TILES_PER_TRIP):
-            metas = {k: keys.tile(job_id, k, "meta") for k in tiles[at:at + TILES_PER_TRIP]}
+        for trip in _trips(list(versions)):
+            metas = {k: keys.tile(job_id, k, "meta") for k in trip}
             with self.nodes[node].pipeline() as pipe:
                 try:
                     pipe.watch(*metas.values())
