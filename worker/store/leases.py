@@ -54,12 +54,13 @@ class Leases:
 
     # --------------------------------------------------------------- registry
     @staticmethod
-    def register(pipe: redis.client.Pipeline, batch: Batch, due: float) -> None:
+    def register(pipe: redis.client.Pipeline, batch: Batch, due: float, queued: bool = True) -> None:
         """Queue the commands that issue a batch (inside the allocating transaction), expected
-        to be delivered at `due` (epoch seconds)."""
+        to be delivered at `due` (epoch seconds). `queued`: the caller enqueues it, else its
+        lease is lapsed at once and the reaper does (scheduler.reap)."""
         pipe.sadd(keys.inflight(batch.job_id), batch.id)
         pipe.zadd(keys.due(batch.job_id), {batch.id: due})
-        pipe.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS})
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + (QUEUED_SECONDS if queued else 0.0)})
 
     @staticmethod
     def release(pipe: redis.client.Pipeline, batch: Batch) -> None:

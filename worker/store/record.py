@@ -12,6 +12,14 @@ folded, each into each tile once (rounds between checkpoints fold in the folder'
 worker/store/overlay.py). A job moves to a final status only once everything accepted is
 folded and checkpointed, so its final image holds every pass it counts.
 
+A delta is not in the state nodes' append-only files (worker/store/state.py), so a node's
+restart can lose one of an accepted batch. The round that finds it marks the batch lost
+and issues it again (`_refill`): same id, same passes and seeds, rendered at the radii of
+the moment. Its push refills the tiles that lack it (those that folded it before keep
+theirs), and its acceptance only takes it out of the lost set: it counts once, as before.
+Until then rounds fold the other batches and the job does not end, unless it is cancelled:
+then its lost batches are taken back (`_give_up`).
+
 Active jobs are a set (`pf:active`) changed in the same transaction as the status: a job
 is created only if the set is below the limit (checked and added atomically), and every
 move to a final status removes it and gives all the job's keys their retention time.
@@ -20,6 +28,7 @@ move to a final status removes it and gives all the job's keys their retention t
 from __future__ import annotations
 
 import json
+import logging
 import time
 import uuid
 from dataclasses import dataclass, replace
@@ -36,10 +45,11 @@ from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
 from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
-from worker.store.state import Folded, FoldContended, Snapshot, TiledState, UnreadableDelta
+from worker.store.state import Folded, FoldContended, LostDeltas, Snapshot, TiledState, UnreadableDelta
 from worker.store.tiles import TILE_PIXELS, Tiling
 
 
+log = logging.getLogger("photonfarm.store")
 COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
 
 
@@ -315,10 +325,18 @@ class Jobs:
             except redis.WatchError:
                 continue
 
+    def _settled(self, batch: Batch) -> bool:
+        """Accepted and not lost: nothing of the batch is left to render."""
+        pipe = self.r.pipeline(transaction=False)
+        pipe.sismember(keys.merged(batch.job_id), batch.id)
+        pipe.sismember(keys.lost(batch.job_id), batch.id)
+        merged, lost = pipe.execute()
+        return bool(merged) and not lost
+
     def start(self, batch: Batch, worker: str) -> bool:
-        """Take the lease on a batch; False if it is merged or no longer wanted. The first
-        batch to start moves the job from queued to running and starts its clock."""
-        if self.r.sismember(keys.merged(batch.job_id), batch.id) or not self.leases.is_inflight(batch):
+        """Take the lease on a batch; False if it is merged (and not lost) or no longer wanted.
+        The first batch to start moves the job from queued to running and starts its clock."""
+        if self._settled(batch) or not self.leases.is_inflight(batch):
             return False
         if self.status(batch.job_id) not in policy.RENDERING:  # cancelled, failed or gone meanwhile
             self.drop(batch)
@@ -339,8 +357,8 @@ class Jobs:
         return Status(status.decode()) if status else None
 
     def is_wanted(self, batch: Batch) -> bool:
-        return self.status(batch.job_id) in policy.RENDERING \
-            and not self.r.sismember(keys.merged(batch.job_id), batch.id) and self.leases.is_inflight(batch)
+        return self.status(batch.job_id) in policy.RENDERING and not self._settled(batch) \
+            and self.leases.is_inflight(batch)
 
     def drop(self, batch: Batch) -> None:
         """Forget a batch that will not be merged (its job ended or was cancelled)."""
@@ -368,7 +386,8 @@ class Jobs:
              idle: bool = False, fold: bool = True) -> bool:
         """Move a job in one of `allowed` to `final`, atomically, once every accepted batch
         is folded (unless `fold` is off) and, if `idle`, nothing is in flight. False if the
-        job was not in `allowed` (or, if `idle`, still had batches in flight)."""
+        job was not in `allowed` (or, if `idle`, still had batches in flight), or if a lost
+        batch is being rendered again (`_refill`; a cancelled job's are taken back)."""
         key = keys.job(job_id)
         if self.status(job_id) not in allowed:
             return False
@@ -379,12 +398,22 @@ class Jobs:
                 self.fold(job_id, wait=True, decide=False, checkpoint=True)
             with self.r.pipeline() as pipe:
                 try:
-                    pipe.watch(key, keys.tofold(job_id), keys.inflight(job_id))
+                    pipe.watch(key, keys.tofold(job_id), keys.inflight(job_id), keys.lost(job_id))
                     status = pipe.hget(key, "status")
                     if status is None or Status(status.decode()) not in allowed:
                         return False
                     if idle and pipe.scard(keys.inflight(job_id)) > 0:
                         return False
+                    if fold and pipe.scard(keys.lost(job_id)) > 0:
+                        if final != Status.CANCELLED:  # its refill ends the job (accept: news)
+                            if not idle:
+                                pipe.multi()
+                                pipe.hdel(key, "stopping")
+                                pipe.execute()
+                            return False
+                        self._give_up(pipe, job_id)
+                        pipe.execute()
+                        continue
                     if fold and pipe.hlen(keys.tofold(job_id)) > 0:
                         continue  # accepted since the fold: fold it too
                     image = {} if fold else {"image_passes": pipe.hget(key, "folded_passes") or 0}
@@ -441,14 +470,14 @@ class Jobs:
     def merge(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float | None = None,
               cpu_seconds: float = 0.0) -> str:
         """Push a batch's delta to the job's tiles, then accept it exactly once. Returns
-        'merged', 'duplicate' or 'inactive'. The batch that ends the job folds everything
-        accepted before the job takes its final status. `seconds` and `cpu_seconds` are
-        the render's wall and process CPU time, `wall_seconds` the batch's from its lease."""
+        'merged', 'refilled' (a lost batch's tiles refilled, `_refill`), 'duplicate' or
+        'inactive'. The batch that ends the job folds everything accepted before the job
+        takes its final status. `seconds` and `cpu_seconds` are the render's wall and process
+        CPU time, `wall_seconds` the batch's from its lease."""
         key = keys.job(batch.job_id)
         merge_start, merge_cpu = time.perf_counter(), time.process_time()
         record = self.get(batch.job_id)
-        if record is None or record.status not in policy.MERGING or \
-                self.r.sismember(keys.merged(batch.job_id), batch.id):
+        if record is None or record.status not in policy.MERGING or self._settled(batch):
             outcome = "duplicate" if record is not None and record.status in policy.MERGING else "inactive"
             self.drop(batch)
             return outcome
@@ -458,23 +487,34 @@ class Jobs:
         # Accept.
         outcome, final = self.accept(batch, delta, seconds, seconds if wall_seconds is None else wall_seconds,
                                      cpu_seconds)
-        if outcome != "merged":
+        if outcome == "refilled":  # counted before; the tiles that folded it before the loss keep theirs
+            self.tiles.discard(batch.job_id, tiling, batch.id, folded_only=True)
+        elif outcome != "merged":
             self.tiles.discard(batch.job_id, tiling, batch.id, folded_only=outcome == "duplicate")
             self.drop(batch)
             return outcome
-        pipe = self.r.pipeline(transaction=False)  # push and accept
-        pipe.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)
-        pipe.hincrbyfloat(key, "merge_cpu_seconds", time.process_time() - merge_cpu)
-        pipe.execute()
+        else:
+            pipe = self.r.pipeline(transaction=False)  # push and accept
+            pipe.hincrbyfloat(key, "merge_seconds", time.perf_counter() - merge_start)
+            pipe.hincrbyfloat(key, "merge_cpu_seconds", time.process_time() - merge_cpu)
+            pipe.execute()
         if final is not None:
             self._hand_off_end(batch.job_id, final)
         return outcome
+
+    @staticmethod
+    def _news(pipe: redis.client.Pipeline, job_id: str) -> None:
+        """Queue the news that the job's end is decided: the folder ends it at once."""
+        pipe.lpush(keys.FOLD_NEWS, job_id)
+        pipe.ltrim(keys.FOLD_NEWS, 0, keys.FOLD_NEWS_KEPT - 1)
 
     def _hand_off_end(self, job_id: str, final: Status) -> None:
         """The batch that decided the job's end: the API's folder ends it (end_if_decided,
         from the image it holds in memory: one delta to add, then the checkpoint); this
         worker ends it itself if no process has begun to within END_HANDOFF_SECONDS (the
         API down or busy), reading the state and every pending delta from the tiles."""
+        if self.r.scard(keys.lost(job_id)):
+            return  # the last lost batch's refill hands it off
         deadline = time.monotonic() + policy.END_HANDOFF_SECONDS
         while time.monotonic() < deadline:
             record = self.get(job_id)
@@ -492,27 +532,37 @@ class Jobs:
         """End a job whose accepted batch decided its final status (the API's folder, at
         once: no later batch can add to the round)."""
         record = self.get(job_id)
-        if record is None or record.ending is None or record.stopping:
-            return False
+        if record is None or record.ending is None or record.stopping or self.r.scard(keys.lost(job_id)):
+            return False  # (a lost batch's refill brings the news again)
         return self._end(job_id, policy.MERGING, record.ending)
 
     def accept(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float,
                cpu_seconds: float = 0.0) -> tuple[str, Status | None]:
         """Count a batch whose delta every tile holds, once: read the record, decide the job's status, write. One
-        transaction. Returns the outcome and the final status the batch decided, if any."""
+        transaction. Returns the outcome and the final status the batch decided, if any (a
+        lost batch's refill: the one decided before, `ending`)."""
         key = keys.job(batch.job_id)
         with self.r.pipeline() as pipe:
             while True:
                 try:
-                    pipe.watch(key, keys.merged(batch.job_id))
+                    pipe.watch(key, keys.merged(batch.job_id), keys.lost(batch.job_id))
                     if not pipe.exists(key):
                         return "inactive", None
                     # Read.
                     record = self._read(pipe, batch.job_id)
-                    if pipe.sismember(keys.merged(batch.job_id), batch.id):
+                    merged = pipe.sismember(keys.merged(batch.job_id), batch.id)
+                    if merged and not pipe.sismember(keys.lost(batch.job_id), batch.id):
                         return "duplicate", None
                     if record.status not in policy.MERGING:
                         return "inactive", None
+                    if merged:  # a refill: counted already, its lost deltas are back
+                        pipe.multi()
+                        pipe.srem(keys.lost(batch.job_id), batch.id)
+                        Leases.release(pipe, batch)
+                        if record.ending is not None:  # it held the job's end back
+                            self._news(pipe, batch.job_id)
+                        pipe.execute()
+                        return "refilled", record.ending
                     # Decide.
                     passes, emitted = record.passes + delta.n_passes, record.emitted + delta.emitted
                     status = policy.after_merge(record.status, record.settings, passes, record.elapsed_seconds())
@@ -536,9 +586,8 @@ class Jobs:
                     pipe.hset(keys.tofold(batch.job_id), batch.id,
                               json.dumps({"n": delta.n_passes, "e": delta.emitted, "c": counters}))
                     Leases.release(pipe, batch)
-                    if status in policy.FINAL:  # news: the folder ends the job at once
-                        pipe.lpush(keys.FOLD_NEWS, batch.job_id)
-                        pipe.ltrim(keys.FOLD_NEWS, 0, keys.FOLD_NEWS_KEPT - 1)
+                    if status in policy.FINAL:
+                        self._news(pipe, batch.job_id)
                     pipe.execute()
                     return "merged", (status if status in policy.FINAL else None)
                 except redis.WatchError:
@@ -556,7 +605,7 @@ class Jobs:
             if not held:
                 return None
             record = self.get(job_id)
-            accepted = {b.decode(): json.loads(v) for b, v in self.r.hgetall(keys.tofold(job_id)).items()}
+            accepted = self._foldable(job_id)
             read_at = time.time()  # batches accepted after it wait for the next round
             if record is None or not record.setup or not accepted:
                 return None
@@ -573,6 +622,9 @@ class Jobs:
                                                       record.folded_passes, record.counters, accepted, checkpoint)
             except FoldContended:
                 return None  # another folder holds the tiles now; its round counts
+            except LostDeltas as exc:  # a state node restarted: render them again, the next round folds the rest
+                self._refill(job_id, exc.batch_ids)
+                return None
             except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
                 self.r.hdel(keys.tofold(job_id), exc.batch_id)
                 self.fail(job_id, f"cannot fold {exc}")
@@ -608,6 +660,42 @@ class Jobs:
         elif decide and status == Status.RUNNING and policy.converged(record.settings, folded.error):
             self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
         return folded
+
+    def _foldable(self, job_id: str) -> dict[str, dict[str, Any]]:
+        """The accepted batches a round can fold (id -> {n, e, c}): all but the lost ones."""
+        pipe = self.r.pipeline()
+        pipe.hgetall(keys.tofold(job_id))
+        pipe.smembers(keys.lost(job_id))
+        tofold, lost = pipe.execute()
+        return {b.decode(): json.loads(v) for b, v in tofold.items() if b not in lost}
+
+    def _refill(self, job_id: str, batch_ids: list[str]) -> None:
+        """Mark accepted batches lost and, if the job still renders, issue them again (the
+        reaper enqueues them at its next look): same ids, same passes. (A cancelled job takes
+        them back: `_end`.)"""
+        rendering = self.status(job_id) in policy.RENDERING
+        pipe = self.r.pipeline()
+        pipe.sadd(keys.lost(job_id), *batch_ids)
+        for batch_id in batch_ids if rendering else ():
+            Leases.register(pipe, Batch.from_id(job_id, batch_id), due=time.time(), queued=False)
+        pipe.execute()
+        log.warning("deltas lost by a state node's restart: batches issued again",
+                    extra={"job": job_id, "batches": batch_ids})
+
+    def _give_up(self, pipe: redis.client.Pipeline, job_id: str) -> None:
+        """Queue taking back the job's lost batches (a cancelled job renders nothing more): no
+        longer accepted nor counted (a tile that folded one before the loss keeps it)."""
+        lost = [b.decode() for b in pipe.smembers(keys.lost(job_id))]
+        headers = [json.loads(h) for h in pipe.hmget(keys.tofold(job_id), lost) if h] if lost else []
+        pipe.multi()
+        if lost:
+            pipe.hdel(keys.tofold(job_id), *lost)
+            pipe.srem(keys.merged(job_id), *lost)
+            pipe.delete(keys.lost(job_id))
+            pipe.hincrby(keys.job(job_id), "passes", -sum(h["n"] for h in headers))
+            pipe.hincrby(keys.job(job_id), "emitted", -sum(h["e"] for h in headers))
+            for batch_id in lost:
+                Leases.release(pipe, Batch.from_id(job_id, batch_id))
 
     def _paced(self, record: JobRecord, fresh: set[str],
                accepted: dict[str, Any]) -> tuple[set[str], dict[str, Any]]:

@@ -14,6 +14,13 @@ inputs, the batches added to the tile's folded set, their pending entries remove
 tile takes a batch exactly once, whichever folder gets there, and a folder killed
 mid-round leaves each tile either folded or not; the next round folds the rest (tiles
 that have the batch skip it).
+
+Deltas stay out of the nodes' append-only files (PUSH): they are the largest part of what
+a job writes, and half its Redis CPU went into logging them (bench/RESULTS.md). Everything
+that counts is logged: the record's acceptance, the checkpoints' states, folded sets and
+removals. So a node's restart can lose a pending delta of an accepted batch; a fold round
+that finds one missing on a tile that has not folded it raises LostDeltas, and the record
+has the batch rendered again under its id to refill those tiles (worker/store/record.py).
 """
 
 from __future__ import annotations
@@ -75,6 +82,12 @@ if redis.call('TYPE', KEYS[1]).ok == 'string' then
 end
 return redis.call('HGETALL', KEYS[1])
 """
+# A batch's delta for one tile, written without a record in the append-only file (nor any
+# replica): REPL_NONE. An append-only-file rewrite that runs meanwhile does keep it.
+PUSH = """
+redis.set_repl(redis.REPL_NONE)
+return redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+"""
 # Drops a tile's pending entry of a batch the tile has already folded (a late duplicate).
 DISCARD_FOLDED = """
 if redis.call('SISMEMBER', KEYS[1], ARGV[1]) == 1 then redis.call('HDEL', KEYS[2], ARGV[1]) end
@@ -98,6 +111,15 @@ def _trips(tiles: list[int]) -> list[list[int]]:
 
 class FoldContended(Exception):
     """Another folder changed a tile during this round: it has the lease now."""
+
+
+class LostDeltas(Exception):
+    """Accepted batches whose delta is gone from a tile that has not folded them (a state
+    node restarted: deltas are not in its append-only file); the round wrote nothing."""
+
+    def __init__(self, batch_ids: list[str]) -> None:
+        super().__init__(f"deltas lost: batches {', '.join(batch_ids)}")
+        self.batch_ids = batch_ids
 
 
 class UnreadableDelta(Exception):
@@ -156,6 +178,7 @@ class TiledState:
         self._account = main.register_script(ACCOUNT)
         self._discard = [node.register_script(DISCARD_FOLDED) for node in self.nodes]
         self._read_state = [node.register_script(READ_STATE) for node in self.nodes]
+        self._push = [node.register_script(PUSH) for node in self.nodes]
 
     def tiling(self, n_pixels: int, shards: int, tile_pixels: int) -> Tiling:
         if shards != len(self.nodes):
@@ -236,8 +259,10 @@ class TiledState:
         self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k)))
 
     def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str, payload: Callable[[int], bytes]) -> None:
-        """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash."""
-        self._each_node(tiling, lambda pipe, k: pipe.hset(keys.tile(job_id, k, "pending"), batch_id, payload(k)))
+        """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash,
+        outside the append-only file (PUSH)."""
+        self._each_node(tiling, lambda pipe, k: self._push[tiling.node(k)](
+            keys=[keys.tile(job_id, k, "pending")], args=[batch_id, payload(k)], client=pipe))
 
     def discard(self, job_id: str, tiling: Tiling, batch_id: str, folded_only: bool) -> None:
         """Remove a batch's pending entries: all of them (it was not accepted), or only
@@ -307,7 +332,10 @@ class TiledState:
         versions), plus the accepted batches some tiles have written and others not (a
         checkpoint writes some of the tiles each round, or a folder died mid-checkpoint):
         their counts once, and their pending deltas on the tiles that lack them. A tile that a
-        folder writes meanwhile makes the read start again."""
+        folder writes meanwhile makes the read start again. A delta lost there (a state node
+        restarted before the tile's checkpoint, and no folder held the batch: Jobs.fold has it
+        rendered again) is left out until its batch is: that tile shows one batch less than
+        its counts say for so long."""
         while True:
             try:
                 versions, _ = self._versions(job_id, tiling)
@@ -324,24 +352,26 @@ class TiledState:
                 if written:
                     fresh = {k: [b for b in ids if b in written] for k, ids in lacking.items()}
                     self._add_pending(job_id, tiling, integrator, versions, {k: ids for k, ids in fresh.items() if ids},
-                                      [accepted[b] for b in written], state)
+                                      [accepted[b] for b in written], state, skip_lost=True)
                 return state
             except FoldContended:
                 continue
 
     def _add_pending(self, job_id: str, tiling: Tiling, integrator: Integrator, versions: dict[int, int],
                      fresh: dict[int, list[str]], headers: list[dict[str, Any]],
-                     state: State) -> tuple[dict[int, int], dict[int, set[str]]]:
+                     state: State, skip_lost: bool = False) -> tuple[dict[int, int], dict[int, set[str]]]:
         """Merge some accepted batches into `state`: each tile's pending deltas of them
         (`fresh`: tile -> batch ids it has not written), read and added a tile at a time
         straight into the state's pixels (no frame-sized delta: at 3840x2160 that would be
         a GB, allocated and written once more per round), then their headers' passes,
         photons and counters. Returns, per tile, the bytes read and the arrays its deltas
         carried. Every delta is checked readable (UnreadableDelta); a delta gone because its
-        tile was written meanwhile raises FoldContended. Either leaves `state` part-merged:
-        the caller drops it."""
+        tile was written meanwhile raises FoldContended, and one gone with the tile unchanged
+        was lost (LostDeltas, after every tile is read; left out with `skip_lost`). Each leaves
+        `state` part-merged: the caller drops it."""
         delta_widths = dict(integrator.sums.widths)
         carried: dict[int, set[str]] = {}
+        lost: dict[int, list[str]] = {}  # tile -> its lost deltas' batches (a thread per tile's node)
 
         def add(node: int, tiles: list[int]) -> dict[int, int]:
             read = {}
@@ -353,17 +383,20 @@ class TiledState:
                     if payload is None:
                         if int(self.nodes[node].hget(keys.tile(job_id, k, "meta"), "version") or 0) != versions[k]:
                             raise FoldContended(f"tile {k} was written by another folder")
-                        raise RuntimeError(f"batch {batch_id} was accepted without its delta for tile {k}")
+                        lost.setdefault(k, []).append(batch_id)
+                        continue
                     try:
                         parts = decode_delta(payload, delta_widths, span.stop - span.start)
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
                     integrator.merge_sums(state, parts, span)  # tiles are disjoint: threads never add to one pixel
                     names.update(parts)
-                read[k] = sum(len(p) for p in payloads)
+                read[k] = sum(len(p) for p in payloads if p is not None)
             return read
 
         read = self._per_node(tiling, add)
+        if lost and not skip_lost:
+            raise LostDeltas(sorted({b for ids in lost.values() for b in ids}))
         added: dict[str, int] = {}
         for header in headers:
             for name, value in header["c"].items():
