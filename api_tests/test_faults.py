@@ -1,6 +1,7 @@
 """Faults: a worker SIGKILLed mid-batch, the API killed and restarted, Redis killed and
-restarted; each with one Redis and with the job state sharded over three more. And a state
-node that stalls while a worker pushes its batch. Each job
+restarted, the state nodes restarted while the API is down (the pending deltas lost); each
+with one Redis and with the job state sharded over three more. And a state node that
+stalls while a worker pushes its batch. Each job
 must still finish, with every pass merged exactly once: the passes and photon totals add
 up exactly, and the merged batches tile 0..max_passes-1. Each with SPPM and with the
 hybrid integrator (vcm), whose sums the store merges the same way."""
@@ -13,7 +14,7 @@ import time
 import pytest
 
 from api_tests.cluster import Cluster, finished, merged_passes
-from worker.store import Batch, Leases, keys
+from worker.store import Batch, Jobs, Leases, keys
 
 P = 1 << 16
 PASSES = 40
@@ -87,6 +88,28 @@ def test_redis_restart(faulty: Cluster, method: str) -> None:
     after = faulty.wait(job["id"], lambda j: True)
     assert after["passes"] >= before  # nothing merged was lost (append-only file, fsync always)
     _assert_exact(faulty, job["id"])
+
+
+@METHODS
+def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: str) -> None:
+    """The API down (no folder holds the accepted batches in memory) and the state nodes
+    restarted while batches wait to be folded: their deltas are gone (not in the nodes'
+    append-only files); a round finds them missing, the batches are rendered again, and the
+    job ends exact."""
+    job = _long_job(faulty, method)
+    faulty.wait(job["id"], lambda j: j["passes"] >= 2)
+    faulty.kill_api()
+    jobs = Jobs(faulty.redis_client)
+    deadline = time.time() + 60
+    while (record := jobs.get(job["id"])).passes <= record.image_passes:  # accepted, not yet folded
+        assert time.time() < deadline and record.passes < PASSES, "no batch waited for a fold"
+        time.sleep(0.02)
+    for server in faulty.shards or [faulty.redis]:  # every node that holds the job's state
+        faulty.restart_redis(server)
+    faulty.start_api()
+    _assert_exact(faulty, job["id"])
+    logs = "".join((faulty.data_dir / f"{name}.log").read_text(errors="replace") for name in ("api", "workers"))
+    assert "deltas lost by a state node's restart" in logs
 
 
 def test_redis_down_while_workers_render(tmp_path) -> None:  # noqa: ANN001
