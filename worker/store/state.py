@@ -16,7 +16,8 @@ mid-round leaves each tile either folded or not; the next round folds the rest (
 that have the batch skip it).
 
 Deltas stay out of the nodes' append-only files (PUSH): they are the largest part of what
-a job writes, and half its Redis CPU went into logging them (bench/RESULTS.md). Everything
+a job writes, and logging them took a quarter of Redis's CPU at 3840x2160 (bench/RESULTS.md,
+the 4K refresh). Everything
 that counts is logged: the record's acceptance, the checkpoints' states, folded sets and
 removals. So a node's restart can lose a pending delta of an accepted batch; a fold round
 that finds one missing on a tile that has not folded it raises LostDeltas, and the record
