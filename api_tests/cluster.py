@@ -25,6 +25,13 @@ from worker.store.tiles import STATE_URLS_ENV
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
 
 
+def restart(server: EmbeddedRedis) -> None:
+    """SIGKILL a redis-server, then start it again on the same port and data."""
+    server.proc.send_signal(signal.SIGKILL)
+    server.proc.wait()
+    server.start(supervise=False)
+
+
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
                  redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None,
@@ -82,10 +89,7 @@ class Cluster:
 
     def restart_redis(self, server: EmbeddedRedis | None = None) -> None:
         """SIGKILL a server (default the main one), then start it again on the same port and data."""
-        server = server or self.redis
-        server.proc.send_signal(signal.SIGKILL)
-        server.proc.wait()
-        server.start(supervise=False)
+        restart(server or self.redis)
 
     def submit(self, **body: Any) -> dict[str, Any]:
         resp = self.http.post("/v1/jobs", json=body)

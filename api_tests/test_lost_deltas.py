@@ -7,12 +7,12 @@ lost batches back. Real redis-servers (the embedded default), restarted by SIGKI
 from __future__ import annotations
 
 import pickle
-import signal
 from pathlib import Path
 from typing import Iterator
 
 import pytest
 
+from api_tests.cluster import restart
 from api_tests.test_sharded_state import SHARDS, _assert_folded_once, _job, _merge, _store, deltas  # noqa: F401
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
@@ -29,12 +29,6 @@ def servers(tmp_path: Path) -> Iterator[list[EmbeddedRedis]]:
     yield started
     for server in started:
         server.stop()
-
-
-def _restart(server: EmbeddedRedis) -> None:
-    server.proc.send_signal(signal.SIGKILL)
-    server.proc.wait()
-    server.start(supervise=False)
 
 
 def _lose_deltas_of(servers: list[EmbeddedRedis], sample: tuple, pending: int,
@@ -54,7 +48,7 @@ def _lose_deltas_of(servers: list[EmbeddedRedis], sample: tuple, pending: int,
     node = store.tiles.nodes[RESTARTED]
     on_node = [k for k in range(tiling.count) if tiling.node(k) == RESTARTED]
     assert all(node.hlen(keys.tile(job_id, k, "pending")) == pending for k in on_node)
-    _restart(servers[1 + RESTARTED])
+    restart(servers[1 + RESTARTED])
     assert not any(node.exists(keys.tile(job_id, k, "pending")) for k in on_node)  # not in its append-only file
     assert node.scard(keys.tile(job_id, on_node[0], "folded")) == 2  # the checkpoint is
     return store, job_id, made, [Batch(job_id, d.first_pass, d.n_passes) for d in made[2:]]
