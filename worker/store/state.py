@@ -372,7 +372,7 @@ class TiledState:
         `state` part-merged: the caller drops it."""
         delta_widths = dict(integrator.sums.widths)
         carried: dict[int, set[str]] = {}
-        lost: dict[int, list[str]] = {}  # tile -> its lost deltas' batches (a thread per tile's node)
+        lost: set[str] = set()  # batches with a delta lost on some tile (the nodes' threads add to it)
 
         def add(node: int, tiles: list[int]) -> dict[int, int]:
             read = {}
@@ -384,7 +384,7 @@ class TiledState:
                     if payload is None:
                         if int(self.nodes[node].hget(keys.tile(job_id, k, "meta"), "version") or 0) != versions[k]:
                             raise FoldContended(f"tile {k} was written by another folder")
-                        lost.setdefault(k, []).append(batch_id)
+                        lost.add(batch_id)
                         continue
                     try:
                         parts = decode_delta(payload, delta_widths, span.stop - span.start)
@@ -397,7 +397,7 @@ class TiledState:
 
         read = self._per_node(tiling, add)
         if lost and not skip_lost:
-            raise LostDeltas(sorted({b for ids in lost.values() for b in ids}))
+            raise LostDeltas(sorted(lost))
         added: dict[str, int] = {}
         for header in headers:
             for name, value in header["c"].items():
