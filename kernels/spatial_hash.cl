@@ -13,15 +13,26 @@
 // flux is multiplied by n and n is added to M. In expectation this is the full sum.
 //
 // Exact gathering counting-sorts all photons by entry (their records moved to their slots,
-// then sorted within each entry), splits them into the gather's arrays, and
-// visits every photon of the query's entries.
+// then sorted within each entry), splits them into the gather's arrays, and visits every
+// photon of the query's entries. Its cells are split GRID_ROW_SPLIT ways along x
+// (kernels/contract.py), and a row's consecutive cells take consecutive entries
+// (cell_hash), so the photons of the cells a query's box overlaps along x lie in one run:
+// a query reads at most 4 runs (ball_rows), not 8 cells, and visits the photons of a box
+// 2r + 2R / GRID_ROW_SPLIT wide along x rather than up to 4R (R the largest radius).
 
 inline int3 cell_of(float3 p, float inv_cell) { return convert_int3_rtn(p * inv_cell); }
 
+// The exact grid's cell (grid_count and grid_scatter_photons with split > 1, gather_exact):
+// `split` times finer along x, the axis of its rows (ball_rows).
+inline int3 split_cell_of(float3 p, float inv_cell, uint split) {
+    return convert_int3_rtn((float3)(p.x * (float)split, p.y, p.z) * inv_cell);
+}
+
+// A cell's table entry: its row's (y, z) hashed, plus x, so that a row's consecutive cells
+// take consecutive entries, and the exact grid holds their photons in one run (ball_rows).
 inline uint cell_hash(int3 c, uint mask) {
-    ulong h = (ulong)(uint)c.x * 0x9E3779B97F4A7C15UL ^ (ulong)(uint)c.y * 0xC2B2AE3D27D4EB4FUL
-            ^ (ulong)(uint)c.z * 0x165667B19E3779F9UL;
-    return (uint)(mix64(h) & (ulong)mask);
+    ulong h = (ulong)(uint)c.y * 0xC2B2AE3D27D4EB4FUL ^ (ulong)(uint)c.z * 0x165667B19E3779F9UL;
+    return ((uint)mix64(h) + (uint)c.x) & mask;
 }
 
 // --- stochastic hash: selection by atomic minimum, then the winner writes its payload
@@ -51,11 +62,11 @@ __kernel void hash_store(uint n, __global const float4* ph_pos, __global const f
 }
 
 // --- exact grid: count per entry, exclusive scan, scatter photon indices
-__kernel void grid_count(uint n, __global const float4* ph_pos, float inv_cell, uint mask,
+__kernel void grid_count(uint n, __global const float4* ph_pos, float inv_cell, uint split, uint mask,
                          __global volatile uint* cell_count) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    atomic_inc(&cell_count[cell_hash(cell_of(ph_pos[i].xyz, inv_cell), mask)]);
+    atomic_inc(&cell_count[cell_hash(split_cell_of(ph_pos[i].xyz, inv_cell, split), mask)]);
 }
 
 // A single work item: the scan is memory-bound and tiny next to tracing.
@@ -70,11 +81,11 @@ __kernel void grid_scan(uint entries, __global const uint* cell_count, __global 
     }
 }
 
-__kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell, uint mask,
+__kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell, uint split, uint mask,
                            __global volatile uint* cell_fill, __global uint* sorted) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    uint h = cell_hash(cell_of(ph_pos[i].xyz, inv_cell), mask);
+    uint h = cell_hash(split_cell_of(ph_pos[i].xyz, inv_cell, split), mask);
     sorted[atomic_inc(&cell_fill[h])] = i;
 }
 
@@ -95,11 +106,11 @@ typedef struct {
 
 __kernel void grid_scatter_photons(uint n, __global const float4* ph_pos, __global const float4* ph_flux,
                                    __global const uint2* ph_dirs, __global const ulong* ph_key, float inv_cell,
-                                   uint mask, __global volatile uint* cell_fill, __global PhotonSlot* slots) {
+                                   uint split, uint mask, __global volatile uint* cell_fill, __global PhotonSlot* slots) {
     uint i = get_global_id(0);
     if (i >= n) return;
     float4 pos = ph_pos[i];
-    uint j = atomic_inc(&cell_fill[cell_hash(cell_of(pos.xyz, inv_cell), mask)]);
+    uint j = atomic_inc(&cell_fill[cell_hash(split_cell_of(pos.xyz, inv_cell, split), mask)]);
     slots[j] = (PhotonSlot){pos, ph_flux[i], ph_dirs[i], ph_key[i], (uint4)(0)};
 }
 
@@ -335,8 +346,6 @@ typedef struct {
     float2 coverage;  // share of the disc's kernel weight on the point's surface, at r and r/2
     uint4 cut;        // where the coverage rays found the disc cut (inside_cut)
     float r, r2;
-    uint entries[8];  // the distinct table entries of the cells its ball's bounding box overlaps
-    int n_entries;
 } Query;
 
 // The distinct table entries of the cells that the box of the ball (x, r) overlaps, r at
@@ -363,7 +372,7 @@ inline int ball_entries(float3 x, float r, float inv_cell, uint mask, uint entri
 
 inline bool start_query(int gid, __global const float4* mp_pos, __global const float4* mp_nrm,
                         __global const float4* mp_wgt, __global const uint4* mp_cut, __global const float* radius,
-                        float inv_cell, uint mask, Query* q) {
+                        Query* q) {
     float4 mp = mp_pos[gid];
     if (mp.w == 0.0f) return false;
     q->x = mp.xyz;
@@ -374,8 +383,41 @@ inline bool start_query(int gid, __global const float4* mp_pos, __global const f
     q->cut = mp_cut[gid];
     q->r = radius[gid];
     q->r2 = q->r * q->r;
-    q->n_entries = ball_entries(q->x, q->r, inv_cell, mask, q->entries);
     return true;
+}
+
+// The rows of the exact grid's cells (runs of consecutive x) that the box of the ball
+// (x, r) overlaps, r at most half a cell (the grids' rule; GRID_ROW_SPLIT cells along x): at
+// most 2 rows a side, 4 in all, each a run of consecutive table entries (cell_hash) and so
+// one run of the grid's photons, GRID_ROW_SPLIT + 1 cells long at most. Every row has the
+// same length.
+typedef struct {
+    uint first[4];  // each row's first entry
+    int n;
+    uint len;       // cells in a row
+} BallRows;
+
+inline void ball_rows(float3 x, float r, float inv_cell, uint mask, BallRows* rows) {
+    int3 lo = split_cell_of(x - r, inv_cell, GRID_ROW_SPLIT);
+    int3 hi = min(split_cell_of(x + r, inv_cell, GRID_ROW_SPLIT), lo + (int3)(GRID_ROW_SPLIT, 1, 1));
+    rows->len = (uint)(hi.x - lo.x + 1);
+    rows->n = 0;
+    for (int cz = lo.z; cz <= hi.z; ++cz)
+        for (int cy = lo.y; cy <= hi.y; ++cy)
+            rows->first[rows->n++] = cell_hash((int3)(lo.x, cy, cz), mask);
+}
+
+// Row i's cells that an earlier row's run already covers (two rows' runs overlap in the
+// table: rare), as bits: each entry is visited once, as ball_entries does.
+inline uint rows_seen(const BallRows* rows, int i, uint mask) {
+    uint seen = 0, len = rows->len, all = (1u << len) - 1u;
+    for (int k = 0; k < i; ++k) {
+        uint ahead = (rows->first[i] - rows->first[k]) & mask;   // row i starts inside row k
+        uint behind = (rows->first[k] - rows->first[i]) & mask;  // row k starts inside row i
+        if (ahead < len) seen |= all >> ahead;
+        if (behind < len) seen |= all & ~((1u << behind) - 1u);
+    }
+    return seen;
 }
 
 __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
@@ -389,10 +431,12 @@ __kernel void gather_stochastic(int n_pixels, __global const float4* mp_pos, __g
                                 __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
-    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) return;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    for (int k = 0; k < q.n_entries; ++k) {
-        uint h = q.entries[k];
+    uint entries[8];
+    int n_entries = ball_entries(q.x, q.r, inv_cell, mask, entries);
+    for (int k = 0; k < n_entries; ++k) {
+        uint h = entries[k];
         uint count = tab_count[h];
         if (count == 0) continue;
         float4 pp = tab_pos[h];
@@ -417,6 +461,23 @@ inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __glo
     }
 }
 
+// Test the exact grid's photons begin .. end against the query's ball, adding those within
+// a batch at a time (add_near). The distance test runs without a branch, collecting the
+// photons it keeps to be tested and added NEAR_BATCH at a time: a branch per visited photon
+// mispredicts often, and that cost a fifth of the gather.
+inline void scan_run(PassSums* s, const Query* q, uint begin, uint end, uint* near, int* n_near,
+                     __global const float4* grid_pos, __global const float4* grid_flux,
+                     __global const float4* grid_in, __global const float4* grid_nrm) {
+    for (uint j = begin; j < end; ++j) {
+        near[*n_near] = j;
+        *n_near += photon_near(q->x, q->r2, grid_pos[j].xyz) ? 1 : 0;
+        if (*n_near == NEAR_BATCH) {
+            add_near(s, q, near, *n_near, grid_pos, grid_flux, grid_in, grid_nrm);
+            *n_near = 0;
+        }
+    }
+}
+
 __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global const float4* mp_nrm,
                            __global const float4* mp_wgt, __global const uint4* mp_cut,
                            __global float* radius,
@@ -428,23 +489,27 @@ __kernel void gather_exact(int n_pixels, __global const float4* mp_pos, __global
                            __global const float4* grid_nrm, __global double* batch_sums) {
     int gid = get_global_id(0);
     Query q;
-    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, inv_cell, mask, &q)) return;
+    if (gid >= n_pixels || !start_query(gid, mp_pos, mp_nrm, mp_wgt, mp_cut, radius, &q)) return;
     PassSums s = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    // The distance test runs without a branch, collecting the photons it keeps (about one in
-    // five visited) to be tested and added a batch at a time: a branch per visited photon
-    // mispredicts often, and that cost a fifth of the gather.
+    BallRows rows;
+    ball_rows(q.x, q.r, inv_cell, mask, &rows);
     uint near[NEAR_BATCH];
     int n_near = 0;
-    for (int k = 0; k < q.n_entries; ++k) {
-        uint h = q.entries[k];
-        uint begin = cell_start[h], end = begin + cell_count[h];
-        for (uint j = begin; j < end; ++j) {
-            near[n_near] = j;
-            n_near += photon_near(q.x, q.r2, grid_pos[j].xyz) ? 1 : 0;
-            if (n_near == NEAR_BATCH) {
-                add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);
-                n_near = 0;
+    for (int i = 0; i < rows.n; ++i) {
+        // The row's entries not seen before: each run of consecutive ones (not wrapping past
+        // the table's end) is one run of photons, from its first entry's start to its last's end.
+        uint seen = rows_seen(&rows, i, mask), first = rows.first[i];
+        for (uint t = 0; t < rows.len;) {
+            if (seen >> t & 1u) {
+                ++t;
+                continue;
             }
+            uint u = t + 1;
+            while (u < rows.len && !(seen >> u & 1u) && ((first + u) & mask) != 0) ++u;
+            uint last = (first + u - 1) & mask;
+            scan_run(&s, &q, cell_start[(first + t) & mask], cell_start[last] + cell_count[last], near, &n_near,
+                     grid_pos, grid_flux, grid_in, grid_nrm);
+            t = u;
         }
     }
     add_near(&s, &q, near, n_near, grid_pos, grid_flux, grid_in, grid_nrm);

@@ -106,10 +106,10 @@ class ConnectMergePasses:
         # divides the launch size, so a launch size that changed every pass cost a kernel
         # build (or a cache load) every pass.
         events = [dev.fill(self.cell_count, np.uint32(0), entries),
-                  p.launch(dev.queue, "grid_count", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
+                  p.launch(dev.queue, "grid_count", entries, u32(n_stored), self.lv_pos, inv_cell, u32(1), mask,
                            self.cell_count),
                   p.launch(dev.queue, "grid_scan", 1, u32(entries), self.cell_count, self.cell_start, self.cell_fill),
-                  p.launch(dev.queue, "grid_scatter", entries, u32(n_stored), self.lv_pos, inv_cell, mask,
+                  p.launch(dev.queue, "grid_scatter", entries, u32(n_stored), self.lv_pos, inv_cell, u32(1), mask,
                            self.cell_fill, self.sorted),
                   p.launch(dev.queue, "grid_sort", entries, u32(entries), self.cell_start, self.cell_count,
                            self.sorted, self.lv_key),

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyopencl as cl
 
+from kernels.contract import GRID_ROW_SPLIT
 from kernels.program import f32, i32, u32, u64
 from worker import adaptive, stats
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
@@ -150,10 +151,10 @@ class PhotonMappingPasses:
         dev, p, n = self.dev, self.dev.program, self.dev.arrays.n_pixels
         mask = u32(self.mp_entries - 1)
         events = [dev.fill(self.mp_count, np.uint32(0), self.mp_entries),
-                  p.launch(dev.queue, "grid_count", n, u32(n), self.mp_pos, inv_cell, mask, self.mp_count),
+                  p.launch(dev.queue, "grid_count", n, u32(n), self.mp_pos, inv_cell, u32(1), mask, self.mp_count),
                   p.launch(dev.queue, "grid_scan", 1, u32(self.mp_entries), self.mp_count, self.mp_start,
                            self.mp_fill),
-                  p.launch(dev.queue, "grid_scatter", n, u32(n), self.mp_pos, inv_cell, mask, self.mp_fill,
+                  p.launch(dev.queue, "grid_scatter", n, u32(n), self.mp_pos, inv_cell, u32(1), mask, self.mp_fill,
                            self.mp_sorted)]
         dev.times.add("build", events)
 
@@ -215,8 +216,8 @@ class PhotonMappingPasses:
         dev, a, p = self.dev, self.dev.arrays, self.dev.program
         n = a.n_pixels if points is None else points
         photons = f32(self.settings.photons_per_pass)
-        inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
         if (gather or self.settings.gather) == "stochastic":
+            inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
             self._reserve_table(entries)
             mask = u32(entries - 1)
@@ -231,16 +232,18 @@ class PhotonMappingPasses:
                                  self.mp_nrm, self.mp_wgt, self.mp_cut, *self._radii(), photons, inv_cell, mask,
                                  self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums)
         else:
+            inv_cell = f32(1.0 / (2.0 * max_radius))  # spatial_hash.cl, ball_rows
             entries = _next_pow2(n_stored)
             self._reserve_table(entries)
             mask = u32(entries - 1)
             build = [dev.fill(self.tab_count, np.uint32(0), entries),
-                     p.launch(dev.queue, "grid_count", n_stored, u32(n_stored), self.ph_pos, inv_cell, mask,
-                              self.tab_count),
+                     p.launch(dev.queue, "grid_count", n_stored, u32(n_stored), self.ph_pos, inv_cell,
+                              u32(GRID_ROW_SPLIT), mask, self.tab_count),
                      p.launch(dev.queue, "grid_scan", 1, u32(entries), self.tab_count, self.cell_start,
                               self.cell_fill),
                      p.launch(dev.queue, "grid_scatter_photons", n_stored, u32(n_stored), self.ph_pos, self.ph_flux,
-                              self.ph_dirs, self.ph_key, inv_cell, mask, self.cell_fill, self.slots),
+                              self.ph_dirs, self.ph_key, inv_cell, u32(GRID_ROW_SPLIT), mask, self.cell_fill,
+                              self.slots),
                      p.launch(dev.queue, "grid_sort_slots", entries, u32(entries), self.cell_start, self.tab_count,
                               self.slots),
                      p.launch(dev.queue, "grid_permute", n_stored, u32(n_stored), self.slots, self.grid_pos,
