@@ -89,9 +89,7 @@ EXTENT_STEPS = 64
 # The exact gather's grid (kernels/spatial_hash.cl, ball_rows): cells of 2 largest radii split this
 # many ways along x, the axis of its rows (at most 31: a row's cells are bits of a uint). A query
 # reads 4 runs of photons whatever the split; a finer split visits fewer photons but spreads the
-# cells over more of the table. 1920x1080 gather, one thread, against 8 unsplit cells read one
-# by one: 0.68 (split 2) and 0.68 (4) of the time on the furnace, 0.74 and 0.78 on smallppm, 0.97 and
-# 1.11 on cornell-box (its walls face all three axes; bench/RESULTS.md).
+# cells over more of the table: split 4 measured no faster than 2 (bench/RESULTS.md).
 GRID_ROW_SPLIT = 2
 
 
