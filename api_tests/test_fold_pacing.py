@@ -71,3 +71,17 @@ def test_one_round_takes_both_when_the_next_is_near_or_at_a_checkpoint(store: Jo
     folded = store.fold(job_id, checkpoint=checkpoint)
     assert folded is not None and folded.state.passes == 4 and store.get(job_id).image_passes == 4
     np.testing.assert_allclose(folded.state.S, _sum_of(deltas), rtol=1e-12)
+
+
+def test_a_round_counts_its_checkpoint_writes_in_its_cost(store: Jobs) -> None:
+    """A round's cost (JobRecord.fold_cost, what the batch and fold-interval rules count) is
+    its whole length, the checkpoint written after its image included; a record deleted
+    meanwhile is not brought back by noting it."""
+    job_id, _ = _job_with_two_batches_waiting(store, next_due_in=60.0)
+    assert store.fold(job_id, checkpoint=True) is not None
+    record = store.get(job_id)
+    assert record.round_cost > record.fold_seconds > 0.0
+    assert record.fold_cost == record.round_cost
+    store.delete(job_id)
+    store._note_cost(job_id, 1.0)
+    assert not store.r.exists(keys.job(job_id))

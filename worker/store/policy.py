@@ -88,8 +88,9 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     """Passes for the next batch of a job whose `workers` render its batches at once.
 
     About BATCH_TARGET_SECONDS of rendering, and long enough that the batch's merge and the
-    fold round that takes it in (`fold_seconds`, the job's last round: the folder and the
-    state nodes read, merge and estimate the whole state) cost at most MERGE_SHARE of a
+    fold round that takes it in (`fold_seconds`, the job's last round, its checkpoint writes
+    included: the folder and the state nodes read, merge and estimate the whole state, and
+    write a part of it) cost at most MERGE_SHARE of a
     worker's time, and that the job's workers together keep its merge path busy at most
     MERGE_PATH_SHARE of the time, as far as the refresh allows: the refresh is a budget,
     the merge share a cost, so the job's workers together still deliver a batch every
@@ -202,9 +203,11 @@ def passes_left(settings: Settings, passes: int) -> int | None:
 
 
 def fold_interval(fold_seconds: float, next_seconds: float | None = None) -> float:
-    """Seconds from one fold round's end to the next one's start, given how long the last
-    round took and how long the next is expected to (`next_seconds`, round_seconds; the
-    last one's length if unknown): FOLD_SECONDS for a small state; for a large one long
+    """Seconds from one fold round's image to the next one's start, given what the last
+    round cost (`fold_seconds`: its whole length, checkpoint writes included,
+    JobRecord.fold_cost) and how long the next is expected to take to its image
+    (`next_seconds`, round_seconds; the last one's cost if unknown): FOLD_SECONDS for a
+    small state; for a large one long
     enough that rounds take at most FOLD_SHARE of the time (more batches folded per round),
     but short enough that the next round starts (at the folder's next look) and ends within
     REFRESH_SECONDS of the last one's end."""
