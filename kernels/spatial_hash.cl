@@ -22,8 +22,8 @@
 
 inline int3 cell_of(float3 p, float inv_cell) { return convert_int3_rtn(p * inv_cell); }
 
-// The exact grid's cell (grid_count and grid_scatter_photons with split > 1, gather_exact):
-// `split` times finer along x, the axis of its rows (ball_rows).
+// A grid's cell, `split` times finer along x: the exact grid's rows (ball_rows) split it
+// GRID_ROW_SPLIT ways; the other grids' builds pass 1 (cell_of).
 inline int3 split_cell_of(float3 p, float inv_cell, uint split) {
     return convert_int3_rtn((float3)(p.x * (float)split, p.y, p.z) * inv_cell);
 }

@@ -216,8 +216,8 @@ class PhotonMappingPasses:
         dev, a, p = self.dev, self.dev.arrays, self.dev.program
         n = a.n_pixels if points is None else points
         photons = f32(self.settings.photons_per_pass)
+        inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
         if (gather or self.settings.gather) == "stochastic":
-            inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
             self._reserve_table(entries)
             mask = u32(entries - 1)
@@ -232,8 +232,7 @@ class PhotonMappingPasses:
                                  self.mp_nrm, self.mp_wgt, self.mp_cut, *self._radii(), photons, inv_cell, mask,
                                  self.tab_count, self.tab_pos, self.tab_flux, self.tab_dirs, dev.batch_sums)
         else:
-            inv_cell = f32(1.0 / (2.0 * max_radius))  # spatial_hash.cl, ball_rows
-            entries = _next_pow2(n_stored)
+            entries = _next_pow2(n_stored)  # cells split GRID_ROW_SPLIT ways along x (spatial_hash.cl, ball_rows)
             self._reserve_table(entries)
             mask = u32(entries - 1)
             build = [dev.fill(self.tab_count, np.uint32(0), entries),
