@@ -20,13 +20,13 @@
 // a query reads at most 4 runs (ball_rows), not 8 cells, and visits the photons of a box
 // 2r + 2R / GRID_ROW_SPLIT wide along x rather than up to 4R (R the largest radius).
 
-inline int3 cell_of(float3 p, float inv_cell) { return convert_int3_rtn(p * inv_cell); }
-
 // A grid's cell, `split` times finer along x: the exact grid's rows (ball_rows) split it
 // GRID_ROW_SPLIT ways; the other grids' builds pass 1 (cell_of).
 inline int3 split_cell_of(float3 p, float inv_cell, uint split) {
     return convert_int3_rtn((float3)(p.x * (float)split, p.y, p.z) * inv_cell);
 }
+
+inline int3 cell_of(float3 p, float inv_cell) { return split_cell_of(p, inv_cell, 1u); }
 
 // A cell's table entry: its row's (y, z) hashed, plus x, so that a row's consecutive cells
 // take consecutive entries, and the exact grid holds their photons in one run (ball_rows).
@@ -353,8 +353,9 @@ typedef struct {
 // against rounding at exactly r = cell/2). Each entry once: where two of the cells collide
 // in the table, its items are visited once and every item within r counts once, with no
 // test of which cell it lies in (one in a colliding far cell fails the distance test).
-// Used by the gathers, the adaptive sampler's point grid (visibility.cl) and the hybrid
-// integrator's merging (vcm_camera_pass.cl). Returns how many entries were written.
+// Used by the stochastic gather, the adaptive sampler's point grid (visibility.cl) and the
+// hybrid integrator's merging (vcm_camera_pass.cl); the exact gather reads rows
+// (ball_rows). Returns how many entries were written.
 inline int ball_entries(float3 x, float r, float inv_cell, uint mask, uint entries[8]) {
     int3 lo = cell_of(x - r, inv_cell);
     int3 hi = min(cell_of(x + r, inv_cell), lo + 1);
