@@ -371,6 +371,51 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     _assert_folded_once(store, job_id, made)
 
 
+def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list[EmbeddedRedis], deltas: tuple,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The image does not wait for the inputs' write (100 MB through the append-only files
+    at 3840x2160): while a round writes them, the record names its passes and a reader
+    here gets its state, and a batch reads the last round's inputs. Where another folder
+    wrote a tile first, the write fails, the overlay is dropped, and the next round folds
+    from the tiles: every batch still folds once."""
+    store, job_id, made = _fresh_job(servers, deltas, 3)
+    _merge(store, job_id, made[0])
+    store.fold(job_id)
+    before = store.batch_inputs(store.get(job_id))
+    seen: list[tuple[int, int, int]] = []  # as the write starts: the record's image passes, a read's, the inputs'
+    real_write = state_module.TiledState.write_inputs
+
+    def observed(self, *args):  # noqa: ANN001, ANN202
+        record = store.get(job_id)
+        seen.append((record.image_passes, store.state(record).passes, store.batch_inputs(record).passes))
+        return real_write(self, *args)
+
+    monkeypatch.setattr(state_module.TiledState, "write_inputs", observed)
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id)
+    passes = made[0].n_passes + made[1].n_passes
+    assert folded is not None and folded.state.passes == passes and "write inputs" in folded.stages
+    assert seen == [(passes, passes, before.passes)]
+    assert store.batch_inputs(store.get(job_id)).passes == passes  # written once the round is done
+    # Another folder's checkpoint of tile 1 lands between the image and the inputs' write.
+    record = store.get(job_id)
+    tiling = store.tiling(record)
+    node, meta = store.tiles.nodes[tiling.node(1)], keys.tile(job_id, 1, "meta")
+
+    def contended(self, *args):  # noqa: ANN001, ANN202
+        node.hincrby(meta, "version", 1)
+        return real_write(self, *args)
+
+    monkeypatch.setattr(state_module.TiledState, "write_inputs", contended)
+    _merge(store, job_id, made[2])
+    folded = store.fold(job_id)
+    assert folded is not None and folded.state.passes == passes + made[2].n_passes
+    assert overlay_module.OVERLAYS.current(job_id) is None  # dropped: built on the old version
+    monkeypatch.undo()
+    node.hincrby(meta, "version", -1)  # as it was: no other folder wrote it
+    _assert_folded_once(store, job_id, made)
+
+
 def test_a_round_adds_to_the_overlay_in_place_unless_a_reader_holds_its_state(
         servers: list[EmbeddedRedis], deltas: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """A round in memory adds its batches to the overlay's own state when no one else refers

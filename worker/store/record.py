@@ -643,15 +643,20 @@ class Jobs:
                 self.r.hdel(keys.tofold(job_id), exc.batch_id)
                 self.fail(job_id, f"cannot fold {exc}")
                 return None
-            # Show the image first, then write the tiles that are due (a checkpoint: the long
-            # part of a big frame's round) and count in the record the batches every tile has
-            # now written. A forced checkpoint (a worker's: it serves no image; the job's last)
-            # writes every tile and keeps no overlay.
+            # Show the image first, then write what the next batches read, then the tiles
+            # that are due (a checkpoint: the long part of a big frame's round) and count in
+            # the record the batches every tile has now written. A forced checkpoint (a
+            # worker's: it serves no image; the job's last) writes every tile and keeps no overlay.
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
                 (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
                  )[-policy.ROUNDS_KEPT:], read_at)
+            try:
+                folded = replace(folded, stages=folded.stages | self.tiles.write_inputs(job_id, tiling,
+                                                                                        record.integrator))
+            except FoldContended:
+                return folded  # another folder holds the tiles now; its round counts
             if tiles:
                 cpu = time.process_time()
                 try:

@@ -434,11 +434,11 @@ class TiledState:
                    counters: dict[str, int], accepted: dict[str, dict[str, Any]],
                    checkpoint: bool = False) -> tuple[Folded, list[int]]:
         """Fold the accepted batches (id -> {n, e, c}; at least one) not yet in this process's
-        overlay into it, write every tile's batch inputs and show the new overlay to this
-        process's readers. `emitted`, `passes` and `counters` are the record's folded counters
-        (of the batches every tile has written). Returns the round and the tiles whose state
-        is to be written now (every tile with `checkpoint`, else policy.checkpoint_tiles: the
-        caller runs `checkpoint` once the image is shown). Raises FoldContended if another
+        overlay into it and show the new overlay to this process's readers. `emitted`,
+        `passes` and `counters` are the record's folded counters (of the batches every tile
+        has written). Returns the round and the tiles whose state is to be written now (every
+        tile with `checkpoint`, else policy.checkpoint_tiles): once the image is shown the
+        caller runs `write_inputs`, then `checkpoint`. Raises FoldContended if another
         folder got to a tile first."""
         batch_ids = sorted(accepted)
         stages = Stages()
@@ -465,9 +465,7 @@ class TiledState:
             read, carried = self._add_pending(job_id, tiling, integrator, versions, fresh,
                                               [accepted[b] for b in fresh_ids], state) if fresh_ids else ({}, {})
             stages.lap("read and merge deltas")
-            # What the next batches read, and the error.
-            inputs = integrator.batch_inputs(state)
-            stages.lap("inputs")
+            # The error.
             if fresh_ids:
                 estimate = integrator.estimate(state)
                 error = estimate.average if estimate is not None else None
@@ -483,23 +481,39 @@ class TiledState:
             now_held = Overlay(versions, held | frozenset(fresh_ids), state, error,
                                {k: frozenset(names) for k, names in sent.items()}, pending,
                                (overlay.folded_at if overlay is not None else {}) | {b: now for b in fresh_ids})
-
-            # Write each tile's batch inputs, a few tiles to a transaction on their versions (the nodes at once),
-            # then show the image: this process's readers take the overlay.
-            def write(node: int, tiles: list[int]) -> dict[int, None]:
-                self._on_versions(node, job_id, {k: versions[k] for k in tiles}, lambda pipe, k: pipe.set(
-                    keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k))))
-                return {}
-
-            try:
-                self._per_node(tiling, write)
-            except FoldContended:
-                OVERLAYS.drop(job_id)
-                raise
+            # Show the image: this process's readers take the overlay.
             OVERLAYS.put(job_id, now_held)
-            stages.lap("write inputs")
             return (Folded(state, error, stages.seconds, False, rebuilt=overlay is None),
                     list(range(tiling.count)) if checkpoint else now_held.checkpoint_tiles(tiling))
+
+    def write_inputs(self, job_id: str, tiling: Tiling, integrator: Integrator) -> dict[str, float]:
+        """Write what the next batches read, from this process's overlay of the job (the
+        round just made it), into every tile, a few tiles to a transaction on the versions
+        the overlay was built on (the nodes at once). After the image: a batch that starts
+        meanwhile reads the last round's inputs, as one that started a moment earlier did
+        (its first pass takes the radius rule for the passes they lack), and the image does
+        not wait for a write through the nodes' append-only files (at 3840x2160 100 MB, a
+        slower one while a node rewrites its file). Returns this process's CPU seconds per
+        stage; raises FoldContended (the overlay dropped) if another folder got to a tile first."""
+        stages = Stages()
+        overlay = OVERLAYS.current(job_id)
+        if overlay is None:
+            raise FoldContended("this process holds no overlay of the job")
+        inputs = integrator.batch_inputs(overlay.state)
+        stages.lap("inputs")
+
+        def write(node: int, tiles: list[int]) -> dict[int, None]:
+            self._on_versions(node, job_id, {k: overlay.versions[k] for k in tiles}, lambda pipe, k: pipe.set(
+                keys.tile(job_id, k, "inputs"), encode_inputs(inputs, tiling.span(k))))
+            return {}
+
+        try:
+            self._per_node(tiling, write)
+        except FoldContended:
+            OVERLAYS.drop(job_id)
+            raise
+        stages.lap("write inputs")
+        return stages.seconds
 
     def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator,
                    tiles: list[int], keep: bool = True) -> tuple[Overlay, list[str]]:
