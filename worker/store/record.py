@@ -656,7 +656,7 @@ class Jobs:
                 folded = replace(folded, stages=folded.stages | self.tiles.write_inputs(job_id, tiling,
                                                                                         record.integrator))
             except FoldContended:
-                return folded  # another folder holds the tiles now; its round counts
+                tiles = []  # the overlay is dropped: another folder holds the tiles now, and its round counts
             if tiles:
                 cpu = time.process_time()
                 try:
