@@ -29,7 +29,7 @@ from rq.serializers import JSONSerializer
 from worker.settings import PRIORITIES, Priority
 from worker.store import Batch, Jobs, Status
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import ACTIVE, FOLD_POLL_SECONDS, MAX_INFLIGHT_PER_JOB
+from worker.store.policy import ACTIVE, FOLD_POLL_SECONDS, FOLD_WAIT_MIN_SECONDS, MAX_INFLIGHT_PER_JOB
 
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
@@ -144,6 +144,17 @@ def fold_active(jobs: Jobs) -> int:
     return folded
 
 
+def next_look_in(jobs: Jobs) -> float:
+    """How long the folder waits (for news) before its next look: until the first round of
+    an active job is due, so that a paced round starts when due rather than up to a look
+    later (the 10 s refresh allowed FOLD_POLL_SECONDS for that, which a round that ran
+    over its expected length then lacked); at most FOLD_POLL_SECONDS (a batch accepted
+    meanwhile may make a round due) and at least FOLD_WAIT_MIN_SECONDS (a due round another
+    process holds the lease for is not polled for in a spin)."""
+    due = [d for job_id in jobs.active_ids() if (d := jobs.next_round_in(job_id)) is not None]
+    return max(FOLD_WAIT_MIN_SECONDS, min([FOLD_POLL_SECONDS, *due]))
+
+
 class Reaper:
     """The reaper and the folder as daemon threads (started by the API process): a long
     fold of a large job does not delay re-issuing lost batches."""
@@ -158,7 +169,7 @@ class Reaper:
     def _fold(self) -> None:
         while not self._stop.is_set():
             try:
-                self.jobs.wait_for_news(FOLD_POLL_SECONDS)
+                self.jobs.wait_for_news(next_look_in(self.jobs))
                 fold_active(self.jobs)
             except redis.RedisError as exc:
                 log.warning("folder: redis unavailable: %s", exc)

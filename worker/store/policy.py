@@ -55,7 +55,8 @@ FOLD_SECONDS = 2.0
 # rounds, as far as the refresh allows.
 FOLD_SHARE = 0.1
 REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
-FOLD_POLL_SECONDS = 0.5  # the API's folder thread looks this often, and at once on news (Jobs.wait_for_news)
+FOLD_POLL_SECONDS = 0.5  # the API's folder thread looks this often, and at once on news (Jobs.wait_for_news) ...
+FOLD_WAIT_MIN_SECONDS = 0.05  # ... or when a job's round is due, but not more often (scheduler.next_look_in)
 ROUNDS_KEPT = 8  # a job's recent fold rounds that predict the next one's length (round_seconds) ...
 ROUND_MARGIN = 2.0  # ... with this many times the most one of them ran over the prediction
 # A job's batches are delivered at most this far apart (batch_passes): an image change

@@ -739,17 +739,30 @@ class Jobs:
         image appears as soon as a batch is accepted)."""
         return time.time() - record.folded_at if record.folded_at else float("inf")
 
+    def _next_round(self, record: JobRecord) -> tuple[float, int]:
+        """Seconds until the job's next regular round is due (at most 0: due now), `fold_interval`
+        after the last round's image for a round of the batches waiting now, and how many of
+        those this process's image lacks."""
+        fresh = {b.decode() for b in self.r.hkeys(keys.tofold(record.id))} - OVERLAYS.batches(record.id)
+        expected = policy.round_seconds(record.fold_rounds, max(1, len(fresh)))
+        return policy.fold_interval(record.fold_cost, expected) - self._since_fold(record), len(fresh)
+
     def fold_if_due(self, job_id: str) -> Folded | None:
         """The API's fold (its folder thread, and before a read): once `fold_interval`
         has passed since the last round, for a round of the batches waiting now."""
         record = self.get(job_id)
-        if record is None or self._since_fold(record) < policy.FOLD_SECONDS:
-            return None
-        fresh = {b.decode() for b in self.r.hkeys(keys.tofold(job_id))} - OVERLAYS.batches(job_id)
-        expected = policy.round_seconds(record.fold_rounds, max(1, len(fresh)))
-        if self._since_fold(record) < policy.fold_interval(record.fold_cost, expected):
+        if record is None or self._next_round(record)[0] > 0.0:
             return None
         return self.fold(job_id)
+
+    def next_round_in(self, job_id: str) -> float | None:
+        """Seconds until the job's next regular round is due (at most 0: due now); None with
+        no accepted batch that this process's image lacks (the round waits for one)."""
+        record = self.get(job_id)
+        if record is None:
+            return None
+        due, fresh = self._next_round(record)
+        return due if fresh else None
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
         """A worker's fold after its merge, if accepted passes have waited for the image
