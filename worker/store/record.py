@@ -742,8 +742,8 @@ class Jobs:
     def _next_round(self, record: JobRecord) -> tuple[float, int]:
         """Seconds until the job's next regular round is due (at most 0: due now), `fold_interval`
         after the last round's image for a round of the batches waiting now, and how many of
-        those this process's image lacks."""
-        fresh = {b.decode() for b in self.r.hkeys(keys.tofold(record.id))} - OVERLAYS.batches(record.id)
+        those this process's image lacks (lost ones aside: no round can fold them)."""
+        fresh = self._foldable(record.id).keys() - OVERLAYS.batches(record.id)
         expected = policy.round_seconds(record.fold_rounds, max(1, len(fresh)))
         return policy.fold_interval(record.fold_cost, expected) - self._since_fold(record), len(fresh)
 
