@@ -5,7 +5,9 @@ A real cluster (api_tests/cluster.py: embedded Redis, the API with its folder th
 workers with one PoCL thread each) renders one furnace job of the given size for
 `--seconds` (the service's default photons per pass, error estimation on). The job record
 is read every 0.25 s; each fold round's end (`folded_at`, when the image a client reads
-changes if it folded new passes) and length (`fold_seconds`) are noted. Reported: the
+changes if it folded new passes), length (`fold_seconds`) and whether it rebuilt the state
+from the tiles (no overlay in the folder's memory: a job's first round, or one after another
+process's checkpoint; policy.Round) are noted. Reported: the
 intervals between image changes from the first image to the job's end (largest, median), the rounds' lengths, when
 each batch was accepted and when a Redis server rewrote its append-only file (to a sample), and
 the API's (folder) and Redis's CPU seconds per round (every redis-server's: with
@@ -73,7 +75,8 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
                         current[i][1] = now
                 if record.folded_at and (not rounds or record.folded_at != rounds[-1]["end"]):
                     rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
-                                   "passes": record.image_passes})
+                                   "passes": record.image_passes,
+                                   "rebuilt": bool(record.fold_rounds and record.fold_rounds[-1].rebuilt)})
                 if record.status in FINAL:
                     break
                 time.sleep(SAMPLE_SECONDS)
