@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
-                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, MERGE_PATH_SHARE, MERGE_SHARE, REFRESH_SECONDS,
-                                 FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes, checkpoint_tiles, fold_interval,
+                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, FOLD_STALE_SECONDS, MERGE_PATH_SHARE,
+                                 MERGE_SHARE, REFRESH_SECONDS, FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes, checkpoint_tiles, fold_interval, image_due,
                                  _tail_end, paced_batches, recent_pass_seconds, round_seconds,
                                  tail_share)
 
@@ -315,3 +315,20 @@ def test_every_tile_with_a_pending_delta_is_written_once_a_batch_waited_too_long
     pending, state_bytes = {0: 5, 1: 0, 2: 7}, {0: 100, 1: 100, 2: 100}
     assert checkpoint_tiles(0.0, pending, state_bytes) == []  # within the share
     assert sorted(checkpoint_tiles(CHECKPOINT_SECONDS, pending, state_bytes)) == [0, 2]
+
+
+@pytest.mark.parametrize("fold_seconds, fold_cost", [(0.05, 0.08), (0.5, 1.0), (1.8, 4.0), (3.5, 6.0)])
+def test_a_worker_takes_the_api_to_be_behind_only_after_the_image_it_plans(fold_seconds: float,
+                                                                           fold_cost: float) -> None:
+    """policy.image_due bounds the longest a batch waits for the API's image when the API
+    keeps its plan: accepted as a round read the waiting batches, it waits for that round's
+    image, the fold interval after it and the next round (expected to take at most the
+    last one's whole cost; at 3840x2160 about 2 s to the image, 4 s in all). The fold
+    interval alone, the bound before, was shorter there: workers folded for a healthy API."""
+    for expected in np.linspace(0.1 * fold_cost, fold_cost, 7):
+        longest = fold_seconds + fold_interval(fold_cost, expected) + expected
+        assert image_due(fold_seconds, fold_cost) >= longest - 1e-9
+    assert image_due(fold_seconds, fold_cost) <= fold_seconds + max(FOLD_SECONDS + fold_cost, DELIVERY_SECONDS)
+    if fold_cost >= 4.0:  # 3840x2160: the old bound, stale-fold slack included, fell short of a paced round's image
+        assert fold_interval(fold_cost) + FOLD_STALE_SECONDS < \
+            fold_seconds + fold_interval(fold_cost, 0.5 * fold_cost) + 0.5 * fold_cost

@@ -47,7 +47,7 @@ MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy (issue 14:
 # The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
 # The API's folder thread folds a job FOLD_SECONDS after its last round, or later for a
 # large state (`fold_interval`); a worker folds after its merge when the API has not for
-# FOLD_STALE_SECONDS more (the API is down or behind).
+# FOLD_STALE_SECONDS past the image's planned time (`image_due`: the API is down or behind).
 FOLD_LEASE_SECONDS = LEASE_SECONDS
 FOLD_SECONDS = 2.0
 # A round costs about the same however many batches it folds (it merges and estimates the
@@ -214,6 +214,18 @@ def fold_interval(fold_seconds: float, next_seconds: float | None = None) -> flo
     REFRESH_SECONDS of the last one's end."""
     expected = fold_seconds if next_seconds is None else next_seconds
     return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, DELIVERY_SECONDS - expected))
+
+
+def image_due(fold_seconds: float, fold_cost: float) -> float:
+    """The latest the API plans the image that takes in a batch accepted as a round read the
+    waiting batches, in seconds after that read: the round's length to its image
+    (`fold_seconds`), the fold interval after it, and the next round's length (at most the
+    whole cost of the last, `fold_cost`). A paced round at 3840x2160 ends its image about
+    DELIVERY_SECONDS after the last one, so a batch may wait that plus a round: more than
+    the fold interval alone (with FOLD_STALE_SECONDS, 10.5 s there), which had workers fold
+    for the API they took to be behind, each fold a checkpoint of every tile after which the
+    API's next round rebuilt the state."""
+    return fold_seconds + fold_interval(fold_cost) + fold_cost
 
 
 class Round(NamedTuple):

@@ -766,12 +766,13 @@ class Jobs:
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
         """A worker's fold after its merge, if accepted passes have waited for the image
-        FOLD_STALE_SECONDS past the fold interval: the API is down or behind, and the image
-        still refreshes. It checkpoints: a worker serves no image, so it keeps no overlay."""
+        FOLD_STALE_SECONDS past the time the API plans it (policy.image_due): the API is down
+        or behind, and the image still refreshes. It checkpoints: a worker serves no image,
+        so it keeps no overlay."""
         record = self.get(job_id)
         if record is None or record.passes <= record.image_passes:
             return None
         waiting = time.time() - (record.waiting_since or record.started or time.time())
-        if waiting < policy.fold_interval(record.fold_cost) + FOLD_STALE_SECONDS:
+        if waiting < policy.image_due(record.fold_seconds, record.fold_cost) + FOLD_STALE_SECONDS:
             return None
         return self.fold(job_id, checkpoint=True)
