@@ -681,6 +681,48 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
     _assert_folded_once(store, job_id, made)
 
 
+def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[EmbeddedRedis], deltas: tuple,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The API's folder may be in a round of the job (its checkpoint writes) when the batch
+    that ends the job is accepted. While a folder holds the job's fold lease, the worker
+    does not begin the end itself after END_HANDOFF_SECONDS (it would wait for the lease,
+    then rebuild the state the folder holds in memory): the folder ends the job once its
+    round is done, and every pass is folded once."""
+    from worker.scheduler import fold_active
+    from worker.store.fold_lease import FoldLease
+
+    made = pickle.loads(deltas[0].read_bytes())[:2]
+    store = _store([s.url for s in servers])
+    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.3)
+    job_id = _job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
+    _merge(store, job_id, made[0])
+    held, done = threading.Event(), threading.Event()
+
+    def api_folder() -> None:
+        with FoldLease(store.r, job_id, wait=True):  # a round of the job under way
+            held.set()
+            done.wait(30.0)
+        while store.status(job_id) == Status.RUNNING:
+            fold_active(store)
+            time.sleep(0.05)
+
+    folder = threading.Thread(target=api_folder, daemon=True)
+    folder.start()
+    assert held.wait(10.0)
+    merging = threading.Thread(target=_merge, args=(store, job_id, made[1]), daemon=True)
+    merging.start()
+    try:
+        time.sleep(1.5)  # five hand-off periods
+        assert merging.is_alive()  # the merge waits for the hand-off
+        assert not store.get(job_id).stopping  # and no process began the end: the folder at work keeps it
+    finally:
+        done.set()
+    merging.join(60.0)
+    folder.join(60.0)
+    assert store.status(job_id) == Status.COMPLETED
+    _assert_folded_once(store, job_id, made)
+
+
 def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], deltas: tuple,
                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """The batch that ends a job is news (keys.FOLD_NEWS): a folder waiting on it

@@ -73,7 +73,8 @@ CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (REA
 FOLD_STALE_SECONDS = 5.0
 # The batch that decides a job's end hands its final round to the API's folder, which holds
 # the image in memory (Jobs.end_if_decided); its worker, looking every END_HANDOFF_POLL_SECONDS,
-# ends the job itself if no process has begun to within END_HANDOFF_SECONDS.
+# ends the job itself if no process has begun to within END_HANDOFF_SECONDS of when it last
+# saw a folder at work (holding the job's fold lease; Jobs._hand_off_end).
 END_HANDOFF_SECONDS = 3.0
 END_HANDOFF_POLL_SECONDS = 0.05
 # A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
