@@ -170,12 +170,13 @@ def tail_share(passes_left: int, pass_seconds: float, workers: int, others_due: 
 def _fill_level(work: float, due: Sequence[float], free: int) -> float:
     """The end T at which `free` workers free now and the others, free from `due` (sorted),
     together finish `work` seconds of passes: T free + sum of max(0, T - d) = work."""
-    end = 0.0
+    end, started = 0.0, 0.0  # started: the sum of the first i dues (the workers busy until then)
     for i, d in enumerate([*due, math.inf]):
         if free + i > 0:
-            end = (work + sum(due[:i])) / (free + i)
+            end = (work + started) / (free + i)
             if end <= d:
                 break
+        started += d
     return end
 
 
