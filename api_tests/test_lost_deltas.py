@@ -13,7 +13,8 @@ from typing import Iterator
 import pytest
 
 from api_tests.cluster import restart
-from api_tests.test_sharded_state import SHARDS, _assert_folded_once, _job, _merge, _store, deltas  # noqa: F401
+from api_tests.test_sharded_state import (_assert_folded_once, _job, _merge, _store, deltas,  # noqa: F401
+                                          redis_servers)
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.scheduler import reap
@@ -24,11 +25,9 @@ RESTARTED = 1  # the state node restarted (server 1 + RESTARTED)
 
 
 @pytest.fixture
-def servers(tmp_path: Path) -> Iterator[list[EmbeddedRedis]]:
-    started = [EmbeddedRedis(tmp_path / f"redis{i}").start(supervise=False) for i in range(1 + SHARDS)]
-    yield started
-    for server in started:
-        server.stop()
+def servers(tmp_path: Path) -> Iterator[list[EmbeddedRedis]]:  # per test: the tests restart servers
+    with redis_servers(tmp_path) as started:
+        yield started
 
 
 def _lose_deltas_of(servers: list[EmbeddedRedis], sample: tuple, pending: int,

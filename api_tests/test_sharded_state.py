@@ -16,6 +16,7 @@ import signal
 import threading
 import time
 import weakref
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -46,13 +47,21 @@ BATCHES = 12
 PROCESSES = 4
 
 
+@contextmanager
+def redis_servers(base: Path) -> Iterator[list[EmbeddedRedis]]:
+    """The main Redis and SHARDS state nodes, in directories under `base`; stopped after."""
+    started = [EmbeddedRedis(base / f"redis{i}").start(supervise=False) for i in range(1 + SHARDS)]
+    try:
+        yield started
+    finally:
+        for server in started:
+            server.stop()
+
+
 @pytest.fixture(scope="module")
 def servers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[EmbeddedRedis]]:
-    base = tmp_path_factory.mktemp("sharded")
-    started = [EmbeddedRedis(base / f"redis{i}").start(supervise=False) for i in range(1 + SHARDS)]
-    yield started
-    for server in started:
-        server.stop()
+    with redis_servers(tmp_path_factory.mktemp("sharded")) as started:
+        yield started
 
 
 @pytest.fixture(scope="module")
