@@ -1,7 +1,7 @@
 """The same batches merged by several concurrent worker processes, each in its own
 shuffled order, against a real Redis: every batch counts exactly once and the state is
 the same whatever the order (S, D, Ld and E are sums; N only schedules future radii): the
-sum of the deltas as sent (float32, worker/store/tiles.py)."""
+sum of the deltas as sent (worker/store/tiles.py, as_sent)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
-from worker.store.tiles import DELTA_DTYPE
+from worker.store.tiles import as_sent
 
 BATCHES = 12
 PROCESSES = 4
@@ -65,8 +65,10 @@ def test_concurrent_shuffled_merges_give_one_state(redis_url: str, tmp_path: Pat
         assert record.emitted == sum(d.emitted for d in deltas)
         states.append(store.state(record))
     a, b = states
+    tiling, half = store.tiling(record), record.integrator.sums.half
+    sent = [as_sent(d.sums, tiling, half) for d in deltas]
     for name in a.sums:  # rounding of a reordered sum scales with its largest term
-        expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in deltas)
+        expected = sum(d[name] for d in sent)
         atol = 1e-12 * np.abs(expected).max()
         np.testing.assert_allclose(getattr(a, name), expected, rtol=1e-12, atol=atol)
         np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, atol=atol)

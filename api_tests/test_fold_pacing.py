@@ -16,7 +16,7 @@ from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.leases import Leases
-from worker.store.tiles import DELTA_DTYPE
+from worker.store.tiles import as_sent
 
 W, H = 32, 16
 TILE = 128  # 4 tiles
@@ -47,18 +47,20 @@ def _job_with_two_batches_waiting(store: Jobs, next_due_in: float) -> tuple[str,
     return job_id, deltas
 
 
-def _sum_of(deltas: list[Delta]) -> np.ndarray:
-    return sum(d.sums["S"].astype(DELTA_DTYPE).astype(np.float64) for d in deltas)
+def _sum_of(store: Jobs, job_id: str, deltas: list[Delta]) -> np.ndarray:
+    """The folded S of these deltas: the sum of each as sent."""
+    record = store.get(job_id)
+    return sum(as_sent(d.sums, store.tiling(record), record.integrator.sums.half)["S"] for d in deltas)
 
 
 def test_batches_that_came_together_show_over_two_rounds_when_the_next_is_far(store: Jobs) -> None:
     job_id, deltas = _job_with_two_batches_waiting(store, next_due_in=60.0)
     first = store.fold(job_id)
     assert first is not None and first.state.passes == 2 and store.get(job_id).image_passes == 2
-    np.testing.assert_allclose(first.state.S, _sum_of(deltas[:1]), rtol=1e-12)  # the lower passes first
+    np.testing.assert_allclose(first.state.S, _sum_of(store, job_id, deltas[:1]), rtol=1e-12)  # the lower passes first
     second = store.fold(job_id)
     assert second is not None and second.state.passes == 4 and store.get(job_id).image_passes == 4
-    np.testing.assert_allclose(second.state.S, _sum_of(deltas), rtol=1e-12)
+    np.testing.assert_allclose(second.state.S, _sum_of(store, job_id, deltas), rtol=1e-12)
     assert store.fold(job_id) is None  # nothing left to show
     # The first round read the state from the tiles; the second added to the one it kept.
     assert [(r.batches, r.rebuilt) for r in store.get(job_id).fold_rounds] == [(1, True), (1, False)]
@@ -70,7 +72,7 @@ def test_one_round_takes_both_when_the_next_is_near_or_at_a_checkpoint(store: Jo
     job_id, deltas = _job_with_two_batches_waiting(store, next_due_in)
     folded = store.fold(job_id, checkpoint=checkpoint)
     assert folded is not None and folded.state.passes == 4 and store.get(job_id).image_passes == 4
-    np.testing.assert_allclose(folded.state.S, _sum_of(deltas), rtol=1e-12)
+    np.testing.assert_allclose(folded.state.S, _sum_of(store, job_id, deltas), rtol=1e-12)
 
 
 def test_a_round_counts_its_checkpoint_writes_in_its_cost(store: Jobs) -> None:

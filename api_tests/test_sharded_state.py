@@ -38,7 +38,7 @@ from worker.store import overlay as overlay_module
 from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.state import TiledState
-from worker.store.tiles import DELTA_DTYPE, encode_inputs
+from worker.store.tiles import as_sent, encode_inputs
 
 SHARDS = 3
 TILE = 512  # pixels a tile: the 64 x 48 frame has 6 tiles, two on each node
@@ -138,8 +138,9 @@ def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
         assert stored == {"R0", "N"} | carried, (k, stored, carried)
     assert any("Ld" not in {n for d in made for n, a in d.sums.items() if a[tiling.span(k)].any()}
                for k in range(tiling.count))  # the check above sees a missing array somewhere
+    sent = [as_sent(d.sums, tiling, record.integrator.sums.half) for d in made]
     for name in state.sums:
-        expected = sum(getattr(d, name).astype(DELTA_DTYPE).astype(np.float64) for d in made)
+        expected = sum(d[name] for d in sent)
         np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
 
 

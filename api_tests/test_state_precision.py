@@ -1,15 +1,19 @@
 """The job state's storage over a long run: 10^4 passes (1000 batches of 10) pushed,
 accepted and folded through the tiles of a real Redis, against the same sums kept in
-extended precision. A batch's delta is sent as float32 (worker/store/tiles.py, DELTA_DTYPE)
-and folded into float64 sums, so:
+extended precision. A batch's delta is sent as float32, the photon sums (SumLayout.half)
+as float16 scaled per tile by a power of two (worker/store/tiles.py), and folded into
+float64 sums, so:
 - the folded sums are the sums of the deltas as sent, within 1e-12 (the fold adds exactly);
-- against the exact sums of the passes, every folded sum is off by at most 2^-24 of the sum
-  of its batches' magnitudes (each batch rounded once), after 10^4 passes as after one:
-  no drift. float32 *storage* of the same stream drifts more than 16 times that bound
-  (checked here, so the test could tell the two apart);
-- the image (sums of non-negative terms) is within 2^-24 relative; the per-pixel variance
-  (X2 - X1^2 / n, which cancels to 1e-3 of X2) stays within its first-order rounding bound,
-  far below the variance estimate's own statistical error (sqrt(2 / (n - 1)) = 1.4%)."""
+- against the exact sums of the passes, every folded sum is off by at most its dtype's unit
+  roundoff (2^-24 for float32, 2^-11 + 2^-23 for float16) of the sum of its batches' magnitudes
+  (each batch rounded once; float16 also by its subnormals' step, 2^-39 of a batch's largest
+  value), after 10^4 passes as after one: no drift. float32 *storage* of the same stream
+  drifts more than 16 times the float32 bound (checked here, so the test could tell the
+  two apart);
+- the image (sums of non-negative terms) is within float16's roundoff, relative (and that step); the
+  per-pixel variance (X2 - X1^2 / n, which cancels to 1e-3 of X2; float32 sums) stays within
+  its first-order rounding bound, far below the variance estimate's own statistical error
+  (sqrt(2 / (n - 1)) = 1.4%)."""
 
 from __future__ import annotations
 
@@ -19,13 +23,15 @@ import redis
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
-from worker.store.tiles import DELTA_DTYPE
+from worker.store.tiles import as_sent
 
 W, H = 32, 16
 BATCHES, PASSES = 1000, 10  # 10^4 passes
 FOLD_EVERY = 5  # batches accepted between folds
 SIGNED = {"G", "X1", "Dh"}
-UNIT = 2.0 ** -24  # float32's unit roundoff (round to nearest)
+UNIT = 2.0 ** -24  # float32's unit roundoff (round to nearest) ...
+HALF_UNIT = 2.0 ** -11 + 2.0 ** -23  # ... float16's, after float32's (two roundings) ...
+HALF_STEP = 2.0 ** -39 * (1 + 2.0 ** -13)  # ... and its subnormals' half step (and float32's), of the tile's largest
 
 
 def _pass_sums(rng: np.random.Generator, widths: dict[str, int], scale: np.ndarray) -> dict[str, np.ndarray]:
@@ -42,14 +48,16 @@ def _pass_sums(rng: np.random.Generator, widths: dict[str, int], scale: np.ndarr
     return out
 
 
-def test_ten_thousand_passes_show_no_drift_with_float32_deltas(redis_url: str) -> None:
+def test_ten_thousand_passes_show_no_drift_with_float32_and_float16_deltas(redis_url: str) -> None:
     store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=128)  # 4 tiles
     job_id = store.create({}, Settings(max_passes=BATCHES * PASSES), W, H, None)
     record = store.get(job_id)
     n = W * H
     store.init_setup(record, {"R0": np.full(n, 0.05)})
     store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-    widths = dict(record.integrator.sums.widths)
+    widths, half, tiling = dict(record.integrator.sums.widths), record.integrator.sums.half, store.tiling(record)
+    assert {"S", "Ld"} <= set(half) and not {"X1", "X2"} & set(half)
+    unit = {name: HALF_UNIT if name in half else UNIT for name in widths}
     rng = np.random.default_rng(7)
     scale = 10.0 ** rng.uniform(-3, 3, n)
 
@@ -60,6 +68,7 @@ def test_ten_thousand_passes_show_no_drift_with_float32_deltas(redis_url: str) -
     # batches' magnitudes; and float32 storage of the running sums, for contrast.
     exact, sent, magnitude, single = zeros(np.longdouble), zeros(np.longdouble), zeros(np.longdouble), \
         zeros(np.float32)
+    step = dict.fromkeys(widths, 0.0)  # float16's subnormal steps, summed over the batches
     emitted = 1 << 12
     for b in range(BATCHES):
         batch_sums = zeros(np.float64)
@@ -67,9 +76,11 @@ def test_ten_thousand_passes_show_no_drift_with_float32_deltas(redis_url: str) -
             for name, value in _pass_sums(rng, widths, scale).items():
                 batch_sums[name] += value
                 exact[name] += value.astype(np.longdouble)
+        for name, value in as_sent(batch_sums, tiling, half).items():
+            sent[name] += value.astype(np.longdouble)
         for name, value in batch_sums.items():
-            sent[name] += value.astype(DELTA_DTYPE).astype(np.longdouble)
             magnitude[name] += np.abs(value).astype(np.longdouble)
+            step[name] += HALF_STEP * float(np.abs(value).max()) if name in half else 0.0
             single[name] += value.astype(np.float32)
         delta = Delta(b * PASSES, PASSES, PASSES * emitted, batch_sums)
         assert store.merge(Batch(job_id, b * PASSES, PASSES), delta, 0.01) == "merged"
@@ -83,8 +94,11 @@ def test_ten_thousand_passes_show_no_drift_with_float32_deltas(redis_url: str) -
         return float(np.max(np.abs(got.astype(np.longdouble) - ref) / magnitude[name]))
 
     for name in state.sums:  # (a batch's M goes into N, not kept: worker/stats.py)
-        assert error(getattr(state, name), sent[name], name) < 1e-12, name  # the fold adds exactly
-        assert error(getattr(state, name), exact[name], name) <= UNIT * (1 + 1e-6), name  # one rounding a batch
+        got = getattr(state, name)
+        assert error(got, sent[name], name) < 1e-12, name  # the fold adds exactly
+        off = np.abs(got.astype(np.longdouble) - exact[name])  # one rounding a batch:
+        assert np.all(off <= unit[name] * (1 + 1e-6) * magnitude[name] + step[name]), name
+    assert error(state.S, exact["S"], "S") > 16 * UNIT  # the photon sums went as float16: the test sees it
     worst32 = max(error(single[name], exact[name], name) for name in state.sums)
     assert worst32 > 16 * UNIT, worst32  # float32 storage drifts: the test can see it
     # The variance of the per-pass samples: X2 - X1^2/m cancels to 1e-3 of X2. Its
@@ -102,7 +116,9 @@ def test_ten_thousand_passes_show_no_drift_with_float32_deltas(redis_url: str) -
     assert np.all(var_error <= 1.01 * bound)
     assert float(np.max(var_error / ref_var)) < 1e-3 * np.sqrt(2.0 / (m - 1))
     assert float(np.max(np.abs(variance(single["X1"], single["X2"]) - ref_var) / ref_var)) > 1e-4
-    # The image: non-negative sums, so within float32's unit roundoff, relative.
+    # The image: non-negative float16 sums, so within float16's unit roundoff, relative (and
+    # the subnormals' step).
     ref_image = exact["S"] / (m * emitted) + exact["Ld"] / m
     image = record.integrator.image(state).astype(np.longdouble)
-    assert float(np.max(np.abs(image - ref_image) / ref_image)) <= UNIT * (1 + 1e-6)
+    floor = step["S"] / (m * emitted) + step["Ld"] / m
+    assert np.all(np.abs(image - ref_image) <= HALF_UNIT * (1 + 1e-6) * ref_image + floor)

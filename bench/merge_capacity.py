@@ -4,8 +4,8 @@ Processes stand in for N workers of one job. Each simulated worker renders a bat
 long as a real worker of the given speed would (it waits), then pushes a real-sized delta
 to the job's tiles and has it accepted, as worker/tasks.py does (Jobs.merge without the
 encoding: every simulated worker pushes the same pre-encoded delta, random numbers in
-every sum of the default SPPM layout, sent as float32 as every delta is (worker/store/tiles.py),
-so nothing compresses; the encoding's CPU time is
+every sum of the default SPPM layout, encoded as every delta is (worker/store/tiles.py: the
+photon sums float16, the error estimator's float32), so nothing compresses; the encoding's CPU time is
 measured once and added to each merge). One folder process folds every FOLD_POLL_SECONDS, as
 the API's folder thread does. Against one Redis and against 3 state nodes, all redis-servers of
 the embedded default (service/redis_server.py: append-only file, fsync always).
@@ -88,7 +88,7 @@ def _delta(store: Jobs, job_id: str) -> tuple[Delta, dict[int, bytes], float]:
     delta = Delta(0, 1, 1, {name: rng.random(layout.zeros(n, name).shape) for name in layout.names})
     tiling = store.tiling(record)
     t0 = time.perf_counter()
-    payloads = {k: encode_delta(delta.sums, tiling.span(k)) for k in range(tiling.count)}
+    payloads = {k: encode_delta(delta.sums, tiling.span(k), layout.half) for k in range(tiling.count)}
     return delta, payloads, time.perf_counter() - t0
 
 

@@ -95,9 +95,14 @@ GRID_ROW_SPLIT = 2
 
 @dataclass(frozen=True)
 class SumLayout:
-    """Named per-pixel float64 sums, `stride` doubles a pixel, one block per sum (sums.cl)."""
+    """Named per-pixel float64 sums, `stride` doubles a pixel, one block per sum (sums.cl).
+    `half`: the sums a batch's delta may send in half precision (worker/store/tiles.py):
+    non-negative ones only ever added into the image or the radius rule, never subtracted
+    one from another by the error estimator (a variance's moments, and the mean it
+    subtracts)."""
 
     widths: tuple[tuple[str, int], ...]
+    half: tuple[str, ...] = ()
 
     @property
     def names(self) -> tuple[str, ...]:

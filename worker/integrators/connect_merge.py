@@ -78,7 +78,10 @@ class ConnectMerge(Integrator):
     @property
     def sums(self) -> SumLayout:
         errors = (("Y2", 1), ("H", 1)) + ((("Mh", 1), ("Mh2", 1)) if self.merges else ())
-        return SumLayout((("C", 3),) + (errors if self.settings.error_estimation else ()))
+        if not self.settings.error_estimation:
+            return SumLayout((("C", 3),), half=("C",))
+        # C is also the mean the variance subtracts (Y2 - i lum^2): float32 in a delta then.
+        return SumLayout((("C", 3),) + errors, half=("H",))
 
     @property
     def state_widths(self) -> dict[str, int]:

@@ -32,13 +32,17 @@ from worker.stats import Accumulators
 # pass's Ld sample (its variance enters the error bound).
 PHOTON_SUMS = (("S", 3), ("D", 1), ("M", 1), ("Ld", 3), ("H", 1))
 BATCH_ONLY = ("M",)
+# The photon sums are only added into the image and the radius rule: a batch sends them in
+# half precision (worker/store/tiles.py). The error estimator's subtract one another
+# (X2 - X1^2 / i, Dh2 - Dh^2 / i, ...) and go as float32.
+HALF_SUMS = tuple(name for name, _ in PHOTON_SUMS)
 ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1), ("Dh", 1), ("Dh2", 1))
 NEE_ERROR_SUMS = (("Ld2", 1),)
 
 
 def sum_layout(error_estimation: bool, direct: str = "photons") -> SumLayout:
     errors = ERROR_SUMS + (NEE_ERROR_SUMS if direct == "nee" else ())
-    return SumLayout(PHOTON_SUMS + (errors if error_estimation else ()))
+    return SumLayout(PHOTON_SUMS + (errors if error_estimation else ()), half=HALF_SUMS)
 
 
 @dataclass(frozen=True)

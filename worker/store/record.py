@@ -497,7 +497,7 @@ class Jobs:
             return outcome
         # Push.
         tiling = self.tiling(record)
-        self.tiles.push(batch.job_id, tiling, batch.id, delta)
+        self.tiles.push(batch.job_id, tiling, batch.id, delta, record.integrator.sums.half)
         # Accept.
         outcome, final = self.accept(batch, delta, seconds, seconds if wall_seconds is None else wall_seconds,
                                      cpu_seconds)

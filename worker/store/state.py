@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
@@ -256,8 +256,9 @@ class TiledState:
         return read(whole=False)
 
     # ------------------------------------------------------------------- push
-    def push(self, job_id: str, tiling: Tiling, batch_id: str, delta: Delta) -> None:
-        self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k)))
+    def push(self, job_id: str, tiling: Tiling, batch_id: str, delta: Delta, half: Collection[str] = ()) -> None:
+        """Push a batch's delta, the sums named in `half` in half precision (SumLayout.half)."""
+        self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k), half))
 
     def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str, payload: Callable[[int], bytes]) -> None:
         """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash,
