@@ -153,7 +153,8 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             "fold_wall_seconds": mean(lambda x: x["fold_wall_seconds"]),
             "fold_cpu_seconds": mean(lambda x: x["fold_cpu_seconds"]),
             "redis_cpu_seconds": mean(lambda x: x["redis_cpu_seconds"]),
-            "stages": {k: mean(lambda x, k=k: x["stages"][k]) for k in later[0]["stages"]},
+            "stages": {k: mean(lambda x, k=k: x["stages"].get(k, 0.0))  # (a round may write no state)
+                       for k in dict.fromkeys(k for x in later for k in x["stages"])},
             "image_read": {k: mean(lambda x, k=k: x["image_read"][k]) for k in later[0]["image_read"]},
             "estimate_parts": {k: mean(lambda x, k=k: x["estimate_parts"][k]) for k in later[0]["estimate_parts"]}}
     later = per_round[1:] or per_round

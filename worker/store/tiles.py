@@ -247,8 +247,10 @@ def decode_delta(payload: bytes, widths: dict[str, int], n: int) -> dict[str, np
     for name, dtype, exponent in sent:
         width = widths[name]
         part = np.frombuffer(payload, dtype, n * width, at)
-        if dtype == HALF_DTYPE:
-            part = np.multiply(part, math.ldexp(1.0, -exponent), dtype=np.float64)
+        if dtype == HALF_DTYPE:  # _round_half backwards: the float32 it rounded, less its 13 dropped bits
+            bits = part.view(np.uint16).astype(np.uint32)
+            bits <<= 13
+            part = np.multiply(bits.view(np.float32), math.ldexp(1.0, 112 - exponent), dtype=np.float64)
         out[name] = part.reshape(n, width) if width > 1 else part
         at += dtype.itemsize * n * width
     return out
