@@ -32,6 +32,15 @@ def _sums(widths: dict[str, int], n: int, seed: int) -> dict[str, np.ndarray]:
     return {name: rng.uniform(0.5, 1.5, (n, w) if w > 1 else n) for name, w in widths.items()}
 
 
+def _running_job(redis_url: str) -> tuple[Jobs, str]:
+    """A running job of W x H pixels in TILE-pixel tiles on the test's Redis, its setup written."""
+    store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
+    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
+    store.init_setup(store.get(job_id), {"R0": np.full(W * H, 0.05)})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
+    return store, job_id
+
+
 def _foreign(sums: dict[str, np.ndarray], span: slice, header: object, dtype: str) -> bytes:
     """A tile's delta as another version would send it: `header`, then the arrays in `dtype`."""
     head = json.dumps(header).encode()
@@ -92,13 +101,9 @@ def test_half_sums_travel_as_scaled_float16_within_its_roundoff() -> None:
 ])
 def test_a_delta_of_another_version_fails_its_job_cleanly(redis_url: str, header: object, dtype: str,
                                                            named: str) -> None:
-    store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
-    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
+    store, job_id = _running_job(redis_url)
     record = store.get(job_id)
-    n, widths = W * H, dict(record.integrator.sums.widths)
-    store.init_setup(record, {"R0": np.full(n, 0.05)})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-    tiling = store.tiling(record)
+    n, widths, tiling = W * H, dict(record.integrator.sums.widths), store.tiling(record)
     good = [Delta(2 * b, 2, 4096, _sums(widths, n, b)) for b in range(2)]
     for d in good:
         assert store.merge(Batch(job_id, d.first_pass, 2), d, 0.01) == "merged"
@@ -129,13 +134,9 @@ def test_a_delta_of_another_version_fails_its_job_cleanly(redis_url: str, header
 def test_a_delta_of_the_version_before_float16_folds(redis_url: str) -> None:
     """One dtype named for every array, float32: a job that a rolling upgrade catches
     between its batches folds them all."""
-    store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
-    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
+    store, job_id = _running_job(redis_url)
     record = store.get(job_id)
-    n, widths = W * H, dict(record.integrator.sums.widths)
-    store.init_setup(record, {"R0": np.full(n, 0.05)})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-    tiling = store.tiling(record)
+    n, widths, tiling = W * H, dict(record.integrator.sums.widths), store.tiling(record)
     new, old = Delta(0, 2, 4096, _sums(widths, n, 1)), Batch(job_id, 2, 2)
     assert store.merge(Batch(job_id, 0, 2), new, 0.01) == "merged"
     sums = _sums(widths, n, 2)
