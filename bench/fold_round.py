@@ -15,7 +15,9 @@ Redis, the later ones from the folder's tile cache, as in the API; Redis's CPU m
 when its append-only-file rewrites land, so take the mean of several rounds): the folder's CPU seconds per stage of
 `TiledState.fold_round` (read state, read and merge deltas, inputs, estimate, write), the
 rest of `Jobs.fold` (lease, record, accounting), Redis's CPU seconds over the round
-(its append-only-file rewrites included), and, on the folded state, what an image read
+(its append-only-file rewrites included), a batch's merge before the round (the pushing
+process's CPU seconds, as a worker's: encoding, sending, accepting; and Redis's), and, on
+the folded state, what an image read
 costs (`Jobs.state` from the cache and `Integrator.image`) and the error estimate's
 parts (radius, bias estimate, discontinuity bias, never-lit bound, the whole estimate).
 CPU seconds, not wall time: the machine is shared and load moves CPU time little.
@@ -95,11 +97,15 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
         rng = np.random.default_rng(14)
         per_round = []
         for r in range(rounds):
+            push_cpu = push_redis_cpu = 0.0  # the batches' merges (a worker's push and accept)
             for b in range(batches):
                 first = (r * batches + b) * PASSES_PER_BATCH
                 sums = synthetic_delta(widths, w, h, PASSES_PER_BATCH, rng)
                 delta = Delta(first, PASSES_PER_BATCH, EMITTED_PER_PASS * PASSES_PER_BATCH, sums)
+                redis_before, cpu_before = cpu_seconds([server.proc.pid]), time.process_time()
                 assert store.merge(Batch(job_id, first, PASSES_PER_BATCH), delta, 1.0) == "merged"
+                push_cpu += time.process_time() - cpu_before
+                push_redis_cpu += cpu_seconds([server.proc.pid]) - redis_before
             del sums, delta
             redis_before, cpu_before, wall_before = cpu_seconds([server.proc.pid]), time.process_time(), time.perf_counter()
             folded = store.fold(job_id, checkpoint=(r + 1) % checkpoint_every == 0)
@@ -131,13 +137,15 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             per_round.append({
                 "round": r, "batches": batches, "checkpoint": folded.checkpointed, "fold_cpu_seconds": fold_cpu, "redis_cpu_seconds": redis_cpu,
                 "fold_wall_seconds": fold_wall,
+                "merge_cpu_seconds": push_cpu / batches, "merge_redis_cpu_seconds": push_redis_cpu / batches,
                 "stages": stages, "error": folded.error,
                 "image_read": {"state from cache": read_cpu, "image": image_cpu},
                 "estimate_parts": {"radius": radius_cpu, "bias estimate": bias_cpu,
                                    "discontinuity bias": edge_cpu, "never-lit bound": unlit_cpu,
                                    "whole estimate": estimate_cpu}})
             print(f"{w}x{h} round {r} ({'checkpoint' if folded.checkpointed else 'memory'}): {fold_wall:.2f} s, "
-                  f"folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s, "
+                  f"folder {fold_cpu:.2f} CPU s, redis {redis_cpu:.2f} CPU s; a batch's merge: worker "
+                  f"{push_cpu / batches:.2f} CPU s, redis {push_redis_cpu / batches:.2f} CPU s; "
                   + ", ".join(f"{k} {v:.3f}" for k, v in stages.items()), flush=True)
             # Nothing here holds the folded state into the next round, as in the API between
             # reads: the round then adds to the overlay's state in place (worker/store/overlay.py).
@@ -153,6 +161,8 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             "fold_wall_seconds": mean(lambda x: x["fold_wall_seconds"]),
             "fold_cpu_seconds": mean(lambda x: x["fold_cpu_seconds"]),
             "redis_cpu_seconds": mean(lambda x: x["redis_cpu_seconds"]),
+            "merge_cpu_seconds": mean(lambda x: x["merge_cpu_seconds"]),
+            "merge_redis_cpu_seconds": mean(lambda x: x["merge_redis_cpu_seconds"]),
             "stages": {k: mean(lambda x, k=k: x["stages"].get(k, 0.0))  # (a round may write no state)
                        for k in dict.fromkeys(k for x in later for k in x["stages"])},
             "image_read": {k: mean(lambda x, k=k: x["image_read"][k]) for k in later[0]["image_read"]},
@@ -188,7 +198,8 @@ def main() -> None:
             for kind, s in [("all", report["mean_after_first"]), *report["mean_after_first_by_kind"].items()]:
                 print(f"{w}x{h}, {kind} rounds after the first ({s['rounds']}): {s['fold_wall_seconds']:.2f} s, "
                       f"folder {s['fold_cpu_seconds']:.2f} "
-                      f"CPU s, redis {s['redis_cpu_seconds']:.2f} CPU s", flush=True)
+                      f"CPU s, redis {s['redis_cpu_seconds']:.2f} CPU s; a batch's merge: worker "
+                      f"{s['merge_cpu_seconds']:.2f} CPU s, redis {s['merge_redis_cpu_seconds']:.2f} CPU s", flush=True)
                 for group in ("stages", "image_read", "estimate_parts"):
                     print(f"  {group}: " + ", ".join(f"{k} {v:.3f}" for k, v in s[group].items()), flush=True)
     write_json(args.name, {"batches_per_round": args.batches, "passes_per_batch": PASSES_PER_BATCH,
