@@ -5,15 +5,15 @@ as float16 scaled per tile by a power of two (worker/store/tiles.py), and folded
 float64 sums, so:
 - the folded sums are the sums of the deltas as sent, within 1e-12 (the fold adds exactly);
 - against the exact sums of the passes, every folded sum is off by at most its dtype's unit
-  roundoff (2^-24 for float32, 2^-11 + 2^-23 for float16) of the sum of its batches' magnitudes
-  (each batch rounded once; float16 also by its subnormals' step, 2^-39 of a batch's largest
-  value), after 10^4 passes as after one: no drift. float32 *storage* of the same stream
-  drifts more than 16 times the float32 bound (checked here, so the test could tell the
-  two apart);
-- the image (sums of non-negative terms) is within float16's roundoff, relative (and that step); the
-  per-pixel variance (X2 - X1^2 / n, which cancels to 1e-3 of X2; float32 sums) stays within
-  its first-order rounding bound, far below the variance estimate's own statistical error
-  (sqrt(2 / (n - 1)) = 1.4%)."""
+  roundoff (2^-24 for float32, 2^-11 + 2^-23 for float16) of the sum of its batches'
+  magnitudes (each batch rounded once; float16 also by its subnormals' step, 2^-39 of a
+  batch's largest value), after 10^4 passes as after one: no drift. float32 *storage* of
+  the same stream drifts more than 16 times the float32 bound (checked here, so the test
+  could tell the two apart);
+- the image (sums of non-negative terms) is within float16's roundoff, relative (and that
+  step); the per-pixel variance (X2 - X1^2 / n, which cancels to 1e-3 of X2; float32 sums)
+  stays within its first-order rounding bound, far below the variance estimate's own
+  statistical error (sqrt(2 / (n - 1)) = 1.4%)."""
 
 from __future__ import annotations
 

@@ -28,24 +28,24 @@ in place (aligned, no copy); an encoding is written once into one buffer (a stat
 sent straight from the folder's array, no copy).
 
 Why a delta may be float32 or float16 while the state stays float64: a batch's sums are
-rounded when sent, to nearest (float16: to float32, then to float16), so each folded sum is
-off by at most the unit roundoff (2^-24 = 6e-8 in float32, 2^-11 + 2^-23 = 4.9e-4 in
-float16) of the sum of its batches' magnitudes,
-however many batches are folded (no drift: the folder adds them in float64), and the same
-batch always sends the same bytes. What would drift is float32 *storage* of the running
-sums, whose error grows with the number of additions (api_tests/test_state_precision.py
-shows both). float16's 4.9e-4 is far below a batch's own Monte Carlo noise in an image or
-a radius; it is not below the difference of the error estimator's moments (the variance
-X2 - X1^2 / i of per-pass samples that vary by a few percent cancels to 1e-3 of X2), so
-those sums, and any mean a variance subtracts, go as float32 (SumLayout.half names the
-rest; they are non-negative: a tile's array with a negative value goes as float32). A
-float16 array is scaled by a power of two (exact) so that its largest value over the tile
-sits just below float16's largest power of two, 2^15: no sum overflows, and a value down to
-2^-28 of that largest keeps float16's 11 bits (below it, float16's subnormals: off by at
-most 2^-39 (1 + 2^-13) of the largest). A 3840x2160 SPPM delta with error estimation: 42
-bytes a pixel rather than 60; without, 18 rather than 36. Fewer bytes go over the network,
-through the state node (in, out, and through its checkpoints, which keep the pending
-deltas within half the state's bytes) and through the folder.
+rounded when sent, to nearest (float16: to float32, then to float16), so each folded sum
+is off by at most the unit roundoff (2^-24 = 6e-8 in float32, 2^-11 + 2^-23 = 4.9e-4 in
+float16) of the sum of its batches' magnitudes, however many batches are folded (no drift:
+the folder adds them in float64), and the same batch always sends the same bytes. What
+would drift is float32 *storage* of the running sums, whose error grows with the number of
+additions (api_tests/test_state_precision.py shows both). float16's 4.9e-4 is far below a
+batch's own Monte Carlo noise in an image or a radius; it is not below the difference of
+the error estimator's moments (the variance X2 - X1^2 / i of per-pass samples that vary by
+a few percent cancels to 1e-3 of X2), so those sums, and any mean a variance subtracts, go
+as float32 (SumLayout.half names the rest; they are non-negative: a tile's array with a
+negative value goes as float32). A float16 array is scaled by a power of two (exact) so
+that its largest value over the tile sits just below float16's largest power of two, 2^15:
+no sum overflows, and a value down to 2^-28 of that largest keeps float16's 11 bits (below
+it, float16's subnormals: off by at most 2^-39 (1 + 2^-13) of the largest). An SPPM delta
+with error estimation takes 42 bytes a pixel rather than 60; without, 18 rather than 36.
+Fewer bytes go over the network, through the state node (in, out, and through its
+checkpoints, which keep the pending deltas within half the state's bytes) and through the
+folder.
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ INPUTS_DTYPE = np.dtype("<f4")  # what the kernels read
 
 
 class Part(NamedTuple):
-    """An array as an encoding holds it: in `dtype`, float16 times 2^`exponent`."""
+    """An array as an encoding holds it: in `dtype` (a float16 part: the array times 2^`exponent`)."""
 
     array: np.ndarray
     dtype: np.dtype
