@@ -59,6 +59,11 @@ def test_a_delta_names_its_dtypes() -> None:
         decode_delta(payload.replace(b'"<f4"', b'"<f8"'), {"S": 3, "D": 1, "X1": 1}, 4)
     with pytest.raises(DeltaFormatError, match="does not"):
         decode_delta(payload, {"S": 3, "D": 1}, 4)  # an array this version's state lacks
+    # A float16 scale beyond what an encoder writes (2^1028 to read back): refused, not an overflow.
+    halves = bytes(encode_delta(sums, slice(0, 4), half=("S",)))
+    assert b'"exponents": [0, 14]' in halves
+    with pytest.raises(DeltaFormatError, match="scale"):
+        decode_delta(halves.replace(b"[0, 14]", b"[0, -916]"), {"S": 3, "D": 1, "X1": 1}, 4)
 
 
 def test_half_sums_travel_as_scaled_float16_within_its_roundoff() -> None:

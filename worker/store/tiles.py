@@ -109,6 +109,7 @@ DELTA_DTYPE = np.dtype("<f4")  # a batch's sums as sent (the module docstring sa
 HALF_DTYPE = np.dtype("<f2")  # ... but those a layout names `half`, ...
 HALF_TOP = 15  # ... scaled by 2^e so that their largest magnitude over the tile is below 2^HALF_TOP
 HALF_RANGE = 900  # (a largest magnitude beyond 2^+-HALF_RANGE goes as float32: e stays well within float64's range)
+HALF_EXPONENTS = range(HALF_TOP - HALF_RANGE, HALF_TOP + HALF_RANGE)  # the e a delta may hold (float32: 0)
 DELTA_DTYPES = {dtype.str: dtype for dtype in (DELTA_DTYPE, HALF_DTYPE)}
 STATE_DTYPE = np.dtype("<f8")
 INPUTS_DTYPE = np.dtype("<f4")  # what the kernels read
@@ -230,7 +231,7 @@ def delta_arrays(payload: bytes) -> list[tuple[str, np.dtype, int]]:
                                f"(a worker of another photonfarm version?)")
     exponents = header.get("exponents")
     if not (isinstance(exponents, list) and len(exponents) == len(arrays) == len(dtypes)
-            and all(isinstance(e, int) and abs(e) <= HALF_TOP + HALF_RANGE + 1 for e in exponents)):
+            and all(isinstance(e, int) and e in HALF_EXPONENTS for e in exponents)):
         raise DeltaFormatError("its delta's header does not give a scale for each array it names "
                                "(a worker of another photonfarm version?)")
     return [(name, DELTA_DTYPES[d], e) for name, d, e in zip(arrays, dtypes, exponents)]
