@@ -1,8 +1,9 @@
 """Paced fold rounds on the real store (worker/store/record.py, Jobs.fold; the rule:
-policy.paced_batches). Two batches accepted together while the job's next batch is due far
-off: a regular round shows the lower passes, the next round the rest, so the image changes
-twice; with the next batch due soon, or in a checkpoint round, one round takes both. The
-totals are exact either way. Real Redis, real store."""
+policy.paced_batches). Two batches accepted together while the job's next batch is in
+flight, due far off, soon or overdue (it may come late): a regular round shows the lower
+passes, the next round the rest, so the image changes twice; with nothing in flight, or in
+a checkpoint round, one round takes both. The totals are exact either way. Real Redis, real
+store."""
 
 from __future__ import annotations
 
@@ -28,9 +29,9 @@ def store(redis_url: str) -> Jobs:
     return Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
 
 
-def _job_with_two_batches_waiting(store: Jobs, next_due_in: float) -> tuple[str, list[Delta]]:
+def _job_with_two_batches_waiting(store: Jobs, next_due_in: float | None) -> tuple[str, list[Delta]]:
     """A running job with batches 0+2 and 2+2 accepted and not folded, and batch 4+2 in
-    flight, due `next_due_in` seconds from now."""
+    flight, due `next_due_in` seconds from now (None: nothing in flight)."""
     job_id = store.create({}, Settings(max_passes=1000), W, H, None)
     record = store.get(job_id)
     n, widths = W * H, dict(record.integrator.sums.widths)
@@ -41,9 +42,10 @@ def _job_with_two_batches_waiting(store: Jobs, next_due_in: float) -> tuple[str,
                                         for name, w in widths.items()}) for b in range(2)]
     for d in deltas:
         assert store.merge(Batch(job_id, d.first_pass, 2), d, 0.01) == "merged"
-    pipe = store.r.pipeline()
-    Leases.register(pipe, Batch(job_id, 4, 2), time.time() + next_due_in)
-    pipe.execute()
+    if next_due_in is not None:
+        pipe = store.r.pipeline()
+        Leases.register(pipe, Batch(job_id, 4, 2), time.time() + next_due_in)
+        pipe.execute()
     return job_id, deltas
 
 
@@ -53,8 +55,10 @@ def _sum_of(store: Jobs, job_id: str, deltas: list[Delta]) -> np.ndarray:
     return sum(as_sent(d.sums, store.tiling(record), record.integrator.sums.half)["S"] for d in deltas)
 
 
-def test_batches_that_came_together_show_over_two_rounds_when_the_next_is_far(store: Jobs) -> None:
-    job_id, deltas = _job_with_two_batches_waiting(store, next_due_in=60.0)
+@pytest.mark.parametrize("next_due_in", [60.0, 1.0, -5.0])
+def test_batches_that_came_together_show_over_two_rounds_while_one_is_in_flight(store: Jobs,
+                                                                                next_due_in: float) -> None:
+    job_id, deltas = _job_with_two_batches_waiting(store, next_due_in)
     first = store.fold(job_id)
     assert first is not None and first.state.passes == 2 and store.get(job_id).image_passes == 2
     np.testing.assert_allclose(first.state.S, _sum_of(store, job_id, deltas[:1]), rtol=1e-12)  # the lower passes first
@@ -66,9 +70,9 @@ def test_batches_that_came_together_show_over_two_rounds_when_the_next_is_far(st
     assert [(r.batches, r.rebuilt) for r in store.get(job_id).fold_rounds] == [(1, True), (1, False)]
 
 
-@pytest.mark.parametrize("next_due_in, checkpoint", [(1.0, False), (60.0, True)])
-def test_one_round_takes_both_when_the_next_is_near_or_at_a_checkpoint(store: Jobs, next_due_in: float,
-                                                                       checkpoint: bool) -> None:
+@pytest.mark.parametrize("next_due_in, checkpoint", [(None, False), (60.0, True)])
+def test_one_round_takes_both_with_nothing_in_flight_or_at_a_checkpoint(store: Jobs, next_due_in: float | None,
+                                                                        checkpoint: bool) -> None:
     job_id, deltas = _job_with_two_batches_waiting(store, next_due_in)
     folded = store.fold(job_id, checkpoint=checkpoint)
     assert folded is not None and folded.state.passes == 4 and store.get(job_id).image_passes == 4

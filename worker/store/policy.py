@@ -62,6 +62,13 @@ ROUND_MARGIN = 2.0  # ... with this many times the most one of them ran over the
 # A job's batches are delivered at most this far apart (batch_passes): an image change
 # follows each by the folder's next look and its round.
 DELIVERY_SECONDS = REFRESH_SECONDS - FOLD_POLL_SECONDS
+# ... even when their passes and merges run this much slower than the recent ones the next
+# batch is sized by: the workers share their machine (here with the API and Redis), and
+# two workers' 3840x2160 passes took 40-45% longer while Redis rewrote its append-only file
+# (bench/RESULTS.md, the 4K refresh). Batches planned to deliver exactly DELIVERY_SECONDS
+# apart had no room for that: no batch was accepted for 19-22 s, and the image waited 13-16 s.
+PASS_SLACK = 0.5
+PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries as planned at the recent pace
 # A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes
 # tiles of the state (a checkpoint of those tiles) so that the deltas it keeps pending on
 # the state nodes stay within CHECKPOINT_PENDING_SHARE of the state's bytes: each round the
@@ -96,8 +103,9 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     worker's time, and that the job's workers together keep its merge path busy at most
     MERGE_PATH_SHARE of the time, as far as the refresh allows: the refresh is a budget,
     the merge share a cost, so the job's workers together still deliver a batch every
-    REFRESH_SECONDS, each batch's merge included (a job whose merge alone is long pays a
-    larger share for that).
+    DELIVERY_SECONDS, each batch's merge included, even with their passes and merges
+    PASS_SLACK slower than the recent ones (a job whose merge alone is long pays a larger
+    share for that; at 3840x2160 on two workers, a batch is one pass).
     Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
     plus one pass) and its passes (`passes_left`, shared with the workers of the job's other
     in-flight batches so that all end together rather than one worker rendering the tail
@@ -112,20 +120,26 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
 
     The refresh assumes the workers' deliveries spread over the interval; workers that
     start together would deliver in pairs, and the image would wait twice as long between
-    pairs. So a batch is delivered (merge included) at most DELIVERY_SECONDS after the last
-    of the job's other in-flight batches due before it (`others_due`: seconds from now to
-    their expected deliveries), or after now: batches allocated together end one after
-    another, and workers in step fall out of step."""
+    pairs. So a batch is delivered (merge included) at most PLANNED_DELIVERY_SECONDS after
+    the last of the job's other in-flight batches due before it (`others_due`: seconds from
+    now to their expected deliveries), or after now: batches allocated together end one
+    after another, and workers in step fall out of step. Where whole passes cannot put them
+    out of step (a pass near the refresh), the folder's pacing shows their batches one
+    round at a time (paced_batches), which needs the deliveries' rate the slack keeps."""
     workers, n = max(1, workers), 1
     if pass_seconds > 0.0:
-        refresh = max(pass_seconds, workers * REFRESH_SECONDS - mean_merge_seconds)
+        # The bounds, in seconds at the recent pace: the refresh (planned deliveries, which
+        # leave room for passes PASS_SLACK slower), the cost (the merge shares), the budget.
+        refresh = max(pass_seconds, workers * PLANNED_DELIVERY_SECONDS - mean_merge_seconds)
         cost = max((mean_merge_seconds + fold_seconds) / MERGE_SHARE, workers * mean_merge_seconds / MERGE_PATH_SHARE)
         target = max(BATCH_TARGET_SECONDS, min(cost, refresh))
         if seconds_left is not None:
             target = min(target, seconds_left)
+        # Passes: the target's nearest count, but never past the refresh, nor past a delivery
+        # PLANNED_DELIVERY_SECONDS after the last of the others due before this one.
         last = max((due for due in others_due if due < target + mean_merge_seconds), default=0.0)
-        stagger = math.floor((max(0.0, last) + DELIVERY_SECONDS - mean_merge_seconds) / pass_seconds)
-        n = max(1, min(round(target / pass_seconds), stagger))
+        stagger = math.floor((max(0.0, last) + PLANNED_DELIVERY_SECONDS - mean_merge_seconds) / pass_seconds)
+        n = max(1, min(round(target / pass_seconds), math.floor(refresh / pass_seconds), stagger))
     if passes_left is not None:
         n = min(n, tail_share(passes_left, pass_seconds, workers, others_due))
     return n
@@ -276,19 +290,23 @@ def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
 # took longer than the refresh on one core: two workers in step delivered in pairs 15-20 s
 # apart). A round that folds a pair shows both at once and then nothing until the next pair;
 # rounds that fold them one at a time (fold_interval apart) show a new image each round
-# instead. Pacing applies only when folding everything now would leave the image unchanged
-# for longer than DELIVERY_SECONDS (batches that arrive often enough, from many workers or
-# short passes, are all folded at once), and not with nothing in flight or a delivery overdue.
+# instead. Pacing spreads the waiting batches over the rounds that fit before the next
+# delivery (batches that arrive often enough, from many workers or short passes, are all
+# folded at once), and while a batch is in flight a round keeps one back: the next delivery
+# may come PASS_SLACK late (its batch's whole length later, not the time left to its due),
+# and a round that folded everything then had nothing new to show (the deliveries of two
+# workers in step, a 3840x2160 pass each, 50% slower than planned: gaps of 12.5-13 s
+# in tests/test_batch_policy.py). The batch held back shows one round later.
 def paced_batches(waiting: int, next_delivery: float | None, round_length: float) -> int:
     """How many of the `waiting` batches new to the image a regular fold round takes in
     (the oldest first; the rest wait for the next rounds), given when the job's next batch
-    is due (`next_delivery`, seconds from now; None with none in flight) and the round's
-    expected length: an even share of the rounds, DELIVERY_SECONDS apart, that fit before
-    the next delivery's."""
-    if next_delivery is None or next_delivery <= 0.0:
+    is due (`next_delivery`, seconds from now, overdue below 0; None with none in flight)
+    and the round's expected length: an even share of the rounds, DELIVERY_SECONDS apart,
+    that fit before the next delivery's, and all but one while a batch is in flight."""
+    if next_delivery is None:
         return waiting
-    rounds = max(1, min(waiting, math.ceil((next_delivery + round_length) / DELIVERY_SECONDS)))
-    return -(-waiting // rounds)
+    rounds = max(1, min(waiting, math.ceil((max(0.0, next_delivery) + round_length) / DELIVERY_SECONDS)))
+    return max(1, min(-(-waiting // rounds), waiting - 1))
 
 
 def checkpoint_tiles(oldest_seconds: float, pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
