@@ -523,6 +523,41 @@ def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_sam
     _assert_folded_once(store, job_id, made)
 
 
+def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
+        servers: list[EmbeddedRedis], deltas: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A regular round writes the tiles policy.checkpoint_required asks for whatever the
+    time, and the other tiles it chose only until the next round is due
+    (policy.checkpoint_seconds; here at once): the rest keep their deltas pending, the
+    overlay goes on with them, and a later round writes them. Each batch counts once, and
+    the tiles read back the overlay's state."""
+    store, job_id, made = _fresh_job(servers, deltas, 2)
+    tiles = [4, 1, 5, 0, 3, 2]  # the order the round writes them in
+    monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: list(tiles))
+    monkeypatch.setattr(policy, "checkpoint_required", lambda order, *args: list(order)[:2])
+    monkeypatch.setattr(policy, "checkpoint_seconds", lambda *args: 0.0)
+    _merge(store, job_id, made[0])
+    folded = store.fold(job_id)
+    assert folded is not None and not folded.checkpointed
+    record = store.get(job_id)
+    tiling = store.tiling(record)
+
+    def versions() -> list[int]:
+        return [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
+                for k in range(tiling.count)]
+
+    assert versions() == [0, 1, 0, 0, 1, 0]  # tiles 4 and 1 only
+    assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 1
+    # The next round, with time to write, writes the tiles that lack a batch: all of them.
+    monkeypatch.setattr(policy, "checkpoint_seconds", lambda *args: 60.0)
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id)
+    assert folded is not None and folded.checkpointed and versions() == [1, 2, 1, 1, 2, 1]
+    overlay_module.OVERLAYS.drop(job_id)
+    _assert_same_state(store.state(store.get(job_id)), folded.state)
+    monkeypatch.undo()
+    _assert_folded_once(store, job_id, made)
+
+
 def _assert_same_state(got: State, want: State) -> None:
     assert (got.passes, got.emitted, got.counters) == (want.passes, want.emitted, want.counters)
     for name, a in want.arrays().items():

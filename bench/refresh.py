@@ -9,7 +9,8 @@ changes if it folded new passes), length (`fold_seconds`) and whether it rebuilt
 from the tiles (no overlay in the folder's memory: a job's first round, or one after another
 process's checkpoint; policy.Round) are noted. Reported: the
 intervals between image changes from the first image to the job's end (largest, median), the rounds' lengths, when
-each batch was accepted and when a Redis server rewrote its append-only file (to a sample), and
+each batch was accepted, each round's whole cost (its checkpoint writes after the image
+included) and when a Redis server rewrote its append-only file (to a sample), and
 the API's (folder) and Redis's CPU seconds per round (every redis-server's: with
 `--shards N` the job's state lies on N more servers, PHOTONFARM_STATE_URLS). Wall time on
 a shared machine: the load average before and after is in the report.
@@ -77,6 +78,10 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
                     rounds.append({"end": record.folded_at, "seconds": record.fold_seconds,
                                    "passes": record.image_passes,
                                    "rebuilt": bool(record.fold_rounds and record.fold_rounds[-1].rebuilt)})
+                if rounds and record.folded_at == rounds[-1]["end"]:
+                    # Its whole length, checkpoint writes included (noted after its image);
+                    # the folder starts no other round before that ends.
+                    rounds[-1]["cost"] = record.round_cost
                 if record.status in FINAL:
                     break
                 time.sleep(SAMPLE_SECONDS)

@@ -10,10 +10,11 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_PENDING_SHARE, CHECKPOINT_SECONDS,
+from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_HELD_SHARE, CHECKPOINT_PENDING_SHARE,
+                                 CHECKPOINT_SECONDS,
                                  DELIVERY_SECONDS, FOLD_POLL_SECONDS, FOLD_STALE_SECONDS, MERGE_PATH_SHARE,
                                  MERGE_SHARE, PASS_SLACK, REFRESH_SECONDS, FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes,
-                                 checkpoint_tiles, fold_interval, image_due, _tail_end, paced_batches,
+                                 checkpoint_required, checkpoint_seconds, checkpoint_tiles, fold_interval, image_due, _tail_end, paced_batches,
                                  recent_pass_seconds, round_seconds, tail_share)
 
 
@@ -369,3 +370,18 @@ def test_a_worker_takes_the_api_to_be_behind_only_after_the_image_it_plans(fold_
     if fold_cost >= 4.0:  # 3840x2160: the old bound, stale-fold slack included, fell short of a paced round's image
         assert fold_interval(fold_cost) + FOLD_STALE_SECONDS < \
             fold_seconds + fold_interval(fold_cost, 0.5 * fold_cost) + 0.5 * fold_cost
+
+
+def test_a_round_writes_past_the_next_rounds_start_only_what_memory_asks() -> None:
+    """checkpoint_required: the first of a round's tiles, in its order, that bring the pending
+    deltas within CHECKPOINT_HELD_SHARE of the state's bytes (none when they are); the rest
+    of its writes end when the next round must start for its image to come DELIVERY_SECONDS
+    after this one's (checkpoint_seconds, as fold_interval)."""
+    state = {k: 100 for k in range(4)}
+    cap = CHECKPOINT_HELD_SHARE * 400
+    assert checkpoint_required([3, 1, 0, 2], {k: cap / 4 for k in range(4)}, state) == []
+    over = {0: cap / 2, 1: cap / 2, 2: cap / 4, 3: cap / 4}  # 1.5 times the cap
+    assert checkpoint_required([2, 0, 1, 3], over, state) == [2, 0]
+    assert checkpoint_required([0, 2, 1, 3], over, state) == [0]
+    assert checkpoint_seconds(2.0) == fold_interval(30.0, 2.0) == DELIVERY_SECONDS - 2.0
+    assert checkpoint_seconds(20.0) == 0.0

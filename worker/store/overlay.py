@@ -47,12 +47,15 @@ class Overlay:
     pending: dict[int, int]  # per tile, the bytes of those deltas it still holds
     folded_at: dict[str, float]  # per batch of them, time.monotonic() when it was folded here
 
+    def state_bytes(self, tiling: Tiling) -> dict[int, int]:
+        """Each tile's bytes of the state."""
+        per_pixel = sum(a.nbytes // len(a) for a in self.state.arrays().values())
+        return {k: per_pixel * (tiling.span(k).stop - tiling.span(k).start) for k in range(tiling.count)}
+
     def checkpoint_tiles(self, tiling: Tiling) -> list[int]:
         """The tiles a round that made this overlay writes (policy.checkpoint_tiles)."""
-        per_pixel = sum(a.nbytes // len(a) for a in self.state.arrays().values())
-        state_bytes = {k: per_pixel * (tiling.span(k).stop - tiling.span(k).start) for k in range(tiling.count)}
         oldest = min(self.folded_at.values(), default=time.monotonic())
-        return policy.checkpoint_tiles(time.monotonic() - oldest, self.pending, state_bytes)
+        return policy.checkpoint_tiles(time.monotonic() - oldest, self.pending, self.state_bytes(tiling))
 
     def copy_state(self, integrator: Integrator) -> State:
         """A state to add the next round to (this one stays as readers saw it)."""

@@ -77,6 +77,13 @@ PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries a
 # the job ends (at the next round that folds a new batch: a checkpoint alone changes no image).
 CHECKPOINT_SECONDS = 30.0
 CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (README, "Limits")
+# A regular round writes its tiles after its image only until the next round is due
+# (checkpoint_seconds); the rest wait for later rounds. A round whose writes ran on
+# delayed the next image: at 3840x2160 every tile after 30 s took 4-7 s beside two workers,
+# 12.7 s while Redis rewrote its append-only file, and the next round started that much
+# late. Past this share of the state's bytes in pending deltas (memory) a round writes
+# the tiles that bring them back within it whatever that takes (checkpoint_required).
+CHECKPOINT_HELD_SHARE = 1.0
 FOLD_STALE_SECONDS = 5.0
 # The batch that decides a job's end hands its final round to the API's folder, which holds
 # the image in memory (Jobs.end_if_decided); its worker, looking every END_HANDOFF_POLL_SECONDS,
@@ -227,9 +234,18 @@ def fold_interval(fold_seconds: float, next_seconds: float | None = None) -> flo
     small state; for a large one long
     enough that rounds take at most FOLD_SHARE of the time (more batches folded per round),
     but short enough that the next round starts (at the folder's next look) and ends within
-    REFRESH_SECONDS of the last one's end."""
+    REFRESH_SECONDS of the last one's end (`_start_by`)."""
     expected = fold_seconds if next_seconds is None else next_seconds
-    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, DELIVERY_SECONDS - expected))
+    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, _start_by(expected)))
+
+
+def _start_by(next_seconds: float) -> float:
+    """The latest, in seconds after a round's image, the next round starts for its image to
+    come DELIVERY_SECONDS after this one's, at its expected length (round_seconds, which has
+    a margin for a round longer than the last: ROUND_MARGIN). Not with PASS_SLACK: a round
+    started earlier shows its batches sooner, and the next one then has nothing to show
+    until a delivery comes (two workers in step, a batch each every 19 s: a gap of 11 s)."""
+    return DELIVERY_SECONDS - next_seconds
 
 
 def image_due(fold_seconds: float, fold_cost: float) -> float:
@@ -326,6 +342,26 @@ def checkpoint_tiles(oldest_seconds: float, pending: dict[int, int], state_bytes
         out.append(k)
         left -= pending[k]
     return out
+
+
+def checkpoint_required(tiles: Sequence[int], pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
+    """The first of a round's `tiles` (in the order it writes them: checkpoint_tiles) that
+    bring the deltas pending within CHECKPOINT_HELD_SHARE of the state's bytes: the round
+    writes these whatever the time, the rest until the next round is due."""
+    left, cap = sum(pending.values()), CHECKPOINT_HELD_SHARE * sum(state_bytes.values())
+    out = []
+    for k in tiles:
+        if left <= cap:
+            break
+        out.append(k)
+        left -= pending.get(k, 0)
+    return out
+
+
+def checkpoint_seconds(next_seconds: float) -> float:
+    """How long a regular round may write its tiles after its image: until the next round
+    must start (`_start_by`; `next_seconds`: its expected length, round_seconds)."""
+    return max(0.0, _start_by(next_seconds))
 
 
 def seconds_left(settings: Settings, elapsed: float) -> float | None:

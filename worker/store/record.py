@@ -658,11 +658,14 @@ class Jobs:
             # that are due (a checkpoint: the long part of a big frame's round) and count in
             # the record the batches every tile has now written. A forced checkpoint (a
             # worker's: it serves no image; the job's last) writes every tile and keeps no overlay.
+            rounds = (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
+                      )[-policy.ROUNDS_KEPT:]
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
-                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error},
-                (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
-                 )[-policy.ROUNDS_KEPT:], read_at)
+                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error}, rounds, read_at)
+            # A regular round's writes end when the next round is due (policy.checkpoint_seconds).
+            until = None if checkpoint else \
+                time.time() + policy.checkpoint_seconds(policy.round_seconds(rounds, max(1, len(fresh))) or rounds[-1][1])
             try:
                 folded = replace(folded, stages=folded.stages | self.tiles.write_inputs(job_id, tiling,
                                                                                         record.integrator))
@@ -673,7 +676,7 @@ class Jobs:
                 try:
                     with OVERLAYS.writing(job_id):  # a failed write drops the overlay
                         written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles,
-                                                                  keep=not checkpoint)
+                                                                  keep=not checkpoint, until=until)
                         if complete:
                             self.tiles.settle(job_id, complete)
                         if checkpoint:

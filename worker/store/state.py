@@ -41,7 +41,7 @@ from worker.host_threads import HOST_THREADS, each
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.stats import add_counts
-from worker.store import keys
+from worker.store import keys, policy
 from worker.store.overlay import OVERLAYS, Overlay
 from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, TornInputs, decode_delta,
                                 decode_inputs, decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
@@ -408,15 +408,19 @@ class TiledState:
 
     # ------------------------------------------------------------------- fold
     def _on_versions(self, node: int, job_id: str, versions: dict[int, int],
-                     queue: Callable[[redis.client.Pipeline, int], Any]) -> None:
+                     queue: Callable[[redis.client.Pipeline, int], Any], until: float | None = None) -> list[int]:
         """Write some of one node's tiles, TILES_PER_TRIP to a transaction: the commands
         `queue(pipe, k)` adds for each tile k, if every tile of the transaction is still at its
         version in `versions` (a WATCH on each); FoldContended if another folder wrote one
         first. A tile's commands always share one transaction. One transaction for a few tiles,
         not one each, because the node writes and fsyncs its append-only file once per
         transaction: a tile's 3 MB checkpoint alone took 11.4 s a GB there, four together 5.0
-        (bench/RESULTS.md, the 4K refresh)."""
+        (bench/RESULTS.md, the 4K refresh). No transaction starts after `until` (epoch
+        seconds). Returns the tiles written."""
+        written: list[int] = []
         for trip in _trips(list(versions)):
+            if until is not None and time.time() >= until:
+                break
             metas = {k: keys.tile(job_id, k, "meta") for k in trip}
             with self.nodes[node].pipeline() as pipe:
                 try:
@@ -430,6 +434,8 @@ class TiledState:
                     pipe.execute()
                 except redis.WatchError as exc:
                     raise FoldContended(f"tiles {list(metas)} were folded by another folder") from exc
+            written += trip
+        return written
 
     def fold_round(self, job_id: str, tiling: Tiling, integrator: Integrator, emitted: int, passes: int,
                    counters: dict[str, int], accepted: dict[str, dict[str, Any]],
@@ -517,14 +523,16 @@ class TiledState:
         return stages.seconds
 
     def checkpoint(self, job_id: str, tiling: Tiling, integrator: Integrator,
-                   tiles: list[int], keep: bool = True) -> tuple[Overlay, list[str]]:
+                   tiles: list[int], keep: bool = True, until: float | None = None) -> tuple[Overlay, list[str]]:
         """Write this process's overlay of the job (the round just made it) to those of
         `tiles` that lack some of its batches, each tile in one transaction on the version
         the overlay was built on: its state, its folded set, its pending entries gone, its
-        version bumped. Returns the overlay on the tiles' new versions (with the batches some
-        tile still lacks) and the batches every tile has now written (for the record to
-        count). Run inside OVERLAYS.writing (readers keep the overlay while the versions
-        move); raises FoldContended if another folder got to a tile first.
+        version bumped; with `until` (epoch seconds), those policy.checkpoint_required asks
+        for and then the others only until then (the rest stay pending for a later round).
+        Returns the overlay on the tiles' new versions (with the batches some tile still
+        lacks) and the batches every tile has now written (for the record to count). Run
+        inside OVERLAYS.writing (readers keep the overlay while the versions move); raises
+        FoldContended if another folder got to a tile first.
         The tile cache takes the state only from a checkpoint whose caller drops the overlay
         (`keep` False: a job's last round, a worker's), every tile at its new version: views
         of the arrays, which no round changes once the overlay is gone. A kept overlay serves
@@ -539,7 +547,7 @@ class TiledState:
                 self._cache_state(job_id, tiling, integrator, overlay.state, overlay.versions)
             return overlay, []
         _, todo = self._versions(job_id, tiling, batch_ids)
-        chosen = {k for k in tiles if k in todo}
+        order = [k for k in tiles if k in todo]
         widths, arrays = integrator.state_widths, overlay.state.arrays()
         # What each tile writes: the arrays its deltas carried and what the merge derives from
         # them (e.g. N); a merge changes nothing where a delta is zero, and the setup arrays
@@ -556,11 +564,19 @@ class TiledState:
             pipe.hdel(keys.tile(job_id, k, "pending"), *todo[k])
             pipe.hincrby(keys.tile(job_id, k, "meta"), "version", 1)
 
-        def write(node: int, node_tiles: list[int]) -> dict[int, None]:
-            self._on_versions(node, job_id, {k: overlay.versions[k] for k in node_tiles if k in chosen}, queue)
-            return {}
+        def writer(some: list[int], deadline: float | None) -> Callable[[int, list[int]], dict[int, None]]:
+            def write(node: int, node_tiles: list[int]) -> dict[int, None]:  # in the order of `some`
+                mine = set(node_tiles)
+                versions = {k: overlay.versions[k] for k in some if k in mine}
+                return dict.fromkeys(self._on_versions(node, job_id, versions, queue, deadline))
+            return write
 
-        self._per_node(tiling, write)
+        # Write: the tiles required whatever the time, then the rest until `until`.
+        required = order if until is None else policy.checkpoint_required(order, overlay.pending,
+                                                                            overlay.state_bytes(tiling))
+        chosen = set(self._per_node(tiling, writer(required, None)))
+        if len(required) < len(order):
+            chosen |= set(self._per_node(tiling, writer(order[len(required):], until)))
         left = {k: ids for k, ids in todo.items() if k not in chosen}
         complete = [b for b in batch_ids if not any(b in ids for ids in left.values())]
         versions = {k: v + (k in chosen) for k, v in overlay.versions.items()}
