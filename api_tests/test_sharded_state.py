@@ -558,6 +558,22 @@ def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
     _assert_folded_once(store, job_id, made)
 
 
+def test_no_write_starts_that_would_end_past_the_deadline(servers: list[EmbeddedRedis]) -> None:
+    """TiledState._on_versions with a deadline: a transaction of TILES_PER_TRIP tiles that
+    took 0.4 s, 0.6 s before the deadline, is not followed by another (it would end 0.2 s
+    late); with no deadline every tile is written."""
+    store = _store([s.url for s in servers])
+    tiles = {k: 0 for k in range(2 * state_module.TILES_PER_TRIP)}
+
+    def slow(pipe: redis.client.Pipeline, k: int) -> None:
+        time.sleep(0.4 / state_module.TILES_PER_TRIP)
+        pipe.hset(keys.tile("deadline", k, "state"), "S", b"x")
+
+    written = store.tiles._on_versions(0, "deadline", tiles, slow, time.time() + 0.6)
+    assert written == list(range(state_module.TILES_PER_TRIP))
+    assert store.tiles._on_versions(0, "deadline", tiles, slow) == list(tiles)
+
+
 def _assert_same_state(got: State, want: State) -> None:
     assert (got.passes, got.emitted, got.counters) == (want.passes, want.emitted, want.counters)
     for name, a in want.arrays().items():
