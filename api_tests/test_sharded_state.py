@@ -558,6 +558,34 @@ def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
     _assert_folded_once(store, job_id, made)
 
 
+def test_a_round_leaves_the_tiles_of_a_node_rewriting_its_file_for_later(
+        servers: list[EmbeddedRedis], deltas: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A regular round writes no tile it may leave (beyond policy.checkpoint_required) to a
+    node that is rewriting its append-only file (TiledState._rewriting, the node's INFO);
+    the next round, the rewrite over, writes them. Each batch counts once."""
+    store, job_id, made = _fresh_job(servers, deltas, 2)
+    assert not any(store.tiles._rewriting(node) for node in range(len(store.tiles.nodes)))  # idle servers
+    record = store.get(job_id)
+    tiling = store.tiling(record)
+    busy = tiling.node(0)
+    monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: list(range(tiling.count)))
+    monkeypatch.setattr(TiledState, "_rewriting", lambda self, node: node == busy)
+    _merge(store, job_id, made[0])
+    assert store.fold(job_id) is not None
+
+    def written() -> list[int]:
+        return [k for k in range(tiling.count)
+                if int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)]
+
+    assert written() == [k for k in range(tiling.count) if tiling.node(k) != busy]
+    monkeypatch.setattr(TiledState, "_rewriting", lambda self, node: False)
+    _merge(store, job_id, made[1])
+    folded = store.fold(job_id)
+    assert folded is not None and folded.checkpointed and written() == list(range(tiling.count))
+    monkeypatch.undo()
+    _assert_folded_once(store, job_id, made)
+
+
 def test_no_write_starts_that_would_end_past_the_deadline(servers: list[EmbeddedRedis]) -> None:
     """TiledState._on_versions with a deadline: a transaction of TILES_PER_TRIP tiles that
     took 0.4 s, 0.6 s before the deadline, is not followed by another (it would end 0.2 s
