@@ -517,8 +517,7 @@ def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_sam
     _merge(store, job_id, made[2])
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed and store.r.hlen(keys.tofold(job_id)) == 3
-    overlay_module.OVERLAYS.drop(job_id)
-    _assert_same_state(store.state(store.get(job_id)), folded.state)
+    _assert_tiles_read_back(store, job_id, folded.state)
     monkeypatch.undo()
     _assert_folded_once(store, job_id, made)
 
@@ -552,8 +551,7 @@ def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
     _merge(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed and versions() == [1, 2, 1, 1, 2, 1]
-    overlay_module.OVERLAYS.drop(job_id)
-    _assert_same_state(store.state(store.get(job_id)), folded.state)
+    _assert_tiles_read_back(store, job_id, folded.state)
     monkeypatch.undo()
     _assert_folded_once(store, job_id, made)
 
@@ -600,6 +598,13 @@ def test_no_write_starts_that_would_end_past_the_deadline(servers: list[Embedded
     written = store.tiles._on_versions(0, "deadline", tiles, slow, time.time() + 0.6)
     assert written == list(range(state_module.TILES_PER_TRIP))
     assert store.tiles._on_versions(0, "deadline", tiles, slow) == list(tiles)
+
+
+def _assert_tiles_read_back(store: Jobs, job_id: str, state: State) -> None:
+    """A process without the job's overlay (here: this one after dropping it) reads `state`
+    from the tiles."""
+    overlay_module.OVERLAYS.drop(job_id)
+    _assert_same_state(store.state(store.get(job_id)), state)
 
 
 def _assert_same_state(got: State, want: State) -> None:
