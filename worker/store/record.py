@@ -663,9 +663,10 @@ class Jobs:
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error}, rounds, read_at)
-            # A regular round's writes end when the next round is due (policy.checkpoint_seconds).
-            until = None if checkpoint else \
-                time.time() + policy.checkpoint_seconds(policy.round_seconds(rounds, max(1, len(fresh))) or rounds[-1][1])
+            # A regular round's writes end when the next round is due (policy.checkpoint_seconds),
+            # one as long as the rounds so far predict for as many batches as this one took.
+            next_seconds = policy.round_seconds(rounds, max(1, len(fresh))) or rounds[-1].seconds
+            until = None if checkpoint else time.time() + policy.checkpoint_seconds(next_seconds)
             try:
                 folded = replace(folded, stages=folded.stages | self.tiles.write_inputs(job_id, tiling,
                                                                                         record.integrator))
