@@ -334,21 +334,21 @@ def checkpoint_tiles(oldest_seconds: float, pending: dict[int, int], state_bytes
     held = [k for k, p in pending.items() if p > 0]
     if oldest_seconds >= CHECKPOINT_SECONDS:
         return held
-    left, cap = sum(pending.values()), CHECKPOINT_PENDING_SHARE * sum(state_bytes.values())
-    out = []
-    for k in sorted(held, key=lambda k: pending[k] / state_bytes[k], reverse=True):
-        if left <= cap:
-            break
-        out.append(k)
-        left -= pending[k]
-    return out
+    order = sorted(held, key=lambda k: pending[k] / state_bytes[k], reverse=True)
+    return _within(order, pending, state_bytes, CHECKPOINT_PENDING_SHARE)
 
 
 def checkpoint_required(tiles: Sequence[int], pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
     """The first of a round's `tiles` (in the order it writes them: checkpoint_tiles) that
     bring the deltas pending within CHECKPOINT_HELD_SHARE of the state's bytes: the round
     writes these whatever the time, the rest until the next round is due."""
-    left, cap = sum(pending.values()), CHECKPOINT_HELD_SHARE * sum(state_bytes.values())
+    return _within(tiles, pending, state_bytes, CHECKPOINT_HELD_SHARE)
+
+
+def _within(tiles: Sequence[int], pending: dict[int, int], state_bytes: dict[int, int], share: float) -> list[int]:
+    """The first of `tiles`, in order, whose writes (each drops its pending deltas) bring the
+    deltas pending within `share` of the state's bytes."""
+    left, cap = sum(pending.values()), share * sum(state_bytes.values())
     out = []
     for k in tiles:
         if left <= cap:

@@ -582,8 +582,6 @@ class TiledState:
 
         def writer(some: list[int], deadline: float | None) -> Callable[[int, list[int]], dict[int, None]]:
             def write(node: int, node_tiles: list[int]) -> dict[int, None]:  # in the order of `some`
-                if deadline is not None and self._rewriting(node):
-                    return {}
                 mine = set(node_tiles)
                 versions = {k: overlay.versions[k] for k in some if k in mine}
                 return dict.fromkeys(self._on_versions(node, job_id, versions, queue, deadline))
@@ -595,7 +593,9 @@ class TiledState:
                                                                             overlay.state_bytes(tiling))
         chosen = set(self._per_node(tiling, writer(required, None)))
         if len(required) < len(order):
-            chosen |= set(self._per_node(tiling, writer(order[len(required):], until)))
+            rewriting = {node for node in tiling.by_node() if self._rewriting(node)}  # one question a node
+            optional = [k for k in order[len(required):] if tiling.node(k) not in rewriting]
+            chosen |= set(self._per_node(tiling, writer(optional, until)))
         left = {k: ids for k, ids in todo.items() if k not in chosen}
         complete = [b for b in batch_ids if not any(b in ids for ids in left.values())]
         versions = {k: v + (k in chosen) for k, v in overlay.versions.items()}
