@@ -253,8 +253,7 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
     assert child.exitcode == -signal.SIGKILL
     record = store.get(job_id)
     tiling = store.tiling(record)
-    versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
-                for k in range(tiling.count)]
+    versions = _tile_versions(store, job_id)
     if checkpoint:  # the folder died once one node's transaction (its two tiles) was written
         assert sorted(versions) == [0, 0, 0, 0, 1, 1], versions
         assert all(len({versions[k] for k in ks}) == 1 for ks in tiling.by_node().values()), versions
@@ -505,9 +504,7 @@ def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_sam
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed
     record = store.get(job_id)
-    tiling = store.tiling(record)
-    versions = [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
-                for k in range(tiling.count)]
+    versions = _tile_versions(store, job_id)
     assert versions == [1, 0, 1, 0, 1, 0]
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 2  # no batch on every tile yet
     overlay_module.OVERLAYS.drop(job_id)  # as a process that never folded the job
@@ -538,19 +535,13 @@ def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed
     record = store.get(job_id)
-    tiling = store.tiling(record)
-
-    def versions() -> list[int]:
-        return [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
-                for k in range(tiling.count)]
-
-    assert versions() == [0, 1, 0, 0, 1, 0]  # tiles 4 and 1 only
+    assert _tile_versions(store, job_id) == [0, 1, 0, 0, 1, 0]  # tiles 4 and 1 only
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 1
     # The next round, with time to write, writes the tiles that lack a batch: all of them.
     monkeypatch.setattr(policy, "checkpoint_seconds", lambda *args: 60.0)
     _merge(store, job_id, made[1])
     folded = store.fold(job_id)
-    assert folded is not None and folded.checkpointed and versions() == [1, 2, 1, 1, 2, 1]
+    assert folded is not None and folded.checkpointed and _tile_versions(store, job_id) == [1, 2, 1, 1, 2, 1]
     _assert_tiles_read_back(store, job_id, folded.state)
     monkeypatch.undo()
     _assert_folded_once(store, job_id, made)
@@ -572,8 +563,7 @@ def test_a_round_leaves_the_tiles_of_a_node_rewriting_its_file_for_later(
     assert store.fold(job_id) is not None
 
     def written() -> list[int]:
-        return [k for k in range(tiling.count)
-                if int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)]
+        return [k for k, version in enumerate(_tile_versions(store, job_id)) if version]
 
     assert written() == [k for k in range(tiling.count) if tiling.node(k) != busy]
     monkeypatch.setattr(TiledState, "_rewriting", lambda self, node: False)
@@ -598,6 +588,13 @@ def test_no_write_starts_that_would_end_past_the_deadline(servers: list[Embedded
     written = store.tiles._on_versions(0, "deadline", tiles, slow, time.time() + 0.6)
     assert written == list(range(state_module.TILES_PER_TRIP))
     assert store.tiles._on_versions(0, "deadline", tiles, slow) == list(tiles)
+
+
+def _tile_versions(store: Jobs, job_id: str) -> list[int]:
+    """Each tile's version (its checkpoints), on its node."""
+    tiling = store.tiling(store.get(job_id))
+    return [int(store.tiles.nodes[tiling.node(k)].hget(keys.tile(job_id, k, "meta"), "version") or 0)
+            for k in range(tiling.count)]
 
 
 def _assert_tiles_read_back(store: Jobs, job_id: str, state: State) -> None:
