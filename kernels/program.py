@@ -38,12 +38,30 @@ PROGRAMS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 }
 
 
+PROBE_KERNEL = "kernel void probe(global float* a) { a[get_global_id(0)] = sqrt((float)get_global_id(0)); }"
+
+
 def create_context() -> cl.Context:
-    """A context on the first CPU device (PoCL's pthread device here)."""
+    """A context on the first CPU device that compiles a kernel.
+
+    A PoCL whose LLVM does not know the host CPU lists its device and then fails every
+    build ("unknown target CPU 'generic'"); a later platform (Debian's pocl-opencl-icd
+    beside the wheel's) may know it, so each CPU device is tried with a one-line kernel.
+    """
+    failures = []
     for platform in cl.get_platforms():
-        devices = platform.get_devices(device_type=cl.device_type.CPU)
-        if devices:
-            return cl.Context(devices[:1])
+        for device in platform.get_devices(device_type=cl.device_type.CPU)[:1]:
+            ctx = cl.Context([device])
+            try:
+                cl.Program(ctx, PROBE_KERNEL).build()
+            except cl.Error as error:
+                lines = [line.strip() for line in str(error).splitlines() if "error:" in line]
+                failures.append(f"{platform.name} {device.version}: {lines[0] if lines else 'build failed'}")
+                continue
+            return ctx
+    if failures:
+        raise RuntimeError("no OpenCL CPU device compiles kernels here (" + "; ".join(failures)
+                           + "); install Debian's pocl-opencl-icd (`make deps`)")
     raise RuntimeError("no OpenCL CPU device found: install pocl-binary-distribution")
 
 
