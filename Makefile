@@ -3,12 +3,12 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench clean deps
+.PHONY: serve test bench clean deps lint docs docs-build
 
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,bench]'
+	$(PY) -m pip install --quiet -e '.[test,bench,lint,docs]'
 	$(MAKE) --no-print-directory deps
 	touch $(STAMP)
 
@@ -27,6 +27,18 @@ serve: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# ruff (rules in pyproject.toml) over the tree, mypy over worker/, service/ and kernels/.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
+
+# The documentation site on :8001 (mkdocs.yml, docs/), and its strict build (as CI runs it).
+docs: $(STAMP)
+	$(VENV)/bin/mkdocs serve --dev-addr 127.0.0.1:8001
+
+docs-build: $(STAMP)
+	$(VENV)/bin/mkdocs build --strict --site-dir $(or $(SITE),site)
 
 bench: $(STAMP)
 	$(PY) -m bench.run_all

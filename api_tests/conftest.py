@@ -3,8 +3,8 @@ the store gets its own embedded Redis."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 

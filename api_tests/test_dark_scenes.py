@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from api_tests.test_jobs import _decode
 from api_tests.cluster import Cluster, finished
+from api_tests.test_jobs import _decode
 
 
 def _furnace_variant(cluster: Cluster, dark: str) -> dict:

@@ -20,8 +20,17 @@ import redis
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, Status, keys
-from worker.store.tiles import (CACHE, DELTA_DTYPE, HALF_DTYPE, HALF_TOP, DeltaFormatError, as_sent, decode_delta,
-                                delta_arrays, encode_delta)
+from worker.store.tiles import (
+    CACHE,
+    DELTA_DTYPE,
+    HALF_DTYPE,
+    HALF_TOP,
+    DeltaFormatError,
+    as_sent,
+    decode_delta,
+    delta_arrays,
+    encode_delta,
+)
 
 W, H = 32, 16
 TILE = 128  # 4 tiles

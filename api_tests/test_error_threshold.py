@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from api_tests.test_jobs import _decode
 from api_tests.cluster import Cluster, finished
+from api_tests.test_jobs import _decode
 from tests.analytic import FURNACE_L, point_plane
 from worker.error_estimate import FLOOR_FRACTION, LUMINANCE
 from worker.image_io import read_channels

@@ -7,14 +7,13 @@ lost batches back. Real redis-servers (the embedded default), restarted by SIGKI
 from __future__ import annotations
 
 import pickle
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 
 from api_tests.cluster import restart
-from api_tests.test_sharded_state import (_assert_folded_once, _job, _merge, _store, deltas,  # noqa: F401
-                                          redis_servers)
+from api_tests.test_sharded_state import _assert_folded_once, _job, _merge, _store, deltas, redis_servers  # noqa: F401
 from service.redis_server import EmbeddedRedis
 from worker.integrators.base import Delta
 from worker.scheduler import reap

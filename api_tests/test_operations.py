@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from api_tests.test_jobs import FURNACE_L
 from api_tests.cluster import Cluster, finished
+from api_tests.test_jobs import FURNACE_L
 from worker.image_io import read_image
 
 PHOTONFARM = [sys.executable, "-m", "service.cli"]

@@ -9,15 +9,15 @@ from __future__ import annotations
 import json
 import os
 import re
-import signal
 import shutil
+import signal
 import stat
 import subprocess
 import sys
 import time
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import httpx
 import pytest

@@ -16,9 +16,9 @@ import signal
 import threading
 import time
 import weakref
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pytest
@@ -33,10 +33,10 @@ from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys, policy
-from worker.store.policy import Status
 from worker.store import overlay as overlay_module
 from worker.store import record as record_module
 from worker.store import state as state_module
+from worker.store.policy import Status
 from worker.store.state import TiledState
 from worker.store.tiles import as_sent, encode_inputs
 

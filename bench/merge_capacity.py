@@ -50,8 +50,8 @@ import multiprocessing as mp
 import statistics
 import tempfile
 import time
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import redis
@@ -63,8 +63,7 @@ from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import (FOLD_POLL_SECONDS, MERGE_SHARE, REFRESH_SECONDS, batch_passes,
-                                 fold_interval)
+from worker.store.policy import FOLD_POLL_SECONDS, MERGE_SHARE, REFRESH_SECONDS, batch_passes, fold_interval
 from worker.store.tiles import encode_delta
 
 PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)

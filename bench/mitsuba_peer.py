@@ -20,8 +20,19 @@ from typing import Any, Literal
 import numpy as np
 
 from worker.mitsuba_scene import beckmann_alpha
-from worker.scene import (DirectionalLight, Glass, Glossy, Mesh, Mirror, PointLight, Quad, Scene, Sphere, SpotLight,
-                          shape_triangles)
+from worker.scene import (
+    DirectionalLight,
+    Glass,
+    Glossy,
+    Mesh,
+    Mirror,
+    PointLight,
+    Quad,
+    Scene,
+    Sphere,
+    SpotLight,
+    shape_triangles,
+)
 
 _mi: Any = None
 

@@ -28,8 +28,17 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from bench.common import (PEERS_FILE, REFERENCE_FILE, bench_engine, box2x2, display, display_rms, read_ppm,
-                          save_figure, write_json)
+from bench.common import (
+    PEERS_FILE,
+    REFERENCE_FILE,
+    bench_engine,
+    box2x2,
+    display,
+    display_rms,
+    read_ppm,
+    save_figure,
+    write_json,
+)
 from worker.image_io import read_image
 from worker.render_loop import render
 from worker.settings import DEFAULTS

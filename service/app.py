@@ -14,9 +14,10 @@ import math
 import os
 import tempfile
 import threading
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Annotated, Any, AsyncIterator, Callable, Literal
+from typing import Annotated, Any, Literal
 
 import cachetools
 import numpy as np
@@ -34,14 +35,35 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.metrics import metrics_text, workers
-from service.models import (MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PIXELS, ErrorBody, JobLinks, JobRequest,
-                            JobSettings, JobView, PixelView, SceneSummary)
-from service.upload import UploadError, Unpacker, scene_path
+from service.models import (
+    MAX_ACTIVE_JOBS,
+    MAX_BODY_BYTES,
+    MAX_SERVICE_PIXELS,
+    ErrorBody,
+    JobLinks,
+    JobRequest,
+    JobSettings,
+    JobView,
+    PixelView,
+    SceneSummary,
+)
+from service.upload import Unpacker, UploadError, scene_path
 from worker.image_io import error_colours, write_image
 from worker.integrators import camera_problem
 from worker.outputs import write_render
-from worker.scene import (MAX_SCENE_NAME, SCENE_NAME_PATTERN, SCENES_DIR, Scene, SceneError, bundled_scene_names,
-                          bundled_scene_path, inline_meshes, load_any_scene, load_scene_file, parse_scene)
+from worker.scene import (
+    MAX_SCENE_NAME,
+    SCENE_NAME_PATTERN,
+    SCENES_DIR,
+    Scene,
+    SceneError,
+    bundled_scene_names,
+    bundled_scene_path,
+    inline_meshes,
+    load_any_scene,
+    load_scene_file,
+    parse_scene,
+)
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
@@ -72,7 +94,7 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 
 def _iso(ts: float | None) -> str | None:
-    return dt.datetime.fromtimestamp(ts, dt.timezone.utc).isoformat() if ts else None
+    return dt.datetime.fromtimestamp(ts, dt.UTC).isoformat() if ts else None
 
 
 def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:

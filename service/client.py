@@ -86,7 +86,7 @@ def scene_folder_files(scene_file: Path) -> list[tuple[str, Path]]:
     return [(path.relative_to(folder).as_posix(), path) for path in sorted(found)]
 
 
-def _post_job(client: "Client", args: argparse.Namespace) -> dict[str, Any]:
+def _post_job(client: Client, args: argparse.Namespace) -> dict[str, Any]:
     """A bundled scene or a plain JSON scene go as JSON; a scene that names files (meshes,
     includes) and any Mitsuba .xml go as an upload with the files beside them."""
     settings = _settings(args)

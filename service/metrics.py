@@ -4,7 +4,8 @@ worker process and survives API restarts), and the worker list behind GET /v1/wo
 from __future__ import annotations
 
 import time
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
@@ -12,6 +13,7 @@ from rq import Queue, Worker
 
 from worker.scheduler import QUEUE_NAMES
 from worker.store import Jobs, Status
+
 
 def workers(jobs: Jobs) -> list[dict[str, Any]]:
     """Registered RQ workers with their last sign of life (our heartbeat thread's, every

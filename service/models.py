@@ -48,7 +48,7 @@ class JobRequest(BaseModel):
         return name
 
     @model_validator(mode="after")
-    def _one_scene(self) -> "JobRequest":
+    def _one_scene(self) -> JobRequest:
         if (self.scene is None) == (self.scene_name is None):
             raise ValueError("give exactly one of scene and scene_name")
         return self

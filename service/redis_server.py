@@ -180,7 +180,7 @@ class EmbeddedRedis:
                 time.sleep(0.05)
         raise RuntimeError(f"embedded redis did not start on {self.bind}:{self.port}")
 
-    def start(self, supervise: bool = True) -> "EmbeddedRedis":
+    def start(self, supervise: bool = True) -> EmbeddedRedis:
         self._spawn()
         if supervise:
             self._watch = threading.Thread(target=self._supervise, name="redis-supervisor", daemon=True)

@@ -47,7 +47,7 @@ class LocalWorkers:
     def _spawn(self) -> subprocess.Popen:
         return spawn([sys.executable, "-m", "service.cli", "worker"], env=self.env)
 
-    def start(self) -> "LocalWorkers":
+    def start(self) -> LocalWorkers:
         self.procs = [self._spawn() for _ in range(self.count)]
         threading.Thread(target=self._supervise, name="worker-supervisor", daemon=True).start()
         return self

@@ -9,7 +9,6 @@ from tests.conftest import image, render
 from worker.integrators.photon_mapping import GatherInputs
 
 
-
 def test_furnace_mean_within_two_percent(make_engine) -> None:
     eng = make_engine("furnace", photons_per_pass=1 << 16, seed=3)
     state = render(eng, 24)

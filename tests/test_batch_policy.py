@@ -10,12 +10,33 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from worker.store.policy import (BATCH_TARGET_SECONDS, CHECKPOINT_HELD_SHARE, CHECKPOINT_PENDING_SHARE,
-                                 CHECKPOINT_SECONDS,
-                                 DELIVERY_SECONDS, FOLD_POLL_SECONDS, FOLD_STALE_SECONDS, MERGE_PATH_SHARE,
-                                 MERGE_SHARE, PASS_SLACK, REFRESH_SECONDS, FOLD_SECONDS, ROUNDS_KEPT, Round, batch_passes,
-                                 checkpoint_required, checkpoint_seconds, checkpoint_tiles, fold_interval, image_due, _tail_end, paced_batches,
-                                 recent_pass_seconds, round_seconds, tail_share)
+from worker.store.policy import (
+    BATCH_TARGET_SECONDS,
+    CHECKPOINT_HELD_SHARE,
+    CHECKPOINT_PENDING_SHARE,
+    CHECKPOINT_SECONDS,
+    DELIVERY_SECONDS,
+    FOLD_POLL_SECONDS,
+    FOLD_SECONDS,
+    FOLD_STALE_SECONDS,
+    MERGE_PATH_SHARE,
+    MERGE_SHARE,
+    PASS_SLACK,
+    REFRESH_SECONDS,
+    ROUNDS_KEPT,
+    Round,
+    _tail_end,
+    batch_passes,
+    checkpoint_required,
+    checkpoint_seconds,
+    checkpoint_tiles,
+    fold_interval,
+    image_due,
+    paced_batches,
+    recent_pass_seconds,
+    round_seconds,
+    tail_share,
+)
 
 
 def test_one_pass_until_a_pass_was_timed_and_none_when_no_pass_is_left() -> None:

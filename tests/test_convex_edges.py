@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import image, render
 from kernels.contract import EXTENT_STEPS
+from tests.conftest import image, render
 from worker.adjacency import NO_NEIGHBOUR, triangle_neighbours
 from worker.engine import Engine
 from worker.scene import Scene

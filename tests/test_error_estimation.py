@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from tests.analytic import FURNACE_L, point_plane
 from kernels.contract import K1, K2, LUMINANCE
+from tests.analytic import FURNACE_L, point_plane
+from tests.conftest import render
 from worker.error_estimate import BIAS_CONSTANTS, bias_estimate, estimate
 from worker.image_io import read_image
-from tests.conftest import render
 from worker.integrators.photon_mapping import sum_layout
 from worker.stats import Accumulators
 

@@ -11,7 +11,14 @@ import numpy as np
 
 from bench.error_vs_time import reference_path, rel_rms
 from tests.analytic import (
-    FURNACE_L, FURNACE_PHI, FURNACE_R, FURNACE_RHO, SPOT, _plane_hits, point_plane, spot_plane,
+    FURNACE_L,
+    FURNACE_PHI,
+    FURNACE_R,
+    FURNACE_RHO,
+    SPOT,
+    _plane_hits,
+    point_plane,
+    spot_plane,
 )
 from tests.conftest import image, render
 from tests.test_unlit_regions import spot_scene

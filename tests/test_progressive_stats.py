@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 import worker.integrators.photon_mapping_passes as photon_mapping_passes
+from worker import stats
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs, sum_layout
 from worker.render_loop import render as render_passes
 from worker.scene import bundled_scene_path
-from worker import stats
 from worker.stats import Accumulators
 
 LAYOUT = sum_layout(error_estimation=True)

@@ -32,6 +32,7 @@ import pytest
 
 from tests.conftest import image, render
 
+
 def _wall_scene() -> dict:
     """Floor y = 0 over |x|, |z| < 10, a black wall x = 0 up to y = 10, a spot light on the
     +x side aimed at the floor next to the wall; the camera above the -x side looks at the

@@ -146,7 +146,7 @@ def student_t(confidence: float, dof: int) -> float:
     return float(scipy_stats.t.ppf(0.5 + 0.5 * confidence, dof))
 
 
-def unlit_scale(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confidence: float) -> float:
+def unlit_scale(state: Accumulators, lum: np.ndarray, known: np.ndarray, confidence: float) -> float:
     """q (-ln(1 - c)) of the zero-count bound q (-ln(1 - c)) / (pi R^2 E) (module docstring):
     q from the pixels that found photons, a block at a time; inf where nothing is known yet
     (no photon found anywhere, or none emitted)."""
@@ -169,7 +169,7 @@ def unlit_scale(state: "Accumulators", lum: np.ndarray, known: np.ndarray, confi
     return q * -math.log1p(-confidence)
 
 
-def unlit_bound(state: "Accumulators", scale: float, blk: slice) -> np.ndarray:
+def unlit_bound(state: Accumulators, scale: float, blk: slice) -> np.ndarray:
     """Per pixel of a block, the zero-count bound `scale` / (pi R^2 E), E counting the photons
     emitted while the pixel had a measurement point (`scale` from `unlit_scale`)."""
     if math.isinf(scale):
@@ -211,7 +211,7 @@ def blocks(n: int) -> list[slice]:
 class _Round:
     """What every block of one estimate shares: the state, the settings and the quantiles."""
 
-    state: "Accumulators"
+    state: Accumulators
     constant: str
     significance: float
     discontinuities: bool
@@ -261,7 +261,7 @@ def _block(run: _Round, blk: slice, direct: np.ndarray | None, dark: np.ndarray,
     np.add(noise, significant_bias, out=out["bound"][blk])
 
 
-def estimate(state: "Accumulators", confidence: float, constant: str = "taylor",
+def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
              significance: float = BIAS_SIGNIFICANCE, discontinuities: bool = True) -> ErrorEstimate:
     """The error bound per pixel and its image average; `significance` is z above;
     `discontinuities=False` leaves out the discontinuity bias B_e (for comparison).

@@ -15,8 +15,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import redis
 
@@ -24,7 +24,7 @@ from worker.store import Batch, Leases
 from worker.store.policy import LEASE_SECONDS
 
 log = logging.getLogger("photonfarm.worker")
-_current: "Heartbeat | None" = None  # this process's heartbeat, if it runs one
+_current: Heartbeat | None = None  # this process's heartbeat, if it runs one
 OUTAGE_LOG_SECONDS = 60.0  # while Redis stays away, a warning at most this often
 
 
@@ -56,7 +56,7 @@ class Heartbeat:
             if self._stop.wait(self.interval):
                 return
 
-    def start(self) -> "Heartbeat":
+    def start(self) -> Heartbeat:
         global _current
         _current = self
         self._thread.start()

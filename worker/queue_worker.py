@@ -31,8 +31,9 @@ import socket
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from types import FrameType
-from typing import Any, Callable
+from typing import Any
 
 import redis
 from rq import Queue, SimpleWorker

@@ -8,7 +8,7 @@ the same integrator methods, batch by batch, on many workers (worker/tasks.py).
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from worker.engine import Engine
 from worker.integrators.base import State

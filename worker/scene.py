@@ -14,7 +14,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -71,7 +71,7 @@ class Camera(_Model):
     near_clip: NonNeg = 0.0  # rays start this far along the view axis (smallppm starts them past its front wall)
 
     @model_validator(mode="after")
-    def _check(self) -> "Camera":
+    def _check(self) -> Camera:
         forward = tuple(a - b for a, b in zip(self.look_at, self.position))
         if _norm(forward) == 0.0:
             raise ValueError("look_at equals position")
@@ -108,7 +108,7 @@ class Glossy(_Model):
     exponent: Annotated[float, Field(ge=1.0, le=100_000.0, allow_inf_nan=False)]
 
 
-Material = Annotated[Union[Diffuse, Mirror, Glass, Glossy], Field(discriminator="type")]
+Material = Annotated[Diffuse | Mirror | Glass | Glossy, Field(discriminator="type")]
 
 # ----------------------------------------------------------------------------- shapes
 
@@ -144,7 +144,7 @@ class Mesh(_Shape):
     file: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
 
     @model_validator(mode="after")
-    def _check(self) -> "Mesh":
+    def _check(self) -> Mesh:
         if (self.file is None) == (self.vertices is None or self.triangles is None):
             raise ValueError("give either file or both vertices and triangles")
         if self.normals is not None and (self.vertices is None or len(self.normals) != len(self.vertices)):
@@ -159,7 +159,7 @@ class Mesh(_Shape):
         return self
 
 
-Shape = Annotated[Union[Sphere, Quad, Mesh], Field(discriminator="type")]
+Shape = Annotated[Sphere | Quad | Mesh, Field(discriminator="type")]
 
 # ----------------------------------------------------------------------------- lights
 
@@ -196,7 +196,7 @@ class DirectionalLight(_Model):
     _direction = field_validator("direction")(_nonzero_direction)
 
 
-Light = Annotated[Union[PointLight, SpotLight, DirectionalLight], Field(discriminator="type")]
+Light = Annotated[PointLight | SpotLight | DirectionalLight, Field(discriminator="type")]
 
 
 # ------------------------------------------------------------------------------ scene
@@ -208,7 +208,7 @@ class Scene(_Model):
     lights: list[Light] = Field(default_factory=list, max_length=MAX_LIGHTS)
 
     @model_validator(mode="after")
-    def _check(self) -> "Scene":
+    def _check(self) -> Scene:
         for i, shape in enumerate(self.shapes):
             if shape.material not in self.materials:
                 raise SceneError(f"shapes.{i}.material", f"unknown material {shape.material!r}")

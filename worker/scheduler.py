@@ -192,7 +192,7 @@ class Reaper:
             except Exception:  # noqa: BLE001 - the thread lives on: the next look may succeed
                 log.exception("reaper: a look failed")
 
-    def start(self) -> "Reaper":
+    def start(self) -> Reaper:
         for thread in self._threads:
             thread.start()
         return self

@@ -119,7 +119,7 @@ class Settings(BaseModel):
         return data
 
     @model_validator(mode="after")
-    def _threshold_needs_estimate(self) -> "Settings":
+    def _threshold_needs_estimate(self) -> Settings:
         if self.error_threshold is not None and not self.error_estimation:
             raise ValueError("error_threshold needs error_estimation")
         return self

@@ -130,7 +130,7 @@ def rewind(alpha: float, passes: int, first: int) -> tuple[float, float]:
     return ratio, ratio * passes / first
 
 
-def add_sums(state: "State", sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
+def add_sums(state: State, sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
     """The per-pixel additive part of every merge, over a run of pixels: each sum the state
     keeps adds its part (a float32 delta's adds in the state's float64, exactly converted);
     a sum the parts lack adds nothing there."""
@@ -139,7 +139,7 @@ def add_sums(state: "State", sums: dict[str, np.ndarray], pixels: slice = slice(
             state.sums[name][pixels] += part
 
 
-def add_counts(state: "State", n_passes: int, emitted: int, counters: dict[str, int]) -> None:
+def add_counts(state: State, n_passes: int, emitted: int, counters: dict[str, int]) -> None:
     """The scalar additive part of every merge: passes, photons and counters."""
     state.emitted += emitted
     state.passes += n_passes
@@ -183,7 +183,7 @@ class Accumulators:
     _radius: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout, batch_only: tuple[str, ...] = ()) -> "Accumulators":
+    def start(cls, alpha: float, R0: np.ndarray, layout: SumLayout, batch_only: tuple[str, ...] = ()) -> Accumulators:
         """Empty state: no pass merged, every radius at its initial value; it keeps every sum
         of `layout` but those only a batch carries (`batch_only`)."""
         if not 0.0 < alpha <= 1.0:
@@ -217,7 +217,7 @@ class Accumulators:
         N = self.N * scale
         return radius(self.R0, N, self.D), N
 
-    def merge(self, delta: "Delta") -> None:
+    def merge(self, delta: Delta) -> None:
         """Add a batch (or a fold round's batches at once): every sum adds, and N takes alpha
         times the photons the passes counted at their own places in the radius schedule
         (M, kernels/spatial_hash.cl). Commutative: the same state whatever the order and

@@ -26,7 +26,7 @@ from worker.store.policy import recent_pass_seconds
 
 log = logging.getLogger("photonfarm.worker")
 ENGINE_CACHE_SIZE = 2
-_engines: "OrderedDict[str, Engine]" = OrderedDict()
+_engines: OrderedDict[str, Engine] = OrderedDict()
 _ctx: cl.Context | None = None
 
 

@@ -31,7 +31,7 @@ VERTICES_PER_PATH = 4  # initial room for stored light vertices per light path (
 class ConnectMergePasses:
     """Light pass, vertex grid, camera pass and pass sums for vcm, bpt and lt."""
 
-    def __init__(self, integrator: ConnectMerge, device: "Device") -> None:
+    def __init__(self, integrator: ConnectMerge, device: Device) -> None:
         problem = camera_problem(integrator.settings, float(device.arrays.camera[1, 3]))
         if problem:
             raise ValueError(problem)

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from worker.engine import Device
 
 
-def passes_for(integrator: Integrator, device: "Device") -> Passes:
+def passes_for(integrator: Integrator, device: Device) -> Passes:
     if isinstance(integrator, PhotonMapping):
         return PhotonMappingPasses(integrator, device)
     if isinstance(integrator, ConnectMerge):

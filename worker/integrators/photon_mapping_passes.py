@@ -52,7 +52,7 @@ def _next_pow2(n: int) -> int:
 class PhotonMappingPasses:
     """Eye pass, photon pass, lookup structure and gather for SPPM and PPM."""
 
-    def __init__(self, integrator: PhotonMapping, device: "Device") -> None:
+    def __init__(self, integrator: PhotonMapping, device: Device) -> None:
         self.integrator = integrator
         self.settings = integrator.settings
         self.dev = device

@@ -34,12 +34,12 @@ class Batch:
         return f"{self.job_id}/{self.first}/{self.n}"
 
     @classmethod
-    def parse(cls, member: str) -> "Batch":
+    def parse(cls, member: str) -> Batch:
         job_id, first, n = member.split("/")
         return cls(job_id, int(first), int(n))
 
     @classmethod
-    def from_id(cls, job_id: str, batch_id: str) -> "Batch":
+    def from_id(cls, job_id: str, batch_id: str) -> Batch:
         first, n = batch_id.split("+")
         return cls(job_id, int(first), int(n))
 

@@ -31,8 +31,9 @@ import json
 import logging
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import redis
@@ -45,9 +46,8 @@ from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
 from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
-from worker.store.state import Folded, FoldContended, LostDeltas, Snapshot, TiledState, UnreadableDelta
+from worker.store.state import FoldContended, Folded, LostDeltas, Snapshot, TiledState, UnreadableDelta
 from worker.store.tiles import TILE_PIXELS, Tiling
-
 
 log = logging.getLogger("photonfarm.store")
 COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
@@ -100,7 +100,7 @@ class JobRecord:
     counters: dict[str, int]  # the integrator's summed scalars (Delta.counters), hash fields "counter:NAME"
 
     @classmethod
-    def parse(cls, job_id: str, h: dict[bytes, bytes]) -> "JobRecord":
+    def parse(cls, job_id: str, h: dict[bytes, bytes]) -> JobRecord:
         f = {k.decode(): v.decode() for k, v in h.items()}
 
         def when(name: str) -> float | None:

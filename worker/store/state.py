@@ -28,11 +28,11 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import redis
@@ -43,8 +43,20 @@ from worker.integrators.base import Delta, State
 from worker.stats import add_counts
 from worker.store import keys, policy
 from worker.store.overlay import OVERLAYS, Overlay
-from worker.store.tiles import (CACHE, STATE_DTYPE, DeltaFormatError, Tiling, TornInputs, decode_delta,
-                                decode_inputs, decode_state, encode_delta, encode_inputs, encode_state, state_nodes)
+from worker.store.tiles import (
+    CACHE,
+    STATE_DTYPE,
+    DeltaFormatError,
+    Tiling,
+    TornInputs,
+    decode_delta,
+    decode_inputs,
+    decode_state,
+    encode_delta,
+    encode_inputs,
+    encode_state,
+    state_nodes,
+)
 
 # Applies a folded round to the job record once per batch, however many folders try.
 ACCOUNT = """
