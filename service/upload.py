@@ -15,7 +15,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
+from typing import IO, BinaryIO
 
 MAX_UPLOAD_BYTES = 128 * 1024 * 1024  # unpacked, all files together
 MAX_UPLOAD_FILES = 256  # entries unpacked (folders count)
@@ -50,6 +50,9 @@ def relative_name(field: str, name: str) -> PurePosixPath:
     return PurePosixPath(*parts)
 
 
+Source = IO[bytes]  # a readable binary stream: an upload, an archive member (`Unpacker.bytes` shadows `bytes`)
+
+
 @dataclass
 class Unpacker:
     """Writes files into `root` while counting entries and bytes against the limits."""
@@ -69,7 +72,7 @@ class Unpacker:
             return
         (self.root / relative_name(field, name)).mkdir(parents=True, exist_ok=True)
 
-    def write(self, field: str, name: str, source: BinaryIO) -> None:
+    def write(self, field: str, name: str, source: Source) -> None:
         """One file, copied in chunks; refused past the byte limit or if the name is taken."""
         self._count_entry(field)
         target = self.root / relative_name(field, name)

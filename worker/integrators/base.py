@@ -15,7 +15,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 
@@ -55,8 +55,12 @@ class State(Protocol):
     def arrays(self) -> dict[str, np.ndarray]: ...
 
 
-class Integrator(ABC):
-    """The host half of a rendering method (see the module docstring)."""
+StateT = TypeVar("StateT", bound=State)
+
+
+class Integrator(ABC, Generic[StateT]):
+    """The host half of a rendering method (see the module docstring), over its own state
+    type `StateT`: every method taking a state takes the one `start` and `restore` make."""
 
     name: ClassVar[str]
     program: ClassVar[str] = "photon_mapping"  # the OpenCL program it runs (kernels/program.py, PROGRAMS)
@@ -71,6 +75,14 @@ class Integrator(ABC):
         self.settings = settings
 
     @property
+    def alpha(self) -> float:
+        """The radius exponent alpha; Settings fills it by method when a job leaves it out."""
+        alpha = self.settings.alpha
+        if alpha is None:
+            raise ValueError("settings without alpha: build them through Settings, which fills it by method")
+        return alpha
+
+    @property
     @abstractmethod
     def sums(self) -> SumLayout:
         """The additive per-pixel sums a batch returns (and the kernels' record layout)."""
@@ -81,36 +93,37 @@ class Integrator(ABC):
         """Every per-pixel array of the job state (setup arrays and sums included) and its width."""
 
     @abstractmethod
-    def start(self, setup: dict[str, np.ndarray]) -> State:
+    def start(self, setup: dict[str, np.ndarray]) -> StateT:
         """The empty state of a job whose setup arrays (`setup_arrays`) are fixed."""
 
     @abstractmethod
     def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
-                counters: dict[str, int] | None = None) -> State:
+                counters: dict[str, int] | None = None) -> StateT:
         """The job state from stored arrays (setup arrays present, missing sums zero) and counters."""
 
     @abstractmethod
-    def batch_inputs(self, state: State) -> Any:
+    def batch_inputs(self, state: StateT) -> Any:
         """What a batch starting now reads from the state (an `inputs_type`, or None)."""
 
-    def merge(self, state: State, delta: Delta) -> None:
+    def merge(self, state: StateT, delta: Delta) -> None:
         """Add a batch to the state: commutative in every sum."""
         self.merge_sums(state, delta.sums)
         add_counts(state, delta.n_passes, delta.emitted, delta.counters)
 
     @abstractmethod
-    def merge_sums(self, state: State, sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
+    def merge_sums(self, state: StateT, sums: dict[str, np.ndarray], pixels: slice = slice(None)) -> None:
         """The per-pixel part of `merge` over a run of pixels (`sums`: the arrays of those
         pixels a delta carries; one it lacks is zero). A fold round adds each tile's
         deltas this way, straight into the state, with `add_counts` once for the batches."""
 
     @abstractmethod
-    def image(self, state: State) -> np.ndarray:
+    def image(self, state: StateT) -> np.ndarray:
         """The current estimate, (pixels, 3) float64."""
 
     @abstractmethod
-    def estimate(self, state: State) -> ErrorEstimate:
-        """The per-pixel error bound and its image average (dissertation ch. 6)."""
+    def estimate(self, state: StateT) -> ErrorEstimate | None:
+        """The per-pixel error bound and its image average (dissertation ch. 6); None when
+        the job does not estimate its error (`error_estimation` off)."""
 
 
 KeepGoing = Callable[[int], bool]

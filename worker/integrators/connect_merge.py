@@ -64,7 +64,7 @@ def pass_radius(r0: float, alpha: float, pass_index: int) -> float:
     return r0 * (pass_index + 1) ** (0.5 * (alpha - 1.0))
 
 
-class ConnectMerge(Integrator):
+class ConnectMerge(Integrator[HybridState]):
     """VCM: light tracing, next-event estimation, connections and merging."""
 
     name = "vcm"
@@ -101,7 +101,7 @@ class ConnectMerge(Integrator):
     def batch_inputs(self, state: HybridState) -> HybridInputs:
         return HybridInputs(float(state.R0[0]))
 
-    def merge_sums(self, state: HybridState, sums: dict[str, np.ndarray],  # type: ignore[override]
+    def merge_sums(self, state: HybridState, sums: dict[str, np.ndarray],
                    pixels: slice = slice(None)) -> None:
         add_sums(state, sums, pixels)
 

@@ -120,7 +120,7 @@ class ConnectMergePasses:
 
     def _pass(self, k: int, r0: float) -> None:
         dev, a, it = self.dev, self.dev.arrays, self.integrator
-        radius = pass_radius(r0, self.settings.alpha, k)
+        radius = pass_radius(r0, self.integrator.alpha, k)
         eta_vcm = math.pi * radius * radius * self.n_light
         self.vertices_stored = self._light_pass(k, eta_vcm)
         inv_cell, mask = self._build_grid(self.vertices_stored, radius) if it.merges else (1.0, 0)

@@ -77,7 +77,7 @@ class GatherInputs:
     passes: int | None = None
 
 
-class PhotonMapping(Integrator):
+class PhotonMapping(Integrator[Accumulators]):
     """SPPM: a new jittered measurement point per pixel and pass (dissertation ch. 7)."""
 
     name = "sppm"
@@ -98,14 +98,14 @@ class PhotonMapping(Integrator):
         return self.settings.sampler == "adaptive"
 
     def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
-        return Accumulators.start(self.settings.alpha, setup["R0"], self.sums, BATCH_ONLY)
+        return Accumulators.start(self.alpha, setup["R0"], self.sums, BATCH_ONLY)
 
     def restore(self, arrays: dict[str, np.ndarray], emitted: int, passes: int,
                 counters: dict[str, int] | None = None) -> Accumulators:
         n = len(arrays["R0"])
         sums = {name: arrays[name] if name in arrays else self.sums.zeros(n, name)
                 for name in self.sums.names if name not in BATCH_ONLY}
-        return Accumulators(alpha=self.settings.alpha, R0=arrays["R0"], N=arrays.get("N", np.zeros(n)),
+        return Accumulators(alpha=self.alpha, R0=arrays["R0"], N=arrays.get("N", np.zeros(n)),
                             sums=sums, emitted=emitted, passes=passes, counters=dict(counters or {}))
 
     def batch_inputs(self, state: Accumulators) -> GatherInputs:
@@ -121,7 +121,7 @@ class PhotonMapping(Integrator):
             if self.settings.error_estimation else None
         return GatherInputs(r, bias, chains, count, state.passes)
 
-    def merge_sums(self, state: Accumulators, sums: dict[str, np.ndarray],  # type: ignore[override]
+    def merge_sums(self, state: Accumulators, sums: dict[str, np.ndarray],
                    pixels: slice = slice(None)) -> None:
         state.merge_sums(sums, pixels)
 

@@ -197,7 +197,7 @@ class PhotonMappingPasses:
     def _radii(self) -> tuple:
         """The gathers' radius arguments (spatial_hash.cl: radius, radius_count, bias, alpha,
         steps, own)."""
-        return (self.radius, self.radius_count, self.bias, f32(self.settings.alpha), u32(self.steps), u32(self.own))
+        return (self.radius, self.radius_count, self.bias, f32(self.integrator.alpha), u32(self.steps), u32(self.own))
 
     def _set_radii(self, radius: np.ndarray, count: np.ndarray, bias: np.ndarray) -> None:
         """A batch's (or a probe's) starting radius, count N and bias per pixel, float32 (each
@@ -338,12 +338,12 @@ class PhotonMappingPasses:
         if inputs.passes is not None and first_pass < inputs.passes:
             # The inputs hold passes after this batch's first: back to where the job's first
             # `first_pass` passes leave the radius (stats.rewind).
-            n_factor, r2_factor = stats.rewind(self.settings.alpha, inputs.passes, first_pass)
+            n_factor, r2_factor = stats.rewind(self.integrator.alpha, inputs.passes, first_pass)
             r32 = r32 * np.float32(math.sqrt(r2_factor))
             count, bias = count * n_factor, bias * r2_factor
         self._set_radii(r32, count, bias)
         dev.zero_sums()
-        totals = {stats.SCHEDULE: stats.schedule_count(self.settings.alpha, first_pass, n_passes)}
+        totals = {stats.SCHEDULE: stats.schedule_count(self.integrator.alpha, first_pass, n_passes)}
         for k in range(first_pass, first_pass + n_passes):
             # The job's passes before this one that the inputs lack: the first pass takes the
             # radius rule for them too, any number (shrink_radius's closed form; GatherInputs).
