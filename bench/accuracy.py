@@ -155,7 +155,7 @@ def chart(result: dict) -> None:
     axes[0].set_ylabel("image mean / analytic")
     axes[0].set_title("depth: energy against albedo")
     axes[0].legend(fontsize=8)
-    for (name, rows), colour in zip(result["coverage_split"].items(), ("C0", "C1", "C2")):
+    for (name, rows), colour in zip(result["coverage_split"].items(), ("C0", "C1", "C2"), strict=False):
         p = [r["passes"] for r in rows]
         axes[1].semilogx(p, [r["with_discontinuity_bias"]["edge"] for r in rows], "o-", color=colour, label=f"{name}")
         axes[1].semilogx(p, [r["without"]["edge"] for r in rows], "x:", color=colour, label=f"{name}, before")

@@ -360,7 +360,7 @@ def chart(name: str, curves: dict[str, list], v_c: float | None, prefix: str) ->
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for sampler, points in curves.items():
         if points:
-            ax.loglog(*zip(*points), "-", ms=3, label=sampler)
+            ax.loglog(*zip(*points, strict=True), "-", ms=3, label=sampler)
     ax.set_xlabel("CPU time, s")
     ax.set_ylabel("relative RMS error")
     ax.set_title(f"{name}: adaptive vs uniform photons (V_c {v_c:.3g})" if v_c else name)

@@ -83,9 +83,9 @@ def host_seconds(before: list, after: list, ours: float) -> dict[str, object]:
     gave to other guests (steal: this VM wanted the core and did not get it) and the busy
     seconds; and the busy seconds of processes other than ours (`ours`: their CPU seconds
     over the same span)."""
-    steal = [a.steal - b.steal for b, a in zip(before, after)]
+    steal = [a.steal - b.steal for b, a in zip(before, after, strict=True)]
     busy = [(a.user + a.nice + a.system + a.irq + a.softirq) - (b.user + b.nice + b.system + b.irq + b.softirq)
-            for b, a in zip(before, after)]
+            for b, a in zip(before, after, strict=True)]
     return {"steal_seconds": steal, "busy_seconds": busy, "others_cpu_seconds": sum(busy) - ours}
 
 

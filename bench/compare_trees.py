@@ -82,7 +82,7 @@ def main() -> None:
     ratios["per_pixel"] = result["new"]["per_pixel_ms_per_pass"] / result["base"]["per_pixel_ms_per_pass"]
     ratios["wall"] = result["new"]["wall_ms_per_pass"] / result["base"]["wall_ms_per_pass"]
     # Run by run (each new run against the base run just before it): the spread of the ratio.
-    paired = [n["wall_ms_per_pass"] / b["wall_ms_per_pass"] for b, n in zip(runs["base"], runs["new"])]
+    paired = [n["wall_ms_per_pass"] / b["wall_ms_per_pass"] for b, n in zip(runs["base"], runs["new"], strict=True)]
     report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "trees": {"base": str(args.base), "new": str(args.new)},
               "scene": args.scene, "resolution": resolution, "gather": args.gather, "passes": args.passes,
               "repeats": args.repeats, "pocl_threads": os.environ.get("POCL_MAX_PTHREAD_COUNT"),

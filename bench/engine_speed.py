@@ -154,7 +154,7 @@ def chart_hybrid(results: list[HybridResult]) -> None:
     for stage in HYBRID_STAGES:
         heights = [max(0.0, r.ms_per_pass[stage]) for r in results]
         ax.bar(labels, heights, bottom=bottoms, label=stage)
-        bottoms = [b + h for b, h in zip(bottoms, heights)]
+        bottoms = [b + h for b, h in zip(bottoms, heights, strict=True)]
     ax.set_ylabel("ms per pass (one light subpath per pixel)")
     ax.set_title("photonfarm hybrid methods: time per pass by stage")
     ax.set_ylim(0, 1.15 * max(bottoms))
@@ -173,7 +173,7 @@ def chart(results: list[Result]) -> None:
     for stage in CHART_STAGES:
         heights = [r.ms_per_pass[stage] for r in results]
         ax.bar(labels, heights, bottom=bottoms, label=stage)
-        bottoms = [b + h for b, h in zip(bottoms, heights)]
+        bottoms = [b + h for b, h in zip(bottoms, heights, strict=True)]
     for i, r in enumerate(results):
         ax.annotate(f"{r.paths_per_second / 1e3:.0f}k paths/s", (i, r.wall_ms_per_pass), ha="center",
                     va="bottom", xytext=(0, 3), textcoords="offset points")

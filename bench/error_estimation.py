@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Callable
+from itertools import pairwise
 
 import numpy as np
 
@@ -50,7 +51,7 @@ def overhead(passes: int) -> dict:
         gather0 = eng.times.seconds["gather"]
         host = [0.0]
 
-        def observe(state: object, _: float, on: bool = on) -> None:
+        def observe(state: object, _: float, on: bool = on, host: list[float] = host) -> None:
             if on:
                 h0 = time.perf_counter()
                 ee.estimate(state, 0.9)
@@ -120,7 +121,7 @@ def chart(result: dict) -> None:
     for scene, rows in result["coverage"].items():
         for conf, style in ((0.5, "o-"), (0.9, "s--")):
             pts = [(r["passes"], r["coverage"]) for r in rows if r["z"] == z and r["confidence"] == conf]
-            axes[0].plot(*zip(*pts), style, label=f"{scene} {int(conf * 100)}%")
+            axes[0].plot(*zip(*pts, strict=True), style, label=f"{scene} {int(conf * 100)}%")
     for conf in (0.5, 0.9):
         axes[0].axhspan(conf - 0.05, conf + 0.05, color="grey", alpha=0.15)
     axes[0].set_xscale("log")
@@ -132,7 +133,7 @@ def chart(result: dict) -> None:
     for scene, rows in result["coverage"].items():
         for conf, style in ((0.5, "o-"), (0.9, "s--")):
             pts = sorted((r["z"], r["coverage"]) for r in rows if r["passes"] == last and r["confidence"] == conf)
-            axes[1].plot(*zip(*pts), style, label=f"{scene} {int(conf * 100)}%")
+            axes[1].plot(*zip(*pts, strict=True), style, label=f"{scene} {int(conf * 100)}%")
     axes[1].axvline(z, color="k", lw=0.8)
     axes[1].set_xlabel("bias significance z (standard errors)")
     axes[1].set_title(f"coverage at {last} passes against z")
@@ -173,7 +174,7 @@ def main() -> None:
         "bias_significance": ee.BIAS_SIGNIFICANCE,
     }
     for rows in [*result["termination"].values(), *result["termination_batch_8"].values()]:
-        for prev, cur in zip(rows, rows[1:]):
+        for prev, cur in pairwise(rows):
             cur["passes_ratio_to_previous"] = cur["passes"] / prev["passes"]
     write_json("error_estimation", result)
     chart(result)

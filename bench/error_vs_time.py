@@ -132,7 +132,7 @@ def chart(scene: str, curves: dict[str, list], ref_method: str, ref_error: float
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for name, curve in curves.items():
         if curve:
-            ax.loglog(*zip(*curve), "-" if name in OURS else "--o", ms=3, label=name)
+            ax.loglog(*zip(*curve, strict=True), "-" if name in OURS else "--o", ms=3, label=name)
     for target in TARGETS:
         ax.axhline(target, color="grey", lw=0.6, ls=":")
     # No curve can be measured below the reference's own error (they add in quadrature).

@@ -33,6 +33,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -124,12 +125,14 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             state.radius()
             b_est, bias_cpu = _cpu(bias_estimate, r_now, state.G, state.emitted, settings.bias_constant)
             bias_se = np.abs(b_est) * 0.1  # any standard error: the cost does not depend on it
-            _, edge_cpu = _cpu(lambda: discontinuity_bias(state.Dh, state.Dh2, state.passes, b_est, bias_se,
-                                                          *edge_quantiles(state.passes)))
+            _, edge_cpu = _cpu(lambda state=state, b_est=b_est, bias_se=bias_se: discontinuity_bias(
+                state.Dh, state.Dh2, state.passes, b_est, bias_se, *edge_quantiles(state.passes)))
             lum = state.photon_radiance() @ np.array([0.2126, 0.7152, 0.0722])
             known = (state.H > 0) & (state.D > 0)
             dark = (state.H > 0) & ~known
-            def never_lit() -> list[np.ndarray]:
+
+            def never_lit(state: Any = state, lum: np.ndarray = lum, known: np.ndarray = known,
+                          dark: np.ndarray = dark, settings: Any = settings) -> list[np.ndarray]:
                 scale = unlit_scale(state, lum, known, settings.confidence)
                 return [unlit_bound(state, scale, blk) for blk in blocks(len(lum)) if dark[blk].any()]
             _, unlit_cpu = _cpu(never_lit)

@@ -50,6 +50,7 @@ import multiprocessing as mp
 import statistics
 import tempfile
 import time
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -223,7 +224,7 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
     fold = out.get()
     for p in procs:
         p.join()
-    node_cpu = [cpu_seconds([pid]) - c for pid, c in zip(pids, node_cpu0)]
+    node_cpu = [cpu_seconds([pid]) - c for pid, c in zip(pids, node_cpu0, strict=True)]
     latencies = sorted(x for r in pushes for x in r["latencies"])
     accepted = [t for r in pushes for t in r["accepted"]]
     lags = _image_lags(accepted, fold["rounds"]) or [float("inf")]
@@ -231,7 +232,7 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
     ends = [e for _, e in fold["rounds"]]
     first, last = min(accepted, default=0.0), max(accepted, default=0.0)
     while_busy = [e for e in ends if first <= e <= last] + [min((e for e in ends if e > last), default=float("inf"))]
-    refresh = [b - a for a, b in zip(while_busy, while_busy[1:])] or [float("inf")]
+    refresh = [b - a for a, b in pairwise(while_busy)] or [float("inf")]
     p95 = latencies[int(0.95 * (len(latencies) - 1))] if latencies else float("nan")
     record = store.get(job_id)
     assert record.passes == 1 + len(latencies), "a merge was lost or counted twice"
@@ -289,7 +290,8 @@ def project(runs: list[dict]) -> dict:
         round_seconds = base["fold_round_median_seconds"] or 0.0
         model = _round_model([tuple(c) for r in series for c in r.get("folder_round_costs", [])])
 
-        def steady(n: int) -> tuple[float, float, float]:
+        def steady(n: int, round_seconds: float = round_seconds, pass_seconds: float = pass_seconds,
+                   merge: float = merge, model: tuple[float, float] | None = model) -> tuple[float, float, float]:
             """The batch, the batches a second and the fold round at N = n. The scheduler's
             batch takes the job's last round, and with the folder on a core of its own a
             round lasts its CPU seconds (the model), which grow with the batches it folds:
@@ -305,7 +307,8 @@ def project(runs: list[dict]) -> dict:
                 length = 0.5 * (length + model[0] + model[1] * max(1.0, rate * period))
             return batch, rate, length
 
-        def loads(n: int) -> tuple[dict[str, float], float, float]:
+        def loads(n: int, costs: dict[str, float] = costs, merge: float = merge,
+                  model: tuple[float, float] | None = model) -> tuple[dict[str, float], float, float]:
             """Each part's load, the merge share and the batches a second, at N = n."""
             batch, rate, length = steady(n)
             load = {part: rate * c for part, c in costs.items()}
@@ -350,7 +353,7 @@ def chart(report: dict, name: str) -> None:
     axes[1].axhline(REFRESH_SECONDS, color="grey", ls="--", label="10 s")
     axes[2].axhline(PROJECTED_LOAD, color="grey", ls="--", label="saturated")
     for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)",
-                                "projected: the busiest server or folder, a core each")):
+                                "projected: the busiest server or folder, a core each"), strict=True):
         if any(min(line.get_xdata(), default=0) > 0 for line in ax.lines):  # (no projection: nothing sustained)
             ax.set_xscale("log")
         ax.set_xlabel("simulated workers")

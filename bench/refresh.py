@@ -27,6 +27,7 @@ import os
 import statistics
 import tempfile
 import time
+from itertools import pairwise
 from pathlib import Path
 
 import redis
@@ -91,7 +92,7 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
     # The image changes at the end of a round that folded new passes (not at a checkpoint
     # that wrote what the image already held).
     changes = [r for i, r in enumerate(rounds) if i == 0 or r["passes"] != rounds[i - 1]["passes"]]
-    intervals = [b["end"] - a["end"] for a, b in zip(changes, changes[1:])]
+    intervals = [b["end"] - a["end"] for a, b in pairwise(changes)]
     lengths = [r["seconds"] for r in rounds]
     return {"width": w, "height": h, "workers": workers, "shards": shards, "seconds": seconds,
             "status": record.status.value,

@@ -53,6 +53,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -294,7 +295,7 @@ def _seconds_to_error(run: dict, error: float) -> float | None:
     """Job seconds until the estimated error first fell to `error` (between two fold rounds:
     linear in log error), from the job's history; None if it never did."""
     h = [(e["seconds"], e["error"]) for e in run["history"] if e["error"] is not None]
-    for (t0, e0), (t1, e1) in zip([(0.0, float("inf"))] + h, h):
+    for (t0, e0), (t1, e1) in pairwise([(0.0, float("inf")), *h]):
         if e1 <= error:
             if not np.isfinite(e0) or e0 <= e1:
                 return t1
@@ -363,7 +364,8 @@ def pinned_chart(result: dict, name: str) -> None:
     axes[1].legend(fontsize=7)
     big = [r for r in runs if r["resolution"] == sizes[-1]]
     bottom = np.zeros(len(big))
-    for part, colour in zip(big[0]["cpu_seconds_per_batch"], ("#4477aa", "#66ccee", "#bbbbbb", "#cc6677", "#228833")):
+    for part, colour in zip(big[0]["cpu_seconds_per_batch"], ("#4477aa", "#66ccee", "#bbbbbb", "#cc6677", "#228833"),
+                            strict=False):
         v = np.array([r["cpu_seconds_per_batch"][part] for r in big])
         axes[2].bar(np.arange(len(big)), v, bottom=bottom, color=colour, label=part)
         bottom += v

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from itertools import pairwise
 
 import numpy as np
 
@@ -75,11 +76,11 @@ def alpha_sweep(seeds: int, passes: int) -> dict:
         # where the estimate of bias^2 is not positive, the bias is below what the seeds resolve
         bias = np.where(bias2 > 0, np.sqrt(np.abs(bias2)), np.nan)
         half = len(checkpoints) // 2
-        resolved = [(c, b) for c, b in zip(checkpoints[half:], bias[half:]) if np.isfinite(b)]
+        resolved = [(c, b) for c, b in zip(checkpoints[half:], bias[half:], strict=True) if np.isfinite(b)]
         out[f"{alpha:.3f}"] = {"checkpoints": checkpoints, "relative_variance": variance.tolist(),
                                "relative_bias": [None if not np.isfinite(b) else float(b) for b in bias],
                                "variance_slope": slope(checkpoints[half:], variance[half:].tolist()),
-                               "bias_slope": slope(*zip(*resolved)) if len(resolved) >= 3 and
+                               "bias_slope": slope(*zip(*resolved, strict=True)) if len(resolved) >= 3 and
                                len(resolved) == len(checkpoints[half:]) else None,
                                "predicted_variance_slope": -alpha, "predicted_bias_slope": -(1 - alpha)}
     return out
@@ -168,7 +169,7 @@ def shadow_edge(passes: int) -> dict:
     rel = np.abs(img - ref) / np.maximum(ref, 0.05 * ref.mean())
     bins = [0, 1, 2, 3, 5, 8, 13, 99]
     rows = []
-    for lo, hi in zip(bins, bins[1:]):
+    for lo, hi in pairwise(bins):
         m = (dist >= lo) & (dist < hi) & (ref > 0)
         if m.any():
             rows.append({"distance_pixels": [lo, hi], "pixels": int(m.sum()), "mean_relative_error": float(rel[m].mean())})

@@ -155,7 +155,7 @@ def build_options(layout: SumLayout) -> list[str]:
         "NORMAL_MATCH_COS": f"{NORMAL_MATCH_COS!r}f",
         "EXTENT_STEPS": EXTENT_STEPS,
         "GRID_ROW_SPLIT": GRID_ROW_SPLIT,
-        **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE)},
+        **{f"LUM_{c}": repr(float(w)) for c, w in zip("RGB", LUMINANCE, strict=True)},
         **{f"SKIP_{name.upper()}": bit for name, bit in HYBRID_SKIP.items()},
         **borrowed,
         **layout.defines(),

@@ -183,7 +183,7 @@ class PhotonMappingPasses:
             cl.enqueue_copy(dev.queue, counts, self.counters)
             dev.times.add("trace", events)
             if stored[0] <= self.capacity:
-                return int(stored[0]), dict(zip(adaptive.COUNTERS, (int(c) for c in counts)))
+                return int(stored[0]), dict(zip(adaptive.COUNTERS, (int(c) for c in counts), strict=True))
             self._reserve_photons(int(stored[0] * 1.25))  # same seeds: the re-run is identical
 
     def _scale_pass(self, n_stored: int, scale: float) -> None:
