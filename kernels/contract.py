@@ -45,7 +45,7 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights: what "error"
 # Russian roulette keeps the expected throughput, so the energy the cap cuts is the true
 # throughput still carried after MAX_BOUNCES bounces: at most a^MAX_BOUNCES of the emitted
 # (or seen) energy where every surface reflects at most a. For a = 0.99 that is
-# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2; the 16 bounces of old lost 0.99^16 = 85%.
+# 0.99^4096 = 1.3e-18, for a = 0.999 1.7e-2.
 # Lossless surfaces (albedo 1: ideal mirrors and glass) absorb nothing, so there the cut is
 # the share of paths still trapped among them after 4096 bounces: zero in any scene where
 # such a chain ends at a diffuse surface or escapes (glass: each internal hit stays inside
@@ -60,9 +60,8 @@ MAX_BOUNCES = 4096
 # One unit is 2^-SPLAT_FRACTION_BITS of the scene's radiance scale (SceneArrays.radiance_scale:
 # its brightest light's radiance, or what a delta light gives a white surface): 3.7e-9 of it per
 # splat, far below any noise, and a pixel holds up to 2^(63 - SPLAT_FRACTION_BITS) = 3.4e10 of
-# it per pass (more saturates). A unit of radiance whatever the scene's units lost pixels of a
-# Cornell box whose lamp was 1e-11 bright (tests/test_connect_merge.py), and would saturate
-# where a pixel passes 3.4e10.
+# it per pass (more saturates). Scaled to the scene so that both bounds hold in any radiance
+# unit: a fixed unit would round a dim scene's splats away (tests/test_connect_merge.py).
 SPLAT_FRACTION_BITS = 28
 # Stage timing of the hybrid passes (bench/engine_speed.py): bits of the kernels' `skip`
 # argument that leave a technique's evaluation out while every MIS weight stays the
@@ -89,7 +88,7 @@ EXTENT_STEPS = 64
 # The exact gather's grid (kernels/spatial_hash.cl, ball_rows): cells of 2 largest radii split this
 # many ways along x, the axis of its rows (at most 31: a row's cells are bits of a uint). A query
 # reads 4 runs of photons whatever the split; a finer split visits fewer photons but spreads the
-# cells over more of the table: split 4 measured no faster than 2 (bench/RESULTS.md).
+# cells over more of the table (the trade-off: docs/results.md).
 GRID_ROW_SPLIT = 2
 
 

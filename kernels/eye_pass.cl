@@ -44,9 +44,9 @@ inline float cut_at(uint4 cut, int k) {
 // chords that join neighbouring cuts (inside_cut), and the coverage is the kernel weight
 // of exactly that part (sector_cover: 4 Gauss points a sector, along each the weight
 // within the chord's distance, G(s) = int_0^s K(t) t dt / int_0^1 K(t) t dt
-// = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7). Taken by ray instead (G of each ray's own cut),
-// it counted the slivers between a chord and the disc's rim that the gather leaves out:
-// 2% dark at a straight edge with the smooth kernel, 5% with the uniform one. Returns the
+// = 3.5 s^2 - 14 s^5 + 17.5 s^6 - 6 s^7). Per chord rather than per ray (G of each ray's
+// own cut), so the coverage leaves out the slivers between a chord and the disc's rim as
+// the gather does; a coverage by ray counts them and darkens a straight edge. Returns the
 // coverage of the disc of radius r and (same cuts) of radius r/2, for the error estimate's
 // second gather radius (spatial_hash.cl). `smooth` false: the share of the disc's area
 // instead, G(s) = s^2, for a uniform kernel (vcm's merging, vcm_camera_pass.cl).
@@ -96,8 +96,8 @@ inline bool plane_splits(float lowest, float highest, float e) { return lowest <
 
 // Whether triangle (v0, v0 + e1, v0 + e2) may come within `reach` of x: its bounding box
 // and its plane both do (conservative). A leaf holds several triangles (worker/bvh.py
-// LEAF_SIZE), and its box reaching x says nothing of each: without this, a Cornell box's
-// ceiling points found the side walls' triangles of their leaf and cast the rays everywhere.
+// LEAF_SIZE), and its box reaching x says nothing of each, so each is tested: a leaf that
+// holds a far wall beside the point's own would otherwise send every point's rays.
 inline bool triangle_may_reach(float3 v0, float3 e1, float3 e2, float3 x, float reach) {
     float3 v1 = v0 + e1, v2 = v0 + e2;
     float3 nearest = clamp(x, fmin(v0, fmin(v1, v2)), fmax(v0, fmax(v1, v2)));
@@ -286,7 +286,7 @@ inline bool inside_cut(uint4 cut, float3 n, float3 v, float r) {
     if (s0 == CUT_REACH && s1 == CUT_REACH) return true;  // the rim (the disc test is the caller's)
     // Both cut at the centre (a wall within the cut's quantum of the point, where it meets the
     // point's surface): the sector lies beyond it. The edge below would have no length and take
-    // every photon in the sector (a point by the foot of a partition gathered the lit room's floor).
+    // every photon in the sector.
     if (s0 == 0.0f && s1 == 0.0f) return false;
     float a0 = phi0 + k * step, a1 = a0 + step;
     float2 p0 = s0 * r * (float2)(cos(a0), sin(a0)), p1 = s1 * r * (float2)(cos(a1), sin(a1));

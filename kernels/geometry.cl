@@ -97,16 +97,13 @@ typedef struct {
     float eps_floor;                 // the scene's coordinate scale, at most 1 (ray_eps)
 } SceneGeom;
 
-// Ray offset: 1e-5 of the magnitude of the coordinates it is added to (some 80 float32 ulps;
-// 1e-4 darkened the corners of a Cornell box moved 18 of its sizes from the origin by 2-3.5%),
+// Ray offset: 1e-5 of the magnitude of the coordinates it is added to (some 80 float32 ulps),
 // and near the origin 1e-5 of the scene's own scale (eps_floor, worker/scene_arrays.py), so that
-// the image does not change with the scene's unit (a floor of 1 offset a 5 cm box by 0.2% of
-// its size and darkened its corners by 1-3%). Every ray that leaves a surface starts this far
-// off it along the normal, on the side it leaves to, so it cannot meet that surface again; the
-// queries below then take every hit ahead of the origin (t > 0). A skip of this length along the
-// ray as well let rays that left within it of a wall cross the wall at a concave corner (light
-// tracing lit pixels beyond the wall of tests/test_wall_leak.py, and `gap`'s camera room with the
-// gap closed).
+// the image does not change with the scene's unit or its distance from the origin. Every ray
+// that leaves a surface starts this far off it along the normal, on the side it leaves to, so
+// it cannot meet that surface again; the queries below then take every hit ahead of the origin
+// (t > 0). No skip along the ray as well: a ray that left within it of a wall would cross the
+// wall at a concave corner (tests/test_wall_leak.py).
 inline float ray_eps(const SceneGeom* g, float3 p) {
     return HIT_EPS_REL * fmax(g->eps_floor, fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
 }

@@ -1,5 +1,5 @@
 // Lights: picking an emitter, and next-event estimation of direct light at a measurement
-// point (`direct: nee`, issue 12 step 1, as pbrt-v4's SPPM).
+// point (`direct: nee`, as pbrt-v4's SPPM).
 //
 // Emitter records are four float4 rows: row0 = (position or v0 or disc centre, type),
 // row1 = (edge1 | axis | direction, cos cone | disc radius), row2 = (edge2, sphere radius),

@@ -37,8 +37,7 @@ inline void write_photon(const PhotonStore* st, uint slot, float3 p, float count
                          ulong key) {
     if (slot >= st->capacity) return;
     // The packed directions keep out of the float lanes: as floats their bits are
-    // often denormal, and the vector arithmetic on xyz also runs the w lane
-    // (2.5x slower gathers when they lived there).
+    // often denormal, and the vector arithmetic on xyz also runs the w lane.
     st->pos[slot] = (float4)(p, count);
     st->flux[slot] = (float4)(flux, 0.0f);
     st->dirs[slot] = dirs;

@@ -12,17 +12,18 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENCL_NO_CACHE", "1")  # PoCL caches itself; pyopencl's cache double-compiles
 
-import numpy as np  # noqa: E402
-import pyopencl as cl  # noqa: E402
+import numpy as np  # noqa: E402 (PYOPENCL_NO_CACHE must be set before pyopencl is imported)
+import pyopencl as cl  # noqa: E402 (PYOPENCL_NO_CACHE must be set before pyopencl is imported)
 
-from kernels.contract import SumLayout, build_options  # noqa: E402
+from kernels.contract import SumLayout, build_options  # noqa: E402 (PYOPENCL_NO_CACHE must be set first)
 
 KERNEL_DIR = Path(__file__).resolve().parent
 WORK_GROUP = 64  # work items a work group (Program.launch)
 # Order matters: later files use what earlier ones define.
-SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "spatial_hash.cl", "visibility.cl",
-           "photon_pass.cl", "photon_chains.cl")
-PREAMBLE = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n"
+SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "spatial_hash.cl",
+           "visibility.cl", "photon_pass.cl", "photon_chains.cl")
+PREAMBLE = ("#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n"
+            "#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n")
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",
                 "grid_scatter", "grid_scatter_photons", "grid_sort_slots", "grid_permute", "gather_stochastic",
                 "gather_exact", "photon_chains", "scale_pass")
@@ -82,8 +83,8 @@ class Program:
 
         The work-group size is fixed because PoCL compiles a kernel anew for every local size
         it is launched with, and left to choose it picks one that divides the global size:
-        counts that change from pass to pass (stored photons, hash entries) then compiled
-        during rendering, seconds each, on every worker (bench/RESULTS.md, error against time)."""
+        counts that change from pass to pass (stored photons, hash entries) would then
+        compile kernels during rendering, on every worker."""
         local = 1 if one_per_group else WORK_GROUP
         return self.kernels[name](queue, (-(-max(int(n), 1) // local) * local,), (local,), *args)
 

@@ -62,8 +62,8 @@ inline Rng rng_sample(int mode, __private const float* u, ulong fresh, float pow
 // x^p for x in [0, 1) and p >= 1, as exp2(p log2 x) with the exponent taken from the
 // float's bits and fitted polynomials for the rest (relative error about 1e-6 p): the
 // mutation's step length (eq. 9) needs no more (any step length law that does not depend
-// on the state keeps the mutation symmetric), and PoCL's pow, or its exp2 and log2, cost
-// about as much as a bounce of the path for each dimension the path asks for.
+// on the state keeps the mutation symmetric), and PoCL's pow, or its exp2 and log2, are
+// out-of-line library calls, made for every dimension the path asks for.
 inline float pow_unit(float x, float p) {
     if (x <= 0.0f) return 0.0f;
     uint bits = as_uint(x);

@@ -91,11 +91,8 @@ __kernel void grid_scatter(uint n, __global const float4* ph_pos, float inv_cell
 
 // The photons' grid: grid_scatter with each photon's whole record moved to its slot, read
 // in trace order. A record is one 64-byte line (PhotonSlot), so the scatter writes one
-// random line a photon, not one per field: with pos, flux, dirs, key and an index each
-// written at its own random place it was the build's largest kernel (65-84 ms of a 256 x
-// 256 furnace pass; now 43-73), and with two engines side by side the build took 119-139
-// ms a pass against 101-109 now, the same sums bit for bit. grid_sort_slots and
-// grid_permute then reach only the slots of one entry, which lie together.
+// random line a photon rather than one per field. grid_sort_slots and grid_permute then
+// reach only the slots of one entry, which lie together.
 typedef struct {
     float4 pos;    // xyz, w: count
     float4 flux;
@@ -187,8 +184,8 @@ __kernel void grid_permute(uint n, __global const PhotonSlot* slots, __global fl
 //     K(t) = 1 - 6t^5 + 15t^4 - 10t^3,   normalised by k1 r^2, k1 = 2 pi / 7,
 // which vanishes at t = 1 with its first two derivatives, so the flux and its Laplacian
 // can both be estimated from the same photons (section 6.4). The Laplacian is taken in
-// the measurement point's tangent plane (the 3D sum of eq. 6.38 reports a bias of -0.65 L
-// under uniform light; digest 4.5). With t = |v_t| / r, v_t the tangent part of
+// the measurement point's tangent plane (the 3D sum of eq. 6.38 is biased even under
+// uniform light; digest 4.5). With t = |v_t| / r, v_t the tangent part of
 // (photon - point):
 //     lap K = -30 t (t-1) (5t-3) / r^2          (K'' + K'/t, over r^2)
 // The pass's sums go into the batch's per-pixel sums at the radius r it used (digest 11.2):
@@ -217,11 +214,10 @@ typedef struct {
 // disc's ball (photon_near), has arrived on the side the eye sees, and lies on a surface
 // that matches the point's (photon_matches; its incoming direction and surface normal,
 // unit vectors; NORMAL_MATCH_COS, contract.py). The last test keeps a concave corner
-// from gathering the photons of the perpendicular wall (10% too bright against Mitsuba in
-// the Cornell box's corners); the disc coverage measured in the eye pass then
-// renormalises the estimate for the part of the disc beyond that wall, and only photons
-// in that covered part count (inside_cut, eye_pass.cl: no light through a wall from the
-// same plane beyond it).
+// from gathering the photons of the perpendicular wall, which would brighten it; the disc
+// coverage measured in the eye pass then renormalises the estimate for the part of the disc
+// beyond that wall, and only photons in that covered part count (inside_cut, eye_pass.cl: no
+// light through a wall from the same plane beyond it).
 inline bool photon_near(float3 x, float r2, float3 p) {
     float3 v = p - x;
     return dot(v, v) < r2;
@@ -465,7 +461,7 @@ inline void add_near(PassSums* s, const Query* q, const uint* near, int n, __glo
 // Test the exact grid's photons begin .. end against the query's ball, adding those within
 // a batch at a time (add_near). The distance test runs without a branch, collecting the
 // photons it keeps to be tested and added NEAR_BATCH at a time: a branch per visited photon
-// mispredicts often, and that cost a fifth of the gather.
+// would mispredict often.
 inline void scan_run(PassSums* s, const Query* q, uint begin, uint end, uint* near, int* n_near,
                      __global const float4* grid_pos, __global const float4* grid_flux,
                      __global const float4* grid_in, __global const float4* grid_nrm) {

@@ -11,8 +11,8 @@
 //   4. merging (vcm) with the stored light vertices within r (merge_light_vertices), over
 //      the share of the disc on x's own surface (eye_pass.cl, disc_coverage, for a uniform
 //      kernel): where a concave corner's wall cuts the disc, no vertex of this surface lies
-//      beyond it (without it, Cornell-box pixels within 10 of 555 of a corner came out 7.5%
-//      dark, bpt there within 1%); only the vertices in the disc's covered part count
+//      beyond it, so the estimate is renormalised to the covered share (without it a corner
+//      comes out dark); only the vertices in the disc's covered part count
 //      (inside_cut: no light through a wall from the same plane beyond it);
 //   5. the bounce, Russian roulette, and the update of the quantities.
 // Writes the pixel's camera-side radiance for the pass (w: the change of the merged part
