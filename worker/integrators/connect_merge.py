@@ -1,6 +1,6 @@
 """Vertex connection and merging, the host half: the hybrid integrator `vcm` and its
-unbiased and light-tracing modes `bpt` and `lt` (issue 12 stage B; Georgiev et al. 2012,
-Hachisuka et al. 2012, dissertation ch. 9; equations in kernels/vcm_*.cl).
+unbiased and light-tracing modes `bpt` and `lt` (Georgiev et al. 2012, Hachisuka et al.
+2012, dissertation ch. 9; equations in kernels/vcm_*.cl).
 
 Per pass: `photons_per_pass` light subpaths are traced, their non-specular vertices stored
 and each connected to the camera (light tracing: a splat to any pixel); then one camera
@@ -14,8 +14,9 @@ merge by plain addition in any order. R0 is the job's setup array, computed as S
 (worker/integrators/photon_mapping_passes.py: light vertices, which are photons, per pass).
 
 Sums per pixel: C the radiance of every pass; for the error estimate Y2 the squared
-luminance of each pass's sample, H the passes whose camera ray hit a surface, and (vcm) Mh, Mh2 the change of the merged estimate from
-radius r/2 to r and its square. The device half is worker/integrators/connect_merge_passes.py.
+luminance of each pass's sample, H the passes whose camera ray hit a surface, and (vcm) Mh,
+Mh2 the change of the merged estimate from radius r/2 to r and its square. The device half
+is worker/integrators/connect_merge_passes.py.
 """
 
 from __future__ import annotations

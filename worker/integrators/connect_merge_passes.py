@@ -103,7 +103,7 @@ class ConnectMergePasses:
         inv_cell, mask = f32(1.0 / (2.0 * radius)), u32(entries - 1)
         # Launched over `entries` work items (the kernels bound-check n_stored), not n_stored:
         # PoCL builds a kernel anew for every work-group size it picks, and it picks one that
-        # divides the launch size, so a launch size that changed every pass cost a kernel
+        # divides the launch size, so a launch size that changed every pass would cost a kernel
         # build (or a cache load) every pass.
         events = [dev.fill(self.cell_count, np.uint32(0), entries),
                   p.launch(dev.queue, "grid_count", entries, u32(n_stored), self.lv_pos, inv_cell, u32(1), mask,
@@ -140,8 +140,8 @@ class ConnectMergePasses:
     def setup(self) -> dict[str, np.ndarray]:
         """R0: the override, or R0_FOOTPRINTS pixel footprints (SPPM's footprint rule, from
         a photon-mapping eye pass on the same context). Not SPPM's photon-count rule: with
-        few light paths per pass it grows R0 until merging reaches across walls (2.2x the
-        mean on `gap`), and connections already carry the light that merging would smooth;
+        few light paths per pass it grows R0 until merging reaches across walls (light leaks
+        through them), and connections already carry the light that merging would smooth;
         merging is there for the specular paths, where a small radius is what they need."""
         dev = self.dev
         if self.settings.initial_radius is not None:

@@ -3,8 +3,9 @@
 Per pass: an eye pass makes one measurement point per pixel (SPPM jitters new points every
 pass; PPM keeps pass 0's), photons are traced, and every point gathers the photons within
 its radius. With `direct: nee` the eye pass also samples the lights at each point
-(kernels/lights.cl) and photons store nothing at their first hit. A batch returns the per-pixel sums below; the radius rule and the merge live in
-worker/stats.py, the error estimate in worker/error_estimate.py. The device half is
+(kernels/lights.cl) and photons store nothing at their first hit. A batch returns the
+per-pixel sums below; the radius rule and the merge live in worker/stats.py, the error
+estimate in worker/error_estimate.py. The device half is
 worker/integrators/photon_mapping_passes.py. With `sampler: adaptive` the photons come from
 Markov chains over photon paths (worker/adaptive.py, kernels/photon_chains.cl).
 """

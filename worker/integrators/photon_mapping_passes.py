@@ -28,20 +28,18 @@ R0_PHOTONS = 16.0  # default initial radius: holds this many photons per pass at
 R0_FOOTPRINTS = 2.0  # ... but spans at least this many pixel footprints
 PROBE_FOOTPRINTS = 8.0  # the first pass measures photon density within this many pixel footprints, ...
 # ... a radius grown by PROBE_GROWTH until the median lit probe point holds PROBE_MIN_PHOTONS
-# (or it would pass PROBE_MAX_SHARE of the scene): where photons lie sparser than the probe (a close-up, a big frame), a
-# point that caught one photon overstates the density by the photons it missed, and with none
-# caught R0 fell to the footprints' (cornell-box at fov 0.01: 0.015, which no photon ever reached).
+# (or it would pass PROBE_MAX_SHARE of the scene): where photons lie sparser than the probe (a
+# close-up, a big frame), a point that caught one photon overstates the density by the photons
+# it missed, and points that caught none leave R0 at the footprints', which no photon may reach.
 PROBE_GROWTH = 4.0
 PROBE_MIN_PHOTONS = 4.0
 # The probe grows to at most this share of the scene's diagonal: a disc that spans the scene
-# gathers photons of surfaces the points do not see (with the light outside the furnace's
-# closed sphere, the probe caught photons on its far outer side, facing the points, and the
-# black interior rendered lit).
+# gathers photons of surfaces the points do not see (the outer side of a closed room's wall,
+# which would make its unlit interior look lit).
 PROBE_MAX_SHARE = 1.0 / 16.0
-# ... at most at this many pixels, a regular subset of the frame (R0's medians). 2^14: R0
-# within 0.4% of every pixel's on the bundled scenes at 256x256 to 3840x2160, and the
-# set-up (the probe's gather is most of it) 0.34 s against 0.67-0.93 on furnace at
-# 256x256, 0.8 against 2.5 s on cornell-box (2^13 and 2^12: R0 off by up to 5%).
+# ... at most at this many pixels, a regular subset of the frame (R0's medians): a median needs
+# no more, and the probe's gather is most of the set-up (the accuracy of R0 against the subset's
+# size: docs/results.md).
 PROBE_POINTS = 1 << 14
 
 
@@ -172,7 +170,8 @@ class PhotonMappingPasses:
             events.append(dev.program.launch(
                 dev.queue, "photon_chains", chains.chains, *dev.geometry, *dev.emitter_args,
                 u64(settings.seed), u32(pass_index), i32(settings.max_bounces), u32(self.capacity), i32(self.nee),
-                u32(chains.chains), u32(iterations), f32(chains.theta), u32(adaptive.boot_draws(chains.chains, photons)),
+                u32(chains.chains), u32(iterations), f32(chains.theta),
+                u32(adaptive.boot_draws(chains.chains, photons)),
                 i32(self.replica_exchange), i32(chains.mutate), i32(settings.gather == "exact"),
                 self.mp_pos, self.mp_nrm, self.mp_cut, self.radius, inv_cell, u32(self.mp_entries - 1), self.mp_start,
                 self.mp_count, self.mp_sorted, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count,
@@ -280,10 +279,10 @@ class PhotonMappingPasses:
         Both are the dissertation's (5.3.1): "the footprint of the pixel", or after the first
         photon pass a k-nearest-photon radius, here made one value for the whole image as in
         its GPU SPPM, since the stochastic hash sizes its cells by the largest radius. The
-        footprint alone ignores how many photons a pass brings: on smallppm at 1024x768 it
-        gave R0 = 0.10 and 4.7x the image error of R0 = 0.5 at smallppm's 4M photons. The
-        photon count alone shrinks R0 below a pixel where photons are dense, which buys no
-        resolution, only noise.
+        footprint alone ignores how many photons a pass brings, and where they are sparse it
+        leaves too few in a disc: noise that takes many passes to average. The photon count
+        alone shrinks R0 below a pixel where photons are dense, which buys no resolution,
+        only noise.
 
         The density comes from pass 0 itself: its eye pass, its photons, and an exact gather
         at PROBE_FOOTPRINTS pixel footprints (grown until the median lit point holds
@@ -296,18 +295,17 @@ class PhotonMappingPasses:
         footprint, points = self.pixel_footprint()
         # Every photon counted, first hits too: with nee the radius is the one photons alone
         # would get (sized by the density of the photons that are stored, mostly bounced
-        # light, it is up to 5x larger and blurs the caustics that only photons carry).
+        # light, it would be larger and blur the caustics that only photons carry).
         stored = self._photon_pass(0, first_hits=True)
         probe = PROBE_FOOTPRINTS * footprint
         while True:
             # Density: an exact gather of pass 0's photons at the probe radius, at the
-            # footprint's pixels (on every pixel, the set-up of directional-caustic at
-            # 3840x2160 took 3.3 s; now 0.8 s).
+            # footprint's pixels only (a median needs no more).
             dev.zero_sums()
             self._set_radii(np.full(points, probe), np.zeros(points), np.zeros(points))  # what the gather reads
             self._build_and_gather(stored, probe, gather="exact", points=points)
             # M / (pi probe^2): photons per unit area per pass (a copy: a view kept would make the
-            # next gather sum into a new buffer, Device.batch_sums, fresh memory at 0.6 s a GB),
+            # next gather sum into a new buffer, Device.batch_sums, and touch fresh memory),
             # at the median lit point
             density = dev.read_sums()["D"][:points].copy()
             lit = density[density > 0.0]
