@@ -109,7 +109,8 @@ def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
     base = f"/v1/jobs/{record.id}"
     return JobView(
         id=record.id, status=record.status, scene_name=record.scene_name, settings=record.settings,
-        width=record.width, height=record.height, passes=record.passes, image_passes=record.image_passes, photons=record.emitted,
+        width=record.width, height=record.height, passes=record.passes, image_passes=record.image_passes,
+        photons=record.emitted,
         elapsed_seconds=round(record.elapsed_seconds(), 3), photons_per_second=round(record.photons_per_second, 1),
         workers_active=jobs.leases.owners(record.id), created=_iso(record.created), started=_iso(record.started),
         finished=_iso(record.finished), failure=record.failure, error_estimate=jobs.last_error(record.id),
@@ -175,7 +176,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                 body += chunk
                 if len(body) > MAX_BODY_BYTES:
                     return JSONResponse({"detail": f"body larger than {MAX_BODY_BYTES} bytes"}, 413)
-            request._body = body  # noqa: SLF001 - the stream is consumed; hand the body on
+            request._body = body  # noqa: SLF001 (the stream is consumed: the route reads the body from here)
         try:
             return await call_next(request)
         except (redis.ConnectionError, redis.TimeoutError):
@@ -240,8 +241,8 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
         return body, {"X-Passes": str(state.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
 
-    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS), key=lambda record: (record.id, record.image_passes),
-                       condition=threading.Condition())
+    @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS),
+                       key=lambda record: (record.id, record.image_passes), condition=threading.Condition())
     def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
         """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
         state = jobs.state(record)
@@ -251,7 +252,8 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         arrays = {"rgb": record.integrator.image(state).reshape(*shape, 3)}
         est = record.integrator.estimate(state)
         if est is not None:
-            arrays |= {name: getattr(est, name).reshape(shape) for name in ("luminance", "bound", "relative", "measured")}
+            arrays |= {name: getattr(est, name).reshape(shape)
+                       for name in ("luminance", "bound", "relative", "measured")}
         return arrays
 
     @cachetools.cached(cachetools.TTLCache(maxsize=1, ttl=METRICS_SECONDS), key=lambda: "metrics",
@@ -418,13 +420,13 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
 
     @app.get("/v1/jobs/{job_id}/image", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 422)})
-    def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
+    def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
         body, headers = image_body(existing(job_id), format)
         return Response(body, media_type=MEDIA[format], headers=headers)
 
     @app.get("/v1/jobs/{job_id}/error", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 409, 422)})
-    def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002
+    def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
         """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
         body, headers = error_body(existing(job_id), format)

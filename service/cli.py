@@ -21,7 +21,8 @@ from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_p
 from worker.settings import Settings
 
 # Render flags that are settings fields, by flag name (defaults and help from the model).
-RENDER_FIELDS = ("method", "gather", "direct", "sampler", "target_acceptance", "alpha", "photons_per_pass", "initial_radius", "seed", "resolution")
+RENDER_FIELDS = ("method", "gather", "direct", "sampler", "target_acceptance", "alpha", "photons_per_pass",
+                 "initial_radius", "seed", "resolution")
 
 
 def _resolution(text: str) -> tuple[int, int]:

@@ -143,7 +143,8 @@ def _watch(client: Client, job: dict[str, Any], poll: float) -> dict[str, Any]:
             bar.n = min(1.0, done)
             bar.set_postfix_str(f"{job['status']} {job['passes']} passes "
                                 f"{job['photons_per_second'] / 1e6:.2f} M photons/s error "
-                                f"{est.get('error') or float('nan'):.4f} ETA {eta if eta is not None else float('nan'):.0f} s",
+                                f"{est.get('error') or float('nan'):.4f} "
+                                f"ETA {eta if eta is not None else float('nan'):.0f} s",
                                 refresh=True)
     return job
 
@@ -180,7 +181,8 @@ def submit(args: argparse.Namespace) -> int:
 def add_parser(sub: argparse._SubParsersAction, positive_float: Any, positive_int: Any, resolution: Any,
                output: Any) -> None:
     p = sub.add_parser("submit", help="submit a job to a running service (HTTP)")
-    p.add_argument("scene", help="bundled scene name, or a scene .json or Mitsuba .xml file (sent with the scene and mesh files of its folder)")
+    p.add_argument("scene", help="bundled scene name, or a scene .json or Mitsuba .xml file (sent with the scene "
+                                 "and mesh files of its folder)")
     p.add_argument("--url", default=os.environ.get("PHOTONFARM_URL", "http://127.0.0.1:8000"))
     p.add_argument("--token", default=os.environ.get("PHOTONFARM_TOKEN") or None)
     p.add_argument("--threshold", type=positive_float, help="stop when the average relative error is this low")

@@ -36,19 +36,16 @@ AOF_FILE = "appendonly.aof"
 # The append-only file is written once and read only by a restart, so the page cache need
 # not keep it: this often the cached pages of every *.aof file in the data directory (the
 # file, and a rewrite's temporary file as the rewrite writes it) are dropped
-# (posix_fadvise), and the memory is written again at once rather than taken fresh. On
-# this machine kind (a VM) fresh memory cost about 4.5 s a GB to touch, and a 3840x2160
-# job's batch passes about 1 GB through the file: the embedded Redis took a quarter less
-# CPU pushing such deltas (README, "Limits"; bench/RESULTS.md, the 4K refresh).
+# (posix_fadvise), and the memory is written again at once rather than taken fresh: a
+# large job's deltas pass through the file, and touching fresh memory for them costs Redis
+# CPU (README, "Limits"; the evidence: docs/results.md).
 AOF_PAGE_DROP_SECONDS = 1.0
 # An append-only-file rewrite is Redis's forked child writing the whole data set; nothing
 # waits on it (Redis goes on appending to a new file meanwhile), but at Redis's own
 # priority it takes the CPU from Redis's main thread and the API's folder, which a client's
 # next image waits on. So a rewrite child is made this much nicer than Redis, level with
-# the workers (worker/queue_worker.py, NICE), within this often of its fork. Measured
-# (a 1.5 GB data set, two busy nice-10 processes on 2 cores): a folder-like step (a 64 MB
-# GET, an add, a SET) took 1.8-2.8x its time outside a rewrite, 1.3-1.5x with the child
-# niced, and the rewrite 1.6-2x as long.
+# the workers (worker/queue_worker.py, NICE), within this often of its fork: the rewrite
+# then takes longer, and the folder's steps meanwhile less (docs/results.md).
 AOF_REWRITE_NICE = 10
 AOF_REWRITE_CHECK_SECONDS = 0.2
 # Commands no photonfarm process uses and that give an attacker a way out of the data.
@@ -152,14 +149,11 @@ class EmbeddedRedis:
                  "loglevel warning", f"requirepass {self.password}", f"maxmemory {self.maxmemory}",
                  "maxmemory-policy noeviction",
                  # An append-only-file rewrite writes the data set with an RDB preamble; LZF on
-                 # job states and deltas (float noise) saves nothing and cost its child about
-                 # 0.9 CPU s per 1920x1080 batch (bench/service_scaling.py --pinned).
+                 # job states and deltas (float noise) saves nothing and costs its child CPU.
                  "rdbcompression no",
                  # A rewrite once the file has grown by 4 data sets, not 1 (Redis's default):
-                 # deltas and checkpoints pass through the file, so each rewrite of a job's
-                 # state came every few batches. A 1920x1080 job with 2 workers, one run each:
-                 # Redis 5.8 against 8.9 CPU s (2 rewrites against 4). The disk then holds up
-                 # to 5 data sets.
+                 # deltas and checkpoints pass through the file, so at 1 a job's state would be
+                 # rewritten every few batches. The disk then holds up to 5 data sets.
                  f"auto-aof-rewrite-percentage {AOF_REWRITE_PERCENTAGE}"]
         lines += [f'rename-command {name} ""' for name in DISABLED_COMMANDS]
         return "\n".join(lines) + "\n"
