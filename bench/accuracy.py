@@ -1,8 +1,8 @@
-"""Accuracy where outside checks found it wrong (issue 11), against analytic answers and
-Mitsuba 3:
+"""Accuracy against analytic answers and Mitsuba 3, where bounded paths, concave corners
+and edges could bias the image:
 
 - depth: a point light in a closed diffuse sphere of albedo 0.5 to 0.99, image mean over
-  the analytic radiance, with paths capped at 16 bounces (as before) and ended by Russian
+  the analytic radiance, with paths capped at 16 bounces and ended by Russian
   roulette alone (the default, kernels/contract.py MAX_BOUNCES);
 - corners: the Cornell box's concave corners against Mitsuba's path tracer
   (bench/reference/cornell-box-corners-96x96.exr), mean over the pixels within 10, 20 and

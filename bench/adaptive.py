@@ -8,8 +8,8 @@
    gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
    rendering), the runs taking turns pass by pass. Two seeds per sampler, paired
    (a seed's initial radius comes from its own uniform probe pass, the same for both
-   samplers; on the zoom levels it moves the radius, and so the error, up to 2x from seed
-   to seed, so one seed's ratio says little): the error is the two runs' mean, split into
+   samplers; on the zoom levels it moves the radius, and so the error, from seed to seed,
+   so one seed's ratio says little): the error is the two runs' mean, split into
    noise (the relative RMS of their difference over sqrt 2, one image's) and bias (what
    the mean image's error keeps beyond its noise, sqrt(e_mean^2 - noise^2 / 2));
 3. error at equal passes: both samplers the same passes of the same photons per pass (a
@@ -22,8 +22,8 @@
 4. (`--defaults`, alone) at the service's defaults (256 pixels, 2^18 photons a pass, 12 CPU
    s): uniform, adaptive, and chains made to mutate at the paper's break-even (MIN_GAIN 1),
    on cornell-box, gap, directional-caustic at fov 5 and 1.25 and a point-lit patch
-   (tests/analytic.py patch_scene) at fov 6, 2 and 0.6 (V_c about 0.0084, 0.0011,
-   0.00011): the noise of two seeds (no reference needed at this size) and, on the patch,
+   (tests/analytic.py patch_scene) at fov 6, 2 and 0.6 (V_c falling with the field of
+   view): the noise of two seeds (no reference needed at this size) and, on the patch,
    the error against its closed form. This is where adaptive.mutates's MIN_GAIN comes from.
 5. (`--bound`, alone) the most any sampler of F = V / V_c could gain at equal time, from a
    uniform pass's own stage times (device seconds) and V_c: such a sampler's visible paths
@@ -81,9 +81,7 @@ ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0, 2.5, 1.25)  # degrees; 40 is the scene's own
 CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere's centre meets the ground
 # Photons per pass, both samplers. SPPM's radius falls by pass, not by photon, so on a
 # zoomed caustic the error at a given number of traced paths is mostly the radius's bias
-# unless passes are many: on the fov 5 view at 64 px, 2.1M uniform paths gave a relative
-# RMS error of 0.34 as 16 passes of 2^17 and 0.18 as 256 passes of 2^13 (the adaptive
-# sampler, 128 passes of 2^13 at about 2 traced paths a photon path: 0.12).
+# unless passes are many: small passes, so that a budget runs many of them.
 PHOTONS = 1 << 13
 SEED = 7
 VARIANTS = {"uniform": None, "adaptive": adaptive.MIN_GAIN, "chains": 1.0}  # sampler (uniform if None), MIN_GAIN
@@ -149,9 +147,9 @@ def take_turns(scene: Scene, res: tuple[int, int], photons: int, budget: float, 
                after_pass: Callable[[dict], None] | None = None) -> dict[tuple[str, int], dict]:
     """Per (variant of VARIANTS, seed) a run (engine, state, CPU seconds spent), rendered
     pass by pass in turn until each has spent `budget`, each on its own clock (set-up and
-    rendering, not the kernels' compilation), so that a shared machine's load, which moved
-    a pass's CPU time by up to 1.5x between runs made one after the other, falls on all of
-    them alike. `after_pass(run)` is called after each pass, off the clock."""
+    rendering, not the kernels' compilation), so that a shared machine's load, which moves
+    a pass's CPU time between runs made one after the other, falls on all of them alike.
+    `after_pass(run)` is called after each pass, off the clock."""
     runs = {}
     for variant, seed in keys:
         gain = VARIANTS[variant]

@@ -29,7 +29,7 @@ import numpy as np
 from bench.common import write_json
 
 STAGES = ("eye", "trace", "build", "gather", "readback", "merge", "other")
-PER_PIXEL = ("eye", "gather", "readback", "other")  # issue 14's per-pixel stages
+PER_PIXEL = ("eye", "gather", "readback", "other")  # the stages whose work grows with the pixels
 
 RUN = """
 import json, sys, time

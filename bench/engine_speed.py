@@ -200,7 +200,8 @@ def main() -> None:
     for name, resolution in scenes.items() if args.only != "hybrid" else ():
         for gather in GATHERS:
             r = measure(name, resolution, gather, passes)
-            print(f"{name:17s} {gather:10s} {r.paths_per_second / 1e3:7.0f}k paths/s  {r.wall_ms_per_pass:6.0f} ms/pass  "
+            print(f"{name:17s} {gather:10s} {r.paths_per_second / 1e3:7.0f}k paths/s  "
+                  f"{r.wall_ms_per_pass:6.0f} ms/pass  "
                   + " ".join(f"{s} {v:.0f}" for s, v in r.ms_per_pass.items()), flush=True)
             results.append(r)
     hybrid = []

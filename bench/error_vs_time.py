@@ -9,10 +9,11 @@ automatically (bench/mitsuba_peer.py).
 Error: relative RMS per pixel, sqrt(mean(((image - reference) / max(reference, floor))^2))
 over all pixels and channels, floor = 5% of the reference's mean (as the error estimator's
 policy): every pixel counts by its relative error, so a few bright pixels (a visible lamp)
-cannot decide the comparison, and dark ones cannot dominate it. Time: wall clock from the start, set-up included, for our engine
-(every pass is a point; one untimed warm-up pass first, so PoCL compiling the kernels is not
-counted); each Mitsuba point is a whole render at 1, 2, 4, ... samples per pixel (its scene
-loading not counted). References (bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
+cannot decide the comparison, and dark ones cannot dominate it. Time: wall clock from the
+start, set-up included, for our engine (every pass is a point; one untimed warm-up pass
+first, so PoCL compiling the kernels is not counted); each Mitsuba point is a whole render
+at 1, 2, 4, ... samples per pixel (its scene loading not counted). References
+(bench/reference/<scene>-<W>x<H>.exr, with a JSON sidecar saying how):
 a long Mitsuba path-tracing run where path tracing converges (an area light reaches every
 path), otherwise a long SPPM run with the exact grid, marked `sppm` (point, spot and
 directional lights through glass: paths no unbiased tracer from the camera can sample).
@@ -95,8 +96,7 @@ def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, budget: float, m
     settings = dict(method=method, gather=gather, direct=direct, photons_per_pass=photons)
     # Warm-up, not timed: one pass of the same configuration first, so the clock does not
     # count PoCL compiling the kernels (once per machine and kernel source, then loaded from
-    # its cache; a worker pays it once, not per job). A vcm run after a kernel change
-    # otherwise started 0.67 s late on cornell-box at 64 px (its build options differ from bpt's).
+    # its cache; a worker pays it once, not per job), and each method's build options differ.
     render(bench_engine(scene, res, seed=6, **settings), passes=1)
     t0 = time.perf_counter()
     eng = bench_engine(scene, res, seed=7, **settings)

@@ -1,18 +1,19 @@
-"""A fold round's cost by stage (issue 14): CPU seconds of the folder and of Redis.
+"""A fold round's cost by stage: CPU seconds of the folder and of Redis.
 
 One SPPM job (the service's defaults: exact gather, error estimation) of the given frame
 size on one embedded redis-server (service/redis_server.py: append-only file, fsync on
 every write). Per round, `--batches` synthetic batches are pushed and accepted as workers
 do (Jobs.merge), then one fold round runs in this process as the API's folder runs it
 (Jobs.fold): in memory, or every `--checkpoint-every`-th round (or when the checkpoint rule
-says so) a checkpoint that writes the state to the tiles. A batch's sums look like a render's: a band of background (no measurement
-point, every sum zero), a band of never-lit pixels (only H), a small emitter seen directly
-(Ld), and lit pixels with every sum; values differ per batch (seeded).
+says so) a checkpoint that writes the state to the tiles. A batch's sums look like a
+render's: a band of background (no measurement point, every sum zero), a band of never-lit
+pixels (only H), a small emitter seen directly (Ld), and lit pixels with every sum; values
+differ per batch (seeded).
 
 Reported per round, and the mean of the rounds after the first of each kind (memory,
-checkpoint; the first round's state read is from
-Redis, the later ones from the folder's tile cache, as in the API; Redis's CPU moves with
-when its append-only-file rewrites land, so take the mean of several rounds): the folder's CPU seconds per stage of
+checkpoint; the first round's state read is from Redis, the later ones from the folder's
+tile cache, as in the API; Redis's CPU moves with when its append-only-file rewrites land,
+so take the mean of several rounds): the folder's CPU seconds per stage of
 `TiledState.fold_round` (read state, read and merge deltas, inputs, estimate, write), the
 rest of `Jobs.fold` (lease, record, accounting), Redis's CPU seconds over the round
 (its append-only-file rewrites included), a batch's merge before the round (the pushing
@@ -108,7 +109,8 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
                 push_cpu += time.process_time() - cpu_before
                 push_redis_cpu += cpu_seconds([server.proc.pid]) - redis_before
             del sums, delta
-            redis_before, cpu_before, wall_before = cpu_seconds([server.proc.pid]), time.process_time(), time.perf_counter()
+            redis_before = cpu_seconds([server.proc.pid])
+            cpu_before, wall_before = time.process_time(), time.perf_counter()
             folded = store.fold(job_id, checkpoint=(r + 1) % checkpoint_every == 0)
             fold_cpu, redis_cpu = time.process_time() - cpu_before, cpu_seconds([server.proc.pid]) - redis_before
             fold_wall = time.perf_counter() - wall_before
@@ -138,7 +140,8 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             _, unlit_cpu = _cpu(never_lit)
             _, estimate_cpu = _cpu(record.integrator.estimate, state)
             per_round.append({
-                "round": r, "batches": batches, "checkpoint": folded.checkpointed, "fold_cpu_seconds": fold_cpu, "redis_cpu_seconds": redis_cpu,
+                "round": r, "batches": batches, "checkpoint": folded.checkpointed, "fold_cpu_seconds": fold_cpu,
+                "redis_cpu_seconds": redis_cpu,
                 "fold_wall_seconds": fold_wall,
                 "merge_cpu_seconds": push_cpu / batches, "merge_redis_cpu_seconds": push_redis_cpu / batches,
                 "stages": stages, "error": folded.error,
@@ -171,7 +174,8 @@ def run(w: int, h: int, rounds: int, batches: int, checkpoint_every: int, data_d
             "image_read": {k: mean(lambda x, k=k: x["image_read"][k]) for k in later[0]["image_read"]},
             "estimate_parts": {k: mean(lambda x, k=k: x["estimate_parts"][k]) for k in later[0]["estimate_parts"]}}
     later = per_round[1:] or per_round
-    by_kind = {kind: [x for x in later if x["checkpoint"] == (kind == "checkpoint")] for kind in ("memory", "checkpoint")}
+    by_kind = {kind: [x for x in later if x["checkpoint"] == (kind == "checkpoint")]
+               for kind in ("memory", "checkpoint")}
     return {"width": w, "height": h, "rounds": per_round, "mean_after_first": summary(later),
             "mean_after_first_by_kind": {kind: summary(xs) for kind, xs in by_kind.items() if xs}}
 

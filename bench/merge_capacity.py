@@ -1,18 +1,19 @@
-"""The merge path's capacity beyond this machine, by simulation (issue 14).
+"""The merge path's capacity beyond this machine, by simulation.
 
 Processes stand in for N workers of one job. Each simulated worker renders a batch for as
 long as a real worker of the given speed would (it waits), then pushes a real-sized delta
 to the job's tiles and has it accepted, as worker/tasks.py does (Jobs.merge without the
 encoding: every simulated worker pushes the same pre-encoded delta, random numbers in
 every sum of the default SPPM layout, encoded as every delta is (worker/store/tiles.py: the
-photon sums float16, the error estimator's float32), so nothing compresses; the encoding's CPU time is
-measured once and added to each merge). One folder process folds every FOLD_POLL_SECONDS, as
-the API's folder thread does. Against one Redis and against 3 state nodes, all redis-servers of
-the embedded default (service/redis_server.py: append-only file, fsync always).
+photon sums float16, the error estimator's float32), so nothing compresses; the encoding's
+CPU time is measured once and added to each merge). One folder process folds every
+FOLD_POLL_SECONDS, as the API's folder thread does. Against one Redis and against 3 state
+nodes, all redis-servers of the embedded default (service/redis_server.py: append-only file,
+fsync always).
 
-The worker's speed: a pass takes trace + seconds-per-megapixel x megapixels (defaults:
-a one-thread worker of today's engine, measured on furnace at 1920 x 1080 with the
-service's default 2^18 photons a pass: 1.18 s a pass, 0.15 s of it tracing), a batch the passes the scheduler's
+The worker's speed: a pass takes trace + seconds-per-megapixel x megapixels (the defaults
+stand for a one-thread worker on furnace with the service's default 2^18 photons a pass;
+--trace-seconds and --seconds-per-megapixel set them), a batch the passes the scheduler's
 own rule gives for that pass time, the mean merge so far, the job's last fold round and
 the N workers (worker/store/policy.py batch_passes: a merge and the fold round it causes
 at most 5% of the batch and the job's merges at most half the merge path's time, as far
@@ -23,13 +24,12 @@ due set, as Jobs.allocate reads it). Workers start staggered over one batch.
 Per frame size, node count and N: merge seconds (push + accept + encode; median, p95),
 its share of the simulated workers' time, the passes a batch needs for the mean merge to
 be 5% of it, the refresh interval (the seconds between one fold round's end and the
-next's while batches arrive: how often the image a client reads changes, issue 14's
-measure, as bench/refresh.py's; largest and median), each accepted batch's wait until a
+next's while batches arrive: how often the image a client reads changes, as
+bench/refresh.py measures it; largest and median), each accepted batch's wait until a
 fold round that started after it ended (when the image holds it; largest and median),
-and the fold backlog when the workers stop. N is sustained (issue 14: "the number of
-workers each sustains with the merge under 5% of a worker's time, and the refresh
-interval") when the merge took at most 5% of the simulated workers' time and the
-backlog at the end is at most N batches (the folder keeps up); the refresh interval is
+and the fold backlog when the workers stop. N is sustained when the merge took at most 5%
+of the simulated workers' time and the backlog at the end is at most N batches (the folder
+keeps up); the refresh interval is
 reported beside it.
 
 Every process here shares this machine's 2 cores, so the direct runs stop short of what the
@@ -174,7 +174,7 @@ def _round_model(costs: list[tuple[int, float]]) -> tuple[float, float] | None:
     """A round's CPU seconds as a + b * (batches it folds), least squares over the rounds
     (a: the whole-state merge, estimate and checkpoint; b: reading and adding a delta);
     None unless the rounds' batch counts span a factor ROUND_MODEL_SPAN (rounds of one
-    or two batches each, as at 3840x2160 here, cannot tell a round's part from a delta's)."""
+    or two batches each cannot tell a round's part from a delta's)."""
     counts = [n for n, _ in costs]
     if not counts or max(counts) < ROUND_MODEL_SPAN * min(counts):
         return None

@@ -110,8 +110,8 @@ def chart(result: dict) -> None:
                      va="bottom", fontsize=8)
     axes[0].set_xticks(x, names, fontsize=7, rotation=30, ha="right")
     axes[0].set_ylabel("k photon paths / s (job view)")
-    axes[0].set_title(f"{SCENE} {RESOLUTION[0]}x{RESOLUTION[1]}, {result['workers']} workers, {CORES} cores (shared host)",
-                      fontsize=9)
+    axes[0].set_title(f"{SCENE} {RESOLUTION[0]}x{RESOLUTION[1]}, {result['workers']} workers, "
+                      f"{CORES} cores (shared host)", fontsize=9)
     bottom = np.zeros(len(runs))
     for part, colour in (("workers", "#4477aa"), ("api", "#cc6677"), ("pollers", "#ddcc77"), ("redis", "#228833")):
         share = np.array([100 * r["cpu_share"][part] for r in runs])
@@ -180,7 +180,8 @@ def main() -> None:
               "host_load_average": os.getloadavg(), "summary": summary, "runs": runs}
     for label, v in summary.items():
         print(f"{label:>22}: mean {v['photons_per_second_mean'] / 1e3:.1f} k photons/s, "
-              f"loss {100 * v['loss_vs_quiet']:.1f}% against quiet, API + pollers {100 * v['api_plus_pollers_cpu_share']:.1f}% "
+              f"loss {100 * v['loss_vs_quiet']:.1f}% against quiet, "
+              f"API + pollers {100 * v['api_plus_pollers_cpu_share']:.1f}% "
               f"of the machine", flush=True)
     write_json("polling_load", result)
     chart(result)

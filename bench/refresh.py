@@ -121,7 +121,8 @@ def main() -> None:
     except ValueError:
         parser.error(f"--size: expected WxH, got {args.size!r}")
     report = run(w, h, args.seconds, args.workers, args.shards)
-    print(f"{w}x{h}, {args.workers} workers, {args.shards} shards, {report['passes']} passes in {report['batches']} batches: "
+    print(f"{w}x{h}, {args.workers} workers, {args.shards} shards, "
+          f"{report['passes']} passes in {report['batches']} batches: "
           f"{report['fold_rounds']} fold rounds, image refreshed every {report['refresh_median_seconds']:.1f} s "
           f"(largest {report['refresh_max_seconds']:.1f} s; target {REFRESH_SECONDS:.0f} s), rounds "
           f"{report['fold_round_median_seconds']:.1f} s (largest {report['fold_round_max_seconds']:.1f} s); "

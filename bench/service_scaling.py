@@ -153,7 +153,8 @@ def merge_cost(sizes: list[tuple[int, int]], repeats: int = 5) -> list[dict]:
                 state_bytes = 8 * n * sum(record.integrator.state_widths.values())
                 times = []
                 for k in range(repeats):
-                    delta = Delta(k, 1, 1, sums={name: rng.random(layout.zeros(n, name).shape) for name in layout.names})
+                    delta = Delta(k, 1, 1,
+                                  sums={name: rng.random(layout.zeros(n, name).shape) for name in layout.names})
                     t0 = time.perf_counter()
                     assert store.merge(Batch(job_id, k, 1), delta, 1.0) == "merged"
                     times.append(time.perf_counter() - t0)

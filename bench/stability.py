@@ -172,7 +172,8 @@ def shadow_edge(passes: int) -> dict:
     for lo, hi in pairwise(bins):
         m = (dist >= lo) & (dist < hi) & (ref > 0)
         if m.any():
-            rows.append({"distance_pixels": [lo, hi], "pixels": int(m.sum()), "mean_relative_error": float(rel[m].mean())})
+            rows.append({"distance_pixels": [lo, hi], "pixels": int(m.sum()),
+                         "mean_relative_error": float(rel[m].mean())})
     return {"passes": passes, "mean_radius": float(st.radius().mean()), "by_distance": rows}
 
 
@@ -222,7 +223,8 @@ def chart(result: dict) -> None:
     xs = [v["entries_per_photon"] for v in h.values()]
     ax.semilogx(xs, [v["rms_difference_relative"] for v in h.values()], "o-", label="RMS difference (noise)")
     ax.errorbar(xs, [v["mean_difference_over_seeds_relative"] for v in h.values()],
-                yerr=[3 * v["standard_error_relative"] for v in h.values()], fmt="s", label="mean difference +-3 se (bias)")
+                yerr=[3 * v["standard_error_relative"] for v in h.values()], fmt="s",
+                label="mean difference +-3 se (bias)")
     ax.axhline(0, color="k", lw=0.6)
     ax.set_xlabel("table entries per stored photon")
     ax.set_title("stochastic hash vs exact grid, same photons")
