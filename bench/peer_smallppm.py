@@ -12,9 +12,8 @@ error evaluation is not counted. It stops at smallppm's error or at 3x smallppm'
 Reported: our time to reach smallppm's error, smallppm's time, and the speed ratio
 smallppm_time / our_time (the goal is >= 5). When the cap comes first, the error at
 smallppm's time and a power-law extrapolation (fit over the last half of the curve) of
-the time to reach the target are reported instead. photons_per_pass defaults to 2^19:
-in a --sweep of 2^17, 2^18, 2^19 on this machine (2 cores) it had the lowest error at
-every time (none of the three reached smallppm's error within the cap).
+the time to reach the target are reported instead. photons_per_pass defaults to the
+engine's; --sweep runs each of CANDIDATES (2^18, 2^19 and 2^20 photons per pass).
 
     python -m bench.peer_smallppm [--photons-per-pass N | --sweep] [--peer-image image.ppm]
 """
@@ -44,7 +43,7 @@ from worker.render_loop import render
 from worker.settings import DEFAULTS
 
 CANDIDATES = (1 << 18, 1 << 19, 1 << 20)
-DEFAULT_PHOTONS_PER_PASS = DEFAULTS.photons_per_pass  # the engine default (2^18), best in the sweep
+DEFAULT_PHOTONS_PER_PASS = DEFAULTS.photons_per_pass  # the engine default (2^18)
 CAP_FACTOR = 3.0  # give up at this multiple of smallppm's time
 GOAL_RATIO = 5.0
 

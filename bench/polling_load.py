@@ -1,4 +1,4 @@
-"""Polling load: what 20 clients following a job cost the render (issue 10, item 13).
+"""Polling load: what 20 clients following a job cost the render.
 
     python -m bench.polling_load [--seconds 30] [--pollers 20] [--interval 1.0 0.0] [--rounds 2]
 

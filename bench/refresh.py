@@ -1,5 +1,5 @@
-"""How often the image a client sees refreshes on a big job, through the real service (issue 14:
-at least every 10 s on a 3840x2160 job).
+"""How often the image a client sees refreshes on a big job, through the real service (the
+service's aim: at least every 10 s on a 3840x2160 job).
 
 A real cluster (api_tests/cluster.py: embedded Redis, the API with its folder thread, RQ
 workers with one PoCL thread each) renders one furnace job of the given size for
@@ -7,13 +7,13 @@ workers with one PoCL thread each) renders one furnace job of the given size for
 is read every 0.25 s; each fold round's end (`folded_at`, when the image a client reads
 changes if it folded new passes), length (`fold_seconds`) and whether it rebuilt the state
 from the tiles (no overlay in the folder's memory: a job's first round, or one after another
-process's checkpoint; policy.Round) are noted. Reported: the
-intervals between image changes from the first image to the job's end (largest, median), the rounds' lengths, when
+process's checkpoint; policy.Round) are noted. Reported: the intervals between image
+changes from the first image to the job's end (largest, median), the rounds' lengths, when
 each batch was accepted, each round's whole cost (its checkpoint writes after the image
-included) and when a Redis server rewrote its append-only file (to a sample), and
-the API's (folder) and Redis's CPU seconds per round (every redis-server's: with
-`--shards N` the job's state lies on N more servers, PHOTONFARM_STATE_URLS). Wall time on
-a shared machine: the load average before and after is in the report.
+included) and when a Redis server rewrote its append-only file (to a sample), and the API's
+(folder) and Redis's CPU seconds per round (every redis-server's: with `--shards N` the
+job's state lies on N more servers, PHOTONFARM_STATE_URLS). Wall time on a shared machine:
+the load average before and after is in the report.
 
     python -m bench.refresh                          # 3840x2160, 2 workers, 120 s
     python -m bench.refresh --shards 3               # the same with the state on 3 nodes

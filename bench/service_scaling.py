@@ -1,7 +1,7 @@
 """Service scaling: one job's photons per second with 1, 2 and 4 workers against the
 in-process engine, the merge overhead, HTTP polling latency while jobs render, and the
 cost of one merge against image size (where a single Redis stops scaling); with
-`--pinned`, issue 14's scaling measurement.
+`--pinned`, the scaling of one-thread workers pinned to their cores.
 
     python -m bench.service_scaling [--full]
     python -m bench.service_scaling --pinned [--smoke]
@@ -12,7 +12,7 @@ POCL_MAX_PTHREAD_COUNT, as `photonfarm serve` does. Each cluster first renders a
 warm-up job so that kernel compilation is not timed. Writes bench/out/service_scaling.json
 and bench/out/service_scaling.png.
 
-`--pinned` (issue 14): a real cluster with 1, then 2 workers, each with one PoCL thread
+`--pinned`: a real cluster with 1, then 2 workers, each with one PoCL thread
 and pinned to its own core (taskset), renders one furnace job at 256x256 and one at
 1920x1080 (the service's default photons per pass, error estimation on). Both jobs of a frame size render the
 same fixed passes (same seed): the time to the end is the job's wall time from submission
@@ -24,8 +24,7 @@ passes were grouped into fold rounds (worker/stats.py), so the two jobs end at s
 different errors; the time to a fixed error (the larger final error, from each job's
 error history) is reported too. The 2-worker / 1-worker ratios of all three, each of the
 means of two runs per configuration taken in the order 1, 2, 2, 1 workers (PINNED_ORDER):
-the machine's speed drifts by up to a tenth over the minutes a run takes (one engine alone
-took 333-381 ms a 256x256 furnace pass within half an hour), and with the two runs of a
+the machine's speed drifts over the minutes a run takes, and with the two runs of a
 configuration placed symmetrically in time a drift linear in time falls out of the ratio,
 where one 1-worker run followed by one 2-worker run minutes later carried all of it. The API (with its folder
 thread) and redis-server are not pinned: this machine has no third core, so wherever
@@ -199,11 +198,10 @@ def chart(result: dict) -> None:
     save_figure(fig, "service_scaling")
 
 
-# ------------------------------------------------------ issue 14: pinned one-thread workers
+# ------------------------------------------------------ pinned one-thread workers
 @dataclass(frozen=True)
 class PinnedCase:
-    """One frame size of the pinned measurement: the passes each job renders (about 40 s
-    and 100 s for one worker on this machine)."""
+    """One frame size of the pinned measurement: the passes each job renders."""
 
     resolution: tuple[int, int]
     passes: int

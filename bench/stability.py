@@ -104,8 +104,7 @@ def hash_table(seeds: int) -> dict:
     """Same photons (same seed), stochastic hash at several table sizes against the exact
     grid: the mean difference over seeds (bias) and the per-pixel RMS difference (extra
     noise). At R0/8, so that cells hold about one photon (Fig. 10.3's regime); at the
-    default radius cells hold many and the table size hardly matters (7% more noise at
-    1/64 than at 4 entries per photon, measured)."""
+    default radius cells hold many and the table size matters little."""
     r = None
     out = {}
     for ratio in (1 / 64, 1 / 8, 1.0, 4.0):
