@@ -398,7 +398,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="512x512 and 40 s per configuration")
     parser.add_argument("--pinned", action="store_true",
-                        help="issue 14: 1 and 2 one-thread workers, each pinned to a core, at 256x256 and 1920x1080")
+                        help="1 and 2 one-thread workers, each pinned to a core, at 256x256 and 1920x1080")
     parser.add_argument("--smoke", action="store_true", help="with --pinned: small frames, a few seconds each")
     args = parser.parse_args()
     if args.smoke and not args.pinned:
