@@ -1,10 +1,12 @@
-"""MkDocs hook: the reference tables, generated from the code at build time.
+"""MkDocs hook: the reference tables, generated from the code at build time, and the
+benchmark charts.
 
 A page asks for a table with a marker line (`<!-- generated: NAME -->`, NAME one of
 GENERATORS); the marker is replaced by the table. The settings table comes from the
 `Settings` model (worker/settings.py), the environment table from worker/environment.py,
-the HTTP reference from the app's OpenAPI schema (service/app.py): the docs never retype
-them. tests/test_reference_docs.py checks these same functions against the code.
+the limits from the constants that enforce them, the HTTP reference from the app's OpenAPI
+schema (service/app.py): the docs never retype them. tests/test_reference_docs.py checks
+these same functions against the code.
 """
 
 from __future__ import annotations
@@ -12,12 +14,18 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
+
+from mkdocs.config.defaults import MkDocsConfig
+from mkdocs.structure.files import File, Files
 
 from worker.environment import VARIABLES
 from worker.scene import MAX_PIXELS, MAX_RESOLUTION
 from worker.settings import DEFAULT_MAX_SECONDS, Settings
 
+ROOT = Path(__file__).resolve().parents[2]
+CHARTS = "bench/out"  # the benchmarks' charts, published at the same path for the results page
 MARKER = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.MULTILINE)
 # The app's schema does not depend on the Redis URL (the client connects on first use).
 UNUSED_REDIS_URL = "redis://127.0.0.1:1/0"
@@ -103,6 +111,49 @@ def environment_table() -> str:
         for v in VARIABLES)
 
 
+def limits_table() -> str:
+    """Every documented limit, its value read from the constant that enforces it."""
+    from service import models, upload
+    from worker import scene
+    from worker.settings import MAX_PHOTONS_PER_PASS
+    from worker.store import policy, tiles
+
+    rows = [
+        ("request body", f"{models.MAX_BODY_BYTES // 2**20} MiB", "413", "bounds the API's memory per request",
+         "`service/models.py`"),
+        ("pixels per job (service)", f"{models.MAX_SERVICE_PIXELS:,} (3840 x 2160)", "422",
+         "the state of the largest job fits the default Redis cap", "`service/models.py`"),
+        ("image side / pixels (CLI)", f"{scene.MAX_RESOLUTION:,} / {scene.MAX_PIXELS:,}", "one-line error",
+         "bounds device memory per pass", "`worker/scene.py`"),
+        ("photons per pass", f"{models.MAX_SERVICE_PHOTONS_PER_PASS:,} service, {MAX_PHOTONS_PER_PASS:,} CLI",
+         "422", "bounds device memory and pass time", "`service/models.py`, `worker/settings.py`"),
+        ("active jobs at once", f"{models.MAX_ACTIVE_JOBS}", "429", "retry when one ends; checked atomically",
+         "`service/models.py`"),
+        ("scene name", f"`{scene.SCENE_NAME_PATTERN}`, at most {scene.MAX_SCENE_NAME} characters",
+         "422 (404 if unknown)", "a bundled scene's name is never a path", "`worker/scene.py`"),
+        ("triangles per scene", f"{scene.MAX_TRIANGLES:,}", "422", "bounds BVH build and memory",
+         "`worker/scene.py`"),
+        ("shapes / lights", f"{scene.MAX_SHAPES:,} / {scene.MAX_LIGHTS}", "422", "bounds per-pass kernel time",
+         "`worker/scene.py`"),
+        ("coordinates", f"absolute value at most {scene.MAX_COORD:g}", "422", "keeps float32 positions meaningful",
+         "`worker/scene.py`"),
+        ("mesh file name", f"at most {scene.MAX_PATH_CHARS} characters, inside the scene's folder", "422",
+         "one file-system name, no escape from the root", "`worker/scene.py`"),
+        ("scene upload, unpacked", f"{upload.MAX_UPLOAD_BYTES // 2**20} MiB, {upload.MAX_UPLOAD_FILES} entries",
+         "413", "counted as written: a zip bomb stops here", "`service/upload.py`"),
+        ("upload names", f"{upload.MAX_NAME_CHARS:,} characters a path, {upload.MAX_PART_CHARS} a part", "422",
+         "what file systems accept", "`service/upload.py`"),
+        ("batch lease", f"{policy.LEASE_SECONDS:g} s", "re-issue",
+         "a batch whose worker stops beating is rendered again", "`PHOTONFARM_LEASE_SECONDS`"),
+        ("finished jobs kept", f"{policy.RETENTION_SECONDS / 86_400:g} days", "deleted",
+         "then deleted with their images", "`PHOTONFARM_RETENTION_SECONDS`"),
+        ("state tile", f"{tiles.TILE_PIXELS:,} pixels", "-", "the unit of push, fold and checkpoint",
+         "`PHOTONFARM_TILE_PIXELS`"),
+    ]
+    head = "| what | limit | answer | why | set in |\n|---|---|---|---|---|\n"
+    return head + "\n".join("| " + " | ".join(_cell(c) for c in row) + " |" for row in rows)
+
+
 def openapi_schema() -> dict[str, Any]:
     """The service's OpenAPI schema, as `GET /openapi.json` serves it (no token set)."""
     from service.app import create_app
@@ -164,7 +215,16 @@ GENERATORS: dict[str, Callable[[], str]] = {
     "settings": settings_table,
     "environment": environment_table,
     "http-api": http_reference,
+    "limits": limits_table,
 }
+
+
+def on_files(files: Files, config: MkDocsConfig) -> Files:
+    """Publish bench/out/*.png at bench/out/ in the site, so docs/results.md shows the charts
+    where the benchmarks write them, without a copy in docs/."""
+    for chart in sorted((ROOT / CHARTS).glob("*.png")):
+        files.append(File(f"{CHARTS}/{chart.name}", str(ROOT), config.site_dir, config.use_directory_urls))
+    return files
 
 
 def on_page_markdown(markdown: str, **_: Any) -> str:
