@@ -1,6 +1,6 @@
 """`make bench`: every benchmark at reduced size (minutes on 2 cores); `--full` for full size.
 
-Writes JSON and PNG charts to bench/out/; bench/RESULTS.md discusses them.
+Writes JSON and PNG charts to bench/out/; docs/results.md shows the latest of each.
 """
 
 from __future__ import annotations

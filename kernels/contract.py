@@ -89,7 +89,7 @@ EXTENT_STEPS = 64
 # The exact gather's grid (kernels/spatial_hash.cl, ball_rows): cells of 2 largest radii split this
 # many ways along x, the axis of its rows (at most 31: a row's cells are bits of a uint). A query
 # reads 4 runs of photons whatever the split; a finer split visits fewer photons but spreads the
-# cells over more of the table: split 4 measured no faster than 2 (bench/RESULTS.md).
+# cells over more of the table: split 4 measured no faster than 2 (bench/RESULTS.md at 7a131e4).
 GRID_ROW_SPLIT = 2
 
 

@@ -29,7 +29,7 @@ from worker import allocator
 PASSWORD_FILE = "password"
 # A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
 # rather than dropping a job's state. One job takes 128 bytes a pixel (80 without error
-# estimation), and its batches' deltas up to as much again between checkpoints (README, "Limits").
+# estimation), and its batches' deltas up to as much again between checkpoints (docs/limits.md).
 MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
 AOF_REWRITE_PERCENTAGE = 400  # the append-only file's growth, in % of the data set, that starts a rewrite
 AOF_FILE = "appendonly.aof"
@@ -39,7 +39,7 @@ AOF_FILE = "appendonly.aof"
 # (posix_fadvise), and the memory is written again at once rather than taken fresh. On
 # this machine kind (a VM) fresh memory cost about 4.5 s a GB to touch, and a 3840x2160
 # job's batch passes about 1 GB through the file: the embedded Redis took a quarter less
-# CPU pushing such deltas (README, "Limits"; bench/RESULTS.md, the 4K refresh).
+# CPU pushing such deltas (docs/limits.md; bench/RESULTS.md at 7a131e4, the 4K refresh).
 AOF_PAGE_DROP_SECONDS = 1.0
 # An append-only-file rewrite is Redis's forked child writing the whole data set; nothing
 # waits on it (Redis goes on appending to a new file meanwhile), but at Redis's own
