@@ -15,14 +15,15 @@ import json
 import re
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
-
-from mkdocs.config.defaults import MkDocsConfig
-from mkdocs.structure.files import File, Files
+from typing import TYPE_CHECKING, Any
 
 from worker.environment import VARIABLES
 from worker.scene import MAX_PIXELS, MAX_RESOLUTION
 from worker.settings import DEFAULT_MAX_SECONDS, Settings
+
+if TYPE_CHECKING:  # the tables need no MkDocs (tests/test_reference_docs.py builds them)
+    from mkdocs.config.defaults import MkDocsConfig
+    from mkdocs.structure.files import Files
 
 ROOT = Path(__file__).resolve().parents[2]
 CHARTS = "bench/out"  # the benchmarks' charts, published at the same path for the results page
@@ -222,6 +223,8 @@ GENERATORS: dict[str, Callable[[], str]] = {
 def on_files(files: Files, config: MkDocsConfig) -> Files:
     """Publish bench/out/*.png at bench/out/ in the site, so docs/results.md shows the charts
     where the benchmarks write them, without a copy in docs/."""
+    from mkdocs.structure.files import File
+
     for chart in sorted((ROOT / CHARTS).glob("*.png")):
         files.append(File(f"{CHARTS}/{chart.name}", str(ROOT), config.site_dir, config.use_directory_urls))
     return files
