@@ -361,7 +361,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                                                                                  "each named by its path")] = None,
                       settings: Annotated[str, Form(description="JobSettings as JSON")] = "{}") -> JobView:
         """A scene file with its mesh files (and included XML files) in one upload: an archive
-        or several files. Limits apply to the unpacked upload (README, "Limits"); every file
+        or several files. Limits apply to the unpacked upload (docs/limits.md); every file
         the scene names must lie inside it."""
         try:
             job_settings = JobSettings.model_validate_json(settings)

@@ -10,7 +10,7 @@ from worker.scene import MAX_SCENE_NAME, SCENE_NAME_PATTERN, bundled_scene_names
 from worker.settings import DEFAULTS, Settings
 from worker.store.policy import Status
 
-# Service limits (README, "Limits"): each answers 413 or 422 naming what it limits.
+# Service limits (docs/limits.md): each answers 413 or 422 naming what it limits.
 MAX_BODY_BYTES = 16 * 1024 * 1024
 MAX_SERVICE_PIXELS = 3840 * 2160  # per job
 MAX_SERVICE_PHOTONS_PER_PASS = 1 << 22

@@ -98,7 +98,7 @@ def mutates(counters: dict[str, int], target: float) -> bool:
     again after each rejection, an accepted mutation a small step from its state), each
     traced path is judged against the measurement points, and a path kept in view is
     gathered. Measured at the service's defaults (256x256, 2^18 photons a pass, 12 s, two
-    seeds; bench/RESULTS.md, "Adaptive photon tracing"), mutating chains lost to uniform
+    seeds; docs/results.md, "Adaptive photon tracing"), mutating chains lost to uniform
     tracing at gains up to 9.3, on gap (gain 1.1) and on the directional-caustic zoom levels
     fov 5 and 1.25 (gains 6.1 and 9.3: 1.33-1.41x and 1.05-1.11x its noise in four runs). On a
     point-lit patch they won from a gain of 14 (V_c 0.0085: 0.78-0.80x its error; at gains

@@ -4,7 +4,7 @@ A frame's per-pixel arrays (a 3840x2160 float64 array is 66 MB) are above glibc'
 mmap threshold (32 MB), so each one NumPy makes, temporaries included, is mapped fresh and
 unmapped when freed: every page of it faults in again on first touch, and the kernel
 zeroes it. A fold round or a pass's readback makes many such arrays, and on a virtual
-machine a page fault is dear: measured on this machine kind (bench/RESULTS.md, "The C
+machine a page fault is dear: measured on this machine kind (bench/RESULTS.md at 7a131e4, "The C
 heap"), a 3840x2160 fold round's API process spent three quarters of its CPU in the
 kernel. So every photonfarm process takes arrays up to MMAP_THRESHOLD from the heap, keeps
 up to TRIM_THRESHOLD of freed heap rather than giving it back, and has one arena (threads'

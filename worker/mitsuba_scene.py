@@ -1,6 +1,6 @@
 """Mitsuba 3 XML scenes converted to our scene JSON (the subset our model holds).
 
-The conversion is element by element (README, "Scene formats"); anything outside the
+The conversion is element by element (docs/scenes.md, "Mitsuba 3 XML"); anything outside the
 subset is a `SceneError` naming the element and its line, never a silent change. Meshes
 are inlined with their `to_world` applied (our meshes have no transform), so the JSON
 is self-contained. Every file the scene names (meshes, includes) must lie inside `root`.
@@ -395,7 +395,7 @@ class Converter:
             raise _error(p.node_of("fov_axis"), f"fov_axis {axis!r} (have: {', '.join(scale)})")
         fov_y = math.degrees(2 * math.atan(tan * scale[axis]))
         near = p.number("near_clip", 0.01)
-        p.number("far_clip")  # not applied: everything in front of the camera is visible (README)
+        p.number("far_clip")  # not applied: everything in front of the camera is visible (docs/scenes.md)
         cam: dict[str, Any] = {"fov": fov_y, "resolution": [width, height], "near_clip": near}
         if kind == "thinlens":
             aperture, focus = p.number("aperture_radius"), p.number("focus_distance")
@@ -500,7 +500,7 @@ class Converter:
 
     def _roughplastic(self, p: Props) -> dict:
         """A diffuse base under a rough coat, as one Phong lobe: albedo = diffuse_reflectance,
-        exponent from alpha. Approximate (README): the coat's Fresnel reflection is dropped."""
+        exponent from alpha. Approximate (docs/scenes.md): the coat's Fresnel reflection is dropped."""
         self._ior(p, "int_ior", "polypropylene"), self._ior(p, "ext_ior", "air")  # the coat's: dropped
         p.boolean("nonlinear", False)
         p.color("specular_reflectance", 1.0)

@@ -16,7 +16,7 @@ A worker runs at a lower CPU priority (nice NICE): where it shares a machine wit
 and Redis (`photonfarm serve` starts local workers), their fold rounds and requests
 take the CPU when they need it, and the workers render with the rest (on a machine of
 its own a worker loses nothing). It does not make a 3840 x 2160 fold round fit in 10 s
-on a 2-core machine: those rounds wait on Redis's own single thread (bench/RESULTS.md).
+on a 2-core machine: those rounds wait on Redis's own single thread (bench/RESULTS.md at 7a131e4).
 
 Job arguments travel as JSON (RQ's JSONSerializer: loading runs no code), and a worker
 runs only the render task, whatever function a job in the queue names.

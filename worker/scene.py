@@ -23,7 +23,7 @@ from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, load_m
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
-# Documented limits (README, "Limits"). They bound memory and kernel time per pass.
+# Documented limits (docs/limits.md). They bound memory and kernel time per pass.
 MAX_RESOLUTION = 8192  # pixels along either image axis
 MAX_PIXELS = 8192 * 4320
 MAX_SHAPES = 10_000

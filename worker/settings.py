@@ -27,7 +27,7 @@ PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
 # The default radius exponent alpha by method. SPPM's and PPM's 0.7 (the radius rule); the
 # hybrid methods' merging radius wants alpha < 2/3 (dissertation ch. 9: the bias then vanishes
 # from the MIS weights), and at equal passes 0.6 beat 0.75 on cornell-caustics,
-# directional-caustic and cornell-box (README, the hybrid integrator). bpt and lt do not
+# directional-caustic and cornell-box (README at 7a131e4, the hybrid integrator). bpt and lt do not
 # merge; they share vcm's value so that switching merging on or off changes nothing else.
 DEFAULT_ALPHA: dict[str, float] = {"sppm": 0.7, "ppm": 0.7, "vcm": 0.6, "bpt": 0.6, "lt": 0.6}
 

@@ -65,7 +65,7 @@ DELIVERY_SECONDS = REFRESH_SECONDS - FOLD_POLL_SECONDS
 # ... even when their passes and merges run this much slower than the recent ones the next
 # batch is sized by: the workers share their machine (here with the API and Redis), and
 # two workers' 3840x2160 passes took 40-45% longer while Redis rewrote its append-only file
-# (bench/RESULTS.md, the 4K refresh). Batches planned to deliver exactly DELIVERY_SECONDS
+# (bench/RESULTS.md at 7a131e4, the 4K refresh). Batches planned to deliver exactly DELIVERY_SECONDS
 # apart had no room for that: no batch was accepted for 19-22 s, and the image waited 13-16 s.
 PASS_SLACK = 0.5
 PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries as planned at the recent pace
@@ -76,7 +76,7 @@ PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries a
 # than all of it every few rounds. Every tile once a batch has waited CHECKPOINT_SECONDS, or
 # the job ends (at the next round that folds a new batch: a checkpoint alone changes no image).
 CHECKPOINT_SECONDS = 30.0
-CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (README, "Limits")
+CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (docs/limits.md)
 # A regular round writes its tiles after its image only until the next round is due
 # (checkpoint_seconds); the rest wait for later rounds. A round whose writes ran on
 # delayed the next image: at 3840x2160 every tile after 30 s took 4-7 s beside two workers,
@@ -286,7 +286,7 @@ def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     first round took 6.6-10.8 s, the next 1.3-2.6 s), so with it in the fit the margin made
     every round for the next ROUNDS_KEPT expected to take 14 s, each started at once
     (fold_interval), and the batches that came together showed a few seconds apart and then
-    nothing until the next pair (bench/RESULTS.md, "The 10 s refresh at 3840x2160")."""
+    nothing until the next pair (bench/RESULTS.md at 7a131e4, "The 10 s refresh at 3840x2160")."""
     kept = [Round(*r) for r in rounds]
     kept = [r for r in kept if not r.rebuilt]
     if not kept:

@@ -16,7 +16,7 @@ mid-round leaves each tile either folded or not; the next round folds the rest (
 that have the batch skip it).
 
 Deltas stay out of the nodes' append-only files (PUSH): they are the largest part of what
-a job writes, and logging them took a quarter of Redis's CPU at 3840x2160 (bench/RESULTS.md,
+a job writes, and logging them took a quarter of Redis's CPU at 3840x2160 (bench/RESULTS.md at 7a131e4,
 the 4K refresh). Everything
 that counts is logged: the record's acceptance, the checkpoints' states, folded sets and
 removals. So a node's restart can lose a pending delta of an accepted batch; a fold round
@@ -427,7 +427,7 @@ class TiledState:
         first. A tile's commands always share one transaction. One transaction for a few tiles,
         not one each, because the node writes and fsyncs its append-only file once per
         transaction: a tile's 3 MB checkpoint alone took 11.4 s a GB there, four together 5.0
-        (bench/RESULTS.md, the 4K refresh). No transaction starts that would end after `until`
+        (bench/RESULTS.md at 7a131e4, the 4K refresh). No transaction starts that would end after `until`
         (epoch seconds) if it took as long as the longest one so far. Returns the tiles written."""
         written: list[int] = []
         longest = 0.0
