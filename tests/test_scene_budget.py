@@ -33,7 +33,7 @@ def test_an_include_bomb_runs_out_of_files_at_the_include_that_opens_one_too_man
     (tmp_path / "scene.xml").write_text(xml(SENSOR + '\n<include filename="mid.xml"/>' * 40))
     err = load_error(tmp_path / "scene.xml")
     assert err.field == "mid.xml" and "line " in err.message and "<include>" in err.message, err
-    assert "more than 1000 XML files" in err.message, err
+    assert "more than 1000 scene files" in err.message, err
 
 
 def test_elements_count_across_every_inclusion(tmp_path: Path) -> None:
@@ -58,7 +58,7 @@ def test_xml_nested_past_the_depth_limit_names_the_element(tmp_path: Path) -> No
     body = '<shape type="sphere">' + "<bsdf>" * 1000 + "</bsdf>" * 1000 + "</shape>"
     (tmp_path / "scene.xml").write_text(xml(SENSOR + "\n" + body))
     err = load_error(tmp_path / "scene.xml")
-    assert err.field == "scene.xml" and "line 7: <bsdf>" in err.message, err
+    assert err.field == "scene.xml" and "line 6: <bsdf>" in err.message, err
     assert "nested deeper than 64 elements" in err.message, err
 
 
@@ -67,7 +67,7 @@ def test_xml_nested_past_the_depth_limit_names_the_element(tmp_path: Path) -> No
 def test_a_file_name_too_long_for_the_file_system_names_the_element(tmp_path: Path, element: str) -> None:
     (tmp_path / "scene.xml").write_text(xml(SENSOR + "\n" + element.format(name="x" * 300)))
     err = load_error(tmp_path / "scene.xml")
-    assert err.field == "scene.xml" and "line 7: <" in err.message and "File name too long" in err.message, err
+    assert err.field == "scene.xml" and "line 6: <" in err.message and "File name too long" in err.message, err
 
 
 def test_the_triangle_limit_after_a_conversion_names_the_xml_element(tmp_path: Path, monkeypatch) -> None:
@@ -78,5 +78,5 @@ def test_the_triangle_limit_after_a_conversion_names_the_xml_element(tmp_path: P
     monkeypatch.setattr(scene, "MAX_TRIANGLES", 12)
     (tmp_path / "scene.xml").write_text(xml(SENSOR + '\n<shape type="cube"/>\n<shape type="rectangle"/>'))
     err = load_error(tmp_path / "scene.xml")
-    assert err.field == "scene.xml" and 'line 8: <shape type="rectangle">' in err.message, err
+    assert err.field == "scene.xml" and 'line 7: <shape type="rectangle">' in err.message, err
     assert "more than 12 triangles" in err.message, err
