@@ -32,6 +32,7 @@ from worker.scene import (
 
 LOAD_PROCESSES = 2  # loads at once; more wait (each is one CPU-bound process)
 LOAD_SECONDS = 60.0  # wall clock for one load, its wait for a slot included; then it is killed
+EXIT_SECONDS = 5.0  # for a child that has answered to exit by itself
 PRELOAD = ["worker.scene", "worker.mitsuba_scene", "worker.meshes", "trimesh", "trimesh.exchange.ply",
            "trimesh.exchange.obj"]
 
@@ -116,18 +117,21 @@ class SceneLoader:
             child = ctx.Process(target=_child, args=(send, request), daemon=True)
             child.start()
             send.close()
+            answered = False
             try:
                 # The result is read before the child is joined: a large one fills the pipe.
                 if not receive.poll(max(deadline - time.monotonic(), 0.0)):
                     raise LoadUnavailable(f"the scene did not load within {self.seconds:g} s")
                 result = receive.recv()
+                answered = True
             except EOFError:
                 raise LoadUnavailable("the scene loader ended without an answer") from None
             finally:
                 receive.close()
+                child.join(EXIT_SECONDS if answered else 0.0)
                 if child.is_alive():
                     child.kill()
-                child.join()
+                    child.join()
         finally:
             self.slots.release()
         if result[0] == "ok":
