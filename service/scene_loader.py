@@ -11,6 +11,7 @@ forkserver imports the scene modules once, so each load starts in milliseconds. 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ from worker.scene import (
 LOAD_PROCESSES = 2  # loads at once; more wait (each is one CPU-bound process)
 LOAD_SECONDS = 60.0  # wall clock for one load, its wait for a slot included; then it is killed
 EXIT_SECONDS = 5.0  # for a child that has answered to exit by itself
+LOAD_NICENESS = 10  # a load yields the CPU to the threads that serve requests
 PRELOAD = ["worker.scene", "worker.mitsuba_scene", "worker.meshes", "trimesh", "trimesh.exchange.ply",
            "trimesh.exchange.obj"]
 
@@ -78,6 +80,7 @@ def load_now(request: SceneRequest) -> LoadedScene:
 
 def _child(out: Connection, request: SceneRequest) -> None:
     """Runs in the child: sends ("ok", LoadedScene) or ("error", kind, field, message)."""
+    os.nice(LOAD_NICENESS)
     try:
         result: tuple = ("ok", load_now(request))
     except SceneError as exc:  # sent as fields: SceneError's constructor takes two arguments

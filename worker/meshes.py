@@ -36,6 +36,8 @@ class MeshData:
 
 _OBJ_FACE = re.compile(rb"^[ \t]*f[ \t][^\n]*", re.MULTILINE)
 _OBJ_VERTEX = re.compile(rb"^[ \t]*v[ \t]", re.MULTILINE)
+# A face line with a vertex index (a word's part before any "/") of 0 or -0.
+_OBJ_ZERO_INDEX = re.compile(rb"^[ \t]*f[ \t][^\n]*?(?<=[ \t])-?0(?=[/ \t\r\n]|$)", re.MULTILINE)
 _PLY_ELEMENT = re.compile(rb"^element[ \t]+(vertex|face)[ \t]+(\d{1,18})[ \t]*\r?$", re.MULTILINE)
 
 
@@ -51,11 +53,10 @@ def declared_counts(suffix: str, data: bytes) -> tuple[int, int]:
 
 def _check_obj_indices(data: bytes) -> None:
     """OBJ indices are 1-based (negative: from the end); trimesh reads a 0 as vertex 1."""
-    for match in _OBJ_FACE.finditer(data):
-        parts = match.group().split()
-        if any(p.split(b"/")[0] in (b"0", b"-0") for p in parts[1:]):
-            lineno = data.count(b"\n", 0, match.start()) + 1
-            raise MeshError(f"line {lineno}: face index 0 (OBJ indices start at 1)")
+    match = _OBJ_ZERO_INDEX.search(data)
+    if match:
+        lineno = data.count(b"\n", 0, match.start()) + 1
+        raise MeshError(f"line {lineno}: face index 0 (OBJ indices start at 1)")
 
 
 def _parse(suffix: str, data: bytes) -> list[dict]:

@@ -21,7 +21,7 @@ from xml.parsers import expat
 import numpy as np
 
 from worker.meshes import MeshError
-from worker.scene import MAX_TRIANGLES, MAX_XML_DEPTH, LoadBudget, SceneError, parse_scene, read_mesh
+from worker.scene import MAX_TRIANGLES, MAX_XML_DEPTH, LoadBudget, Scene, SceneError, parse_scene, read_mesh
 
 # Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
 NAMED_IOR = {
@@ -728,6 +728,12 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
     are inlined (transformed). Files it names must lie inside `root` (default: its folder)
     and are read within `budget` (a new one if none). The result is validated: errors name
     the XML element and line that produced the value."""
+    return convert_and_validate(path, params, root, budget)[0]
+
+
+def convert_and_validate(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
+                         budget: LoadBudget | None = None) -> tuple[dict, Scene]:
+    """`convert_mitsuba`'s JSON and the Scene it validated to (validated once)."""
     path = Path(path).resolve()
     conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()},
                      budget=budget or LoadBudget())
@@ -735,7 +741,7 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
     conv.scene(top)
     data = conv.result(top)
     try:
-        parse_scene(data)
+        scene = parse_scene(data)
     except SceneError as exc:
         parts = exc.field.split(".")
         for n in (2, 1):
@@ -743,4 +749,4 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
             if node is not None:
                 raise SceneError(node.file.name, f"{node.where()}: {exc.field}: {exc.message}") from None
         raise
-    return data
+    return data, scene

@@ -446,9 +446,9 @@ def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
     base_dir = path.resolve().parent
     budget = budget or LoadBudget()
     if path.suffix.lower() == ".xml":
-        from worker.mitsuba_scene import convert_mitsuba  # it builds on this module
+        from worker.mitsuba_scene import convert_and_validate  # it builds on this module
 
-        return parse_scene(convert_mitsuba(path, params, root, budget)), base_dir
+        return convert_and_validate(path, params, root, budget)[1], base_dir
     if params:
         raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
     scene, base_dir = load_scene_file(path, budget)
