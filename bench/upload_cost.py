@@ -157,55 +157,72 @@ def _detail(resp: httpx.Response) -> str:
     return text[:110]
 
 
+class HealthPoller:
+    """GET /healthz every HEALTH_EVERY seconds on its own connection, while inside `with`."""
+
+    def __init__(self, c: Cluster) -> None:
+        self.url = str(c.http.base_url)
+        self.latencies: list[float] = []
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run)
+
+    def _run(self) -> None:
+        with httpx.Client(base_url=self.url, timeout=30) as http:
+            while not self.done.is_set():
+                t = time.monotonic()
+                assert http.get("/healthz").status_code == 200
+                self.latencies.append(time.monotonic() - t)
+                time.sleep(HEALTH_EVERY)
+
+    def __enter__(self) -> HealthPoller:
+        self.thread.start()
+        time.sleep(0.3)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.done.set()
+        self.thread.join()
+
+    def summary(self) -> dict:
+        arr = np.array(self.latencies or [float("nan")]) * 1000
+        return {"healthz_n": len(self.latencies), "healthz_p50_ms": round(float(np.median(arr)), 1),
+                "healthz_p99_ms": round(float(np.percentile(arr, 99)), 1), "healthz_max_ms": round(float(arr.max()), 1)}
+
+
 def one(c: Cluster, name: str, archive: bytes) -> dict:
-    before, start = tree_cpu(c.api.pid), time.monotonic()
-    resp = upload(c.http, archive)
-    wall, cpu = time.monotonic() - start, tree_cpu(c.api.pid) - before
+    with HealthPoller(c) as health:
+        before, start = tree_cpu(c.api.pid), time.monotonic()
+        resp = upload(c.http, archive)
+        wall, cpu = time.monotonic() - start, tree_cpu(c.api.pid) - before
     if resp.status_code == 201:
         job_id = resp.json()["id"]
         c.http.delete(f"/v1/jobs/{job_id}")  # cancelled (no workers)
         c.http.delete(f"/v1/jobs/{job_id}")  # deleted
     return {"case": name, "upload_bytes": len(archive), "status": resp.status_code, "wall_s": round(wall, 3),
-            "api_cpu_s": round(cpu, 3), "detail": _detail(resp)}
+            "api_cpu_s": round(cpu, 3), **health.summary(), "detail": _detail(resp)}
 
 
 def concurrent(c: Cluster, archives: list[bytes]) -> dict:
     """The uploads sent at once while /healthz is asked every HEALTH_EVERY seconds."""
-    latencies: list[float] = []
     statuses: list[int] = []
-    done = threading.Event()
-
-    def health() -> None:
-        with httpx.Client(base_url=str(c.http.base_url), timeout=30) as http:
-            while not done.is_set():
-                t = time.monotonic()
-                assert http.get("/healthz").status_code == 200
-                latencies.append(time.monotonic() - t)
-                time.sleep(HEALTH_EVERY)
 
     def send(archive: bytes) -> None:
         with httpx.Client(base_url=str(c.http.base_url)) as http:
             statuses.append(upload(http, archive).status_code)
 
-    poller = threading.Thread(target=health)
-    poller.start()
-    time.sleep(0.5)
-    before, start = tree_cpu(c.api.pid), time.monotonic()
-    senders = [threading.Thread(target=send, args=(a,)) for a in archives]
-    for t in senders:
-        t.start()
-    for t in senders:
-        t.join()
-    wall, cpu = time.monotonic() - start, tree_cpu(c.api.pid) - before
-    done.set()
-    poller.join()
+    with HealthPoller(c) as health:
+        before, start = tree_cpu(c.api.pid), time.monotonic()
+        senders = [threading.Thread(target=send, args=(a,)) for a in archives]
+        for t in senders:
+            t.start()
+        for t in senders:
+            t.join()
+        wall, cpu = time.monotonic() - start, tree_cpu(c.api.pid) - before
     for job in c.http.get("/v1/jobs").json():
         c.http.delete(f"/v1/jobs/{job['id']}")
         c.http.delete(f"/v1/jobs/{job['id']}")
-    arr = np.array(latencies) * 1000
     return {"uploads": len(archives), "statuses": sorted(statuses), "wall_s": round(wall, 3),
-            "api_cpu_s": round(cpu, 3), "healthz_n": len(latencies), "healthz_p50_ms": round(float(np.median(arr)), 1),
-            "healthz_p99_ms": round(float(np.percentile(arr, 99)), 1), "healthz_max_ms": round(float(arr.max()), 1)}
+            "api_cpu_s": round(cpu, 3), **health.summary()}
 
 
 def main() -> None:
@@ -225,10 +242,10 @@ def main() -> None:
             together = concurrent(c, [archives[names[i % len(names)]] for i in range(args.concurrent)])
         finally:
             c.close()
-    print(f"{'case':26} {'bytes':>8} {'status':>6} {'wall s':>7} {'API CPU s':>9}  answer")
+    print(f"{'case':26} {'bytes':>8} {'status':>6} {'wall s':>7} {'API CPU s':>9} {'healthz max ms':>14}  answer")
     for r in rows:
-        print(f"{r['case']:26} {r['upload_bytes']:8d} {r['status']:6d} {r['wall_s']:7.2f} {r['api_cpu_s']:9.2f}  "
-              f"{r['detail']}")
+        print(f"{r['case']:26} {r['upload_bytes']:8d} {r['status']:6d} {r['wall_s']:7.2f} {r['api_cpu_s']:9.2f} "
+              f"{r['healthz_max_ms']:14.1f}  {r['detail'][:70]}")
     print(f"\n{together['uploads']} at once: statuses {together['statuses']}, {together['wall_s']:.1f} s wall, "
           f"{together['api_cpu_s']:.1f} s API CPU; /healthz ({together['healthz_n']} asks) p50 "
           f"{together['healthz_p50_ms']} ms, p99 {together['healthz_p99_ms']} ms, max {together['healthz_max_ms']} ms")

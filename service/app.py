@@ -323,7 +323,6 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                    scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
         """The one way a job is made (JSON body or upload) from its loaded scene: check the
         pixels, store the job, issue its batches."""
-        scene_json = loaded.scene
         problem = camera_problem(settings, loaded.aperture_radius)
         if problem:
             raise _unprocessable(["body", "settings", "method"], problem)
@@ -332,7 +331,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
         try:
-            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, scene_name,
+            job_id = jobs.create(loaded.scene_json, Settings(**dict(settings)), width, height, scene_name,
                                  max_active=MAX_ACTIVE_JOBS)
         except JobLimitReached as exc:  # not the request's fault: the same request succeeds later
             raise HTTPException(429, detail=str(exc)) from None

@@ -10,6 +10,7 @@ forkserver imports the scene modules once, so each load starts in milliseconds. 
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import os
 import threading
@@ -41,9 +42,10 @@ PRELOAD = ["worker.scene", "worker.mitsuba_scene", "worker.meshes", "trimesh", "
 
 @dataclass(frozen=True)
 class LoadedScene:
-    """A scene ready for a job: its JSON (meshes inlined) and what the job needs to know of it."""
+    """A scene ready for a job: its JSON text (meshes inlined; encoded in the child, so the
+    API's threads never decode or encode a large scene) and what the job needs to know of it."""
 
-    scene: dict[str, Any]
+    scene_json: str
     resolution: tuple[int, int]
     aperture_radius: float
 
@@ -75,7 +77,7 @@ def load_now(request: SceneRequest) -> LoadedScene:
     else:
         parsed, base_dir, root = parse_scene(request.scene), SCENES_DIR, SCENES_DIR
     data = inline_meshes(parsed, base_dir, root, budget)
-    return LoadedScene(data, parsed.camera.resolution, parsed.camera.aperture_radius)
+    return LoadedScene(json.dumps(data), parsed.camera.resolution, parsed.camera.aperture_radius)
 
 
 def _child(out: Connection, request: SceneRequest) -> None:
