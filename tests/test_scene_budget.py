@@ -7,6 +7,9 @@ SceneErrors too, never an OSError or a RecursionError."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,6 +17,7 @@ import pytest
 from tests.test_scene_import import SENSOR, xml
 from worker.scene import SCENES_DIR, SceneError, inline_meshes, load_any_scene
 
+ROOT = Path(__file__).resolve().parent.parent
 TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
 
 
@@ -80,3 +84,16 @@ def test_the_triangle_limit_after_a_conversion_names_the_xml_element(tmp_path: P
     err = load_error(tmp_path / "scene.xml")
     assert err.field == "scene.xml" and 'line 7: <shape type="rectangle">' in err.message, err
     assert "more than 12 triangles" in err.message, err
+
+
+@pytest.mark.parametrize("command", [["render", "--passes", "1", "--out", "{tmp}/x.png"], ["convert"]])
+def test_the_cli_says_what_ran_out_in_one_line(tmp_path: Path, command: list[str]) -> None:
+    (tmp_path / "leaf.xml").write_text(xml(""))
+    (tmp_path / "mid.xml").write_text(xml('<include filename="leaf.xml"/>\n' * 40))
+    (tmp_path / "scene.xml").write_text(xml(SENSOR + '\n<include filename="mid.xml"/>' * 40))
+    args = [a.format(tmp=tmp_path) for a in command]
+    proc = subprocess.run([sys.executable, "-m", "service.cli", *args, str(tmp_path / "scene.xml")],
+                          capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert proc.stderr.startswith("photonfarm: bad scene: mid.xml: line "), proc.stderr
+    assert "more than 1000 scene files" in proc.stderr, proc.stderr
