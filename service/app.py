@@ -184,18 +184,17 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         # FastAPI answers 400 for a body json.loads cannot take: undecodable bytes
-        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError);
+        # (UnicodeDecodeError), an integer past Python's digit limit (ValueError), or nesting
+        # past the parser's recursion limit (RecursionError);
         # Starlette for a malformed multipart form (its reason in the detail).
         if exc.status_code == 400:
             if isinstance(exc.__cause__, RecursionError):
                 reason, kind = "body is nested too deeply", "json_invalid"
-            elif isinstance(exc.__cause__, UnicodeDecodeError):
-                reason, kind = "body is not UTF-8 JSON", "json_invalid"
             elif isinstance(exc.__cause__, ValueError) and "integer string conversion" in str(exc.__cause__):
                 reason = f"body holds an integer with more than {sys.get_int_max_str_digits()} digits"
                 kind = "json_invalid"
             elif isinstance(exc.__cause__, ValueError):
-                reason, kind = "body is not JSON", "json_invalid"
+                reason, kind = "body is not UTF-8 JSON", "json_invalid"
             else:
                 reason, kind = f"body is not a readable form: {exc.detail}", "form_invalid"
             return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
