@@ -21,7 +21,16 @@ from xml.parsers import expat
 import numpy as np
 
 from worker.meshes import MeshError
-from worker.scene import MAX_TRIANGLES, MAX_XML_DEPTH, LoadBudget, Scene, SceneError, parse_scene, read_mesh
+from worker.scene import (
+    MAX_INCLUDE_DEPTH,
+    MAX_TRIANGLES,
+    MAX_XML_DEPTH,
+    LoadBudget,
+    Scene,
+    SceneError,
+    parse_scene,
+    read_mesh,
+)
 
 # Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
 NAMED_IOR = {
@@ -32,7 +41,6 @@ NAMED_IOR = {
     "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
-MAX_INCLUDE_DEPTH = 8
 GLOSSY_EXPONENT_MAX = 100_000.0  # the schema's bound on the Phong exponent
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}

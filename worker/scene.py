@@ -37,6 +37,7 @@ MAX_SCENE_NAME = 64
 # counts every time it is opened, so K includes of K includes cost K^2 files, not K. Real
 # scenes (Mitsuba's published ones: hundreds of includes and meshes at most) pass far below.
 MAX_XML_DEPTH = 64  # elements nested in one XML file
+MAX_INCLUDE_DEPTH = 8  # XML includes nested
 LOAD_LIMITS = {
     "scene files": 1_000,  # the scene file and every XML inclusion
     "XML elements": 200_000,  # in all XML files read, each time it is read
