@@ -87,8 +87,6 @@ def _child(out: Connection, request: SceneRequest) -> None:
         result: tuple = ("ok", load_now(request))
     except SceneError as exc:  # sent as fields: SceneError's constructor takes two arguments
         result = ("error", type(exc).__name__, exc.field, exc.message)
-    except RecursionError:
-        result = ("error", "SceneError", "", "the scene is nested too deeply")
     out.send(result)
     out.close()
 
