@@ -10,7 +10,6 @@ forkserver imports the scene modules once, so each load starts in milliseconds. 
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import os
 import threading
@@ -26,7 +25,7 @@ from worker.scene import (
     SceneError,
     SceneLimitError,
     bundled_scene_path,
-    inline_meshes,
+    inline_json,
     load_any_scene,
     load_scene_file,
     parse_scene,
@@ -76,8 +75,8 @@ def load_now(request: SceneRequest) -> LoadedScene:
         root = SCENES_DIR
     else:
         parsed, base_dir, root = parse_scene(request.scene), SCENES_DIR, SCENES_DIR
-    data = inline_meshes(parsed, base_dir, root, budget)
-    return LoadedScene(json.dumps(data), parsed.camera.resolution, parsed.camera.aperture_radius)
+    text = inline_json(parsed, base_dir, root, budget)
+    return LoadedScene(text, parsed.camera.resolution, parsed.camera.aperture_radius)
 
 
 def _child(out: Connection, request: SceneRequest) -> None:

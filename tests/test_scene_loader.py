@@ -14,7 +14,7 @@ import pytest
 
 from service.scene_loader import LoadUnavailable, SceneLoader, SceneRequest, load_now
 from tests.test_scene_import import SENSOR, xml
-from worker.scene import SCENES_DIR, SceneError, SceneLimitError
+from worker.scene import SCENES_DIR, SceneError, SceneLimitError, inline_json, inline_meshes, load_any_scene
 
 
 @pytest.fixture(scope="module")
@@ -53,3 +53,10 @@ def test_a_load_past_the_time_limit_is_killed_and_the_loader_serves_on(loader: S
         quick.load(SceneRequest(path=fifo, root=tmp_path))
     assert time.monotonic() - start < 30
     assert quick.load(SceneRequest(scene_name="cornell-box")) == load_now(SceneRequest(scene_name="cornell-box"))
+
+
+@pytest.mark.parametrize("name", ["cornell-box.json", "mitsuba/ply-mesh.xml", "mitsuba/obj-mesh.xml"])
+def test_inline_json_is_the_inlined_scene_encoded(name: str) -> None:
+    path = SCENES_DIR / name
+    scene, base_dir = load_any_scene(path)
+    assert json.loads(inline_json(scene, base_dir, path.parent)) == inline_meshes(scene, base_dir, path.parent)

@@ -289,6 +289,15 @@ def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget:
     return data
 
 
+def inline_json(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> str:
+    """`inline_meshes` as JSON text; a scene with no mesh file to inline (the checks still
+    run) goes through pydantic's own encoder, about twice as fast for large meshes."""
+    if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+        return json.dumps(inline_meshes(scene, base_dir, root, budget))
+    shape_geometry(scene, base_dir, root, budget)
+    return scene.model_dump_json(exclude_none=True)
+
+
 def read_mesh(path: Path, budget: LoadBudget, field: str, at: str = "") -> MeshData:
     """A mesh file read within the budget: its declared vertices and triangles are checked
     before it is parsed (parsing is what costs), its real triangles counted after."""
