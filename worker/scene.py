@@ -294,7 +294,7 @@ def inline_json(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: L
     run) goes through pydantic's own encoder, about twice as fast for large meshes."""
     if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
         return json.dumps(inline_meshes(scene, base_dir, root, budget))
-    shape_geometry(scene, base_dir, root, budget)
+    shape_geometry(scene, base_dir, root, budget, shading=False)
     return scene.model_dump_json(exclude_none=True)
 
 
@@ -353,9 +353,10 @@ def _corner_normals(mesh: MeshData) -> np.ndarray | None:
     return n / np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-300)
 
 
-def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR,
-                   budget: LoadBudget | None = None) -> list[ShapeGeometry | None]:
-    """Per shape, its triangles and shading normals (None for spheres).
+def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None,
+                   shading: bool = True) -> list[ShapeGeometry | None]:
+    """Per shape, its triangles and shading normals (None for spheres; no normals at all
+    without `shading`, for a caller that only wants the checks).
 
     Mesh files are resolved relative to `base_dir` and must lie inside `root` (the scene
     file's folder for the CLI, the upload for the service): a scene can never make the
@@ -376,7 +377,7 @@ def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR,
         else:
             mesh = _mesh_data(shape, f"shapes.{i}", base_dir, root, budget)
             tris = mesh.vertices[mesh.triangles]
-            normals = _corner_normals(mesh)
+            normals = _corner_normals(mesh) if shading else None
         total += len(tris)
         if total > MAX_TRIANGLES:
             raise SceneError(f"shapes.{i}", f"scene has more than {MAX_TRIANGLES} triangles")
