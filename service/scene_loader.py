@@ -32,6 +32,7 @@ from worker.scene import (
 )
 
 LOAD_PROCESSES = 2  # loads at once; more wait (each is one CPU-bound process)
+LOAD_QUEUE = 8  # requests that may wait for a load slot (the API serves on 40 threads)
 LOAD_SECONDS = 60.0  # wall clock for one load, its wait for a slot included; then it is killed
 EXIT_SECONDS = 5.0  # for a child that has answered to exit by itself
 LOAD_NICENESS = 10  # a load yields the CPU to the threads that serve requests
@@ -92,11 +93,15 @@ def _child(out: Connection, request: SceneRequest) -> None:
 
 class SceneLoader:
     """Owns the forkserver and bounds the loads in flight; `load` blocks its caller's thread
-    (a request's worker thread) but holds no lock or GIL-bound work while it waits."""
+    (a request's worker thread) but holds no lock or GIL-bound work while it waits. At most
+    `queue` requests wait for a slot; more are refused at once, so waiting loads never take
+    all of the threads that serve requests."""
 
-    def __init__(self, processes: int = LOAD_PROCESSES, seconds: float = LOAD_SECONDS) -> None:
+    def __init__(self, processes: int = LOAD_PROCESSES, seconds: float = LOAD_SECONDS,
+                 queue: int = LOAD_QUEUE) -> None:
         self.seconds = seconds
         self.slots = threading.BoundedSemaphore(processes)
+        self.admitted = threading.BoundedSemaphore(processes + queue)
         self._context: Any = None
         self._lock = threading.Lock()
 
@@ -110,6 +115,14 @@ class SceneLoader:
     def load(self, request: SceneRequest) -> LoadedScene:
         """The loaded scene; SceneError (SceneLimitError past the budget) as the child raised
         it; LoadUnavailable if no slot came free or the load did not finish in time."""
+        if not self.admitted.acquire(blocking=False):
+            raise LoadUnavailable("every scene loader is busy and others wait for one: retry shortly")
+        try:
+            return self._load(request)
+        finally:
+            self.admitted.release()
+
+    def _load(self, request: SceneRequest) -> LoadedScene:
         deadline = time.monotonic() + self.seconds
         if not self.slots.acquire(timeout=self.seconds):
             raise LoadUnavailable(f"every scene loader was busy for {self.seconds:g} s: retry shortly")

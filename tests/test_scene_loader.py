@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -53,6 +54,21 @@ def test_a_load_past_the_time_limit_is_killed_and_the_loader_serves_on(loader: S
         quick.load(SceneRequest(path=fifo, root=tmp_path))
     assert time.monotonic() - start < 30
     assert quick.load(SceneRequest(scene_name="cornell-box")) == load_now(SceneRequest(scene_name="cornell-box"))
+
+
+def test_loads_past_the_slots_and_the_queue_are_refused_at_once(tmp_path: Path) -> None:
+    """One slot, no queue: while a load blocks (on a FIFO), the next is refused, not queued."""
+    fifo = tmp_path / "scene.json"
+    os.mkfifo(fifo)
+    busy = SceneLoader(processes=1, seconds=5, queue=0)
+    blocked = threading.Thread(target=lambda: pytest.raises(LoadUnavailable, busy.load,
+                                                            SceneRequest(path=fifo, root=tmp_path)))
+    blocked.start()
+    time.sleep(1.0)  # the blocked load takes its slot as it starts
+    with pytest.raises(LoadUnavailable, match="others wait for one"):  # refused, not timed out waiting
+        busy.load(SceneRequest(scene_name="cornell-box"))
+    blocked.join()
+    assert busy.load(SceneRequest(scene_name="cornell-box")) == load_now(SceneRequest(scene_name="cornell-box"))
 
 
 @pytest.mark.parametrize("name", ["cornell-box.json", "mitsuba/ply-mesh.xml", "mitsuba/obj-mesh.xml"])
