@@ -5,7 +5,8 @@ that runs past its wall-clock limit is killed.
 A child is forked from a `forkserver` started on first use, never from the API process
 itself, which holds threads and Redis connections that a fork would copy mid-use. The
 forkserver imports the scene modules once, so each load starts in milliseconds. At most
-`LOAD_PROCESSES` loads run at once; a request waits for a slot within the same limit.
+`LOAD_PROCESSES` loads run at once and `LOAD_QUEUE` requests wait for one (within the same
+wall-clock limit); a request past those is refused at once.
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ class SceneRequest:
 
 
 class LoadUnavailable(Exception):
-    """No load could finish in time (the API answers 503)."""
+    """The load was refused (loaders busy) or did not finish in time (the API answers 503)."""
 
 
 def load_now(request: SceneRequest) -> LoadedScene:
