@@ -665,7 +665,7 @@ class Converter:
         except OSError as exc:
             raise _error(named, f"cannot read {filename}: {exc.strerror or exc}") from None
         except MeshError as exc:
-            raise _error(p.node_of("filename"), f"{filename}: {exc}") from None
+            raise _error(named, f"{filename}: {exc}") from None
         tris = mesh.triangles
         normals = None
         if not face_normals:  # Mitsuba computes angle-weighted vertex normals where the file has none
