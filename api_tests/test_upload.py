@@ -137,6 +137,9 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
     missing = _scene_xml('<shape type="ply"><string name="filename" value="meshes/none.ply"/><ref id="white"/></shape>')
     outside = _scene_xml(f'<shape type="ply"><string name="filename" value="{MITSUBA / "meshes" / "icosphere.ply"}"/>'
                          '<ref id="white"/></shape>')
+    long_mesh = _scene_xml(f'<shape type="ply"><string name="filename" value="{"m" * 300}.ply"/></shape>')
+    long_include = _scene_xml(f'<include filename="{"i" * 300}.xml"/>')
+    deep = _scene_xml('<shape type="sphere">' + "<bsdf>" * 1000 + "</bsdf>" * 1000 + "</shape>")
     return {
         "unknown plugin": ({"files": {"s.xml": hair, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
                            "unknown bsdf plugin 'hair'"),
@@ -170,6 +173,21 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
                           "not a readable archive"),
         "bad settings": ({"files": {"s.xml": hair}, "settings": {"alpha": 7}}, 422, ["body", "settings", "alpha"],
                          "less than"),
+        "zip file and folder a/b": ({"archive": ("a.zip", _zip({"a": ply, "a/b": ply}))}, 422, ["body", "archive"],
+                                    "'a/b': 'a' is both a file and a folder"),
+        "zip file and folder a/": ({"archive": ("a.zip", _zip({"a": ply, "a/": b""}))}, 422, ["body", "archive"],
+                                   "'a/': 'a' is both a file and a folder"),
+        "tar file and folder a/b": ({"archive": ("a.tar.gz", _tar({"a": ply, "a/b": ply}))}, 422, ["body", "archive"],
+                                    "'a/b': 'a' is both a file and a folder"),
+        "files file and folder a/b": ({"files": {"a": ply, "a/b": ply}}, 422, ["body", "files"],
+                                      "'a/b': 'a' is both a file and a folder"),
+        "the same file twice": ({"files": {"a": ply, "./a": ply}}, 422, ["body", "files"], "'./a' appears twice"),
+        "mesh name too long": ({"files": {"s.xml": long_mesh, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
+                               "File name too long"),
+        "include name too long": ({"files": {"s.xml": long_include, "room.xml": room}}, 422,
+                                  ["body", "scene", "s.xml"], "File name too long"),
+        "XML nested 1,000 deep": ({"files": {"s.xml": deep, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
+                                  "nested deeper than"),
     }
 
 
@@ -254,3 +272,30 @@ def test_submit_refuses_a_folder_past_the_upload_limits_in_one_line(cluster: Clu
                          env=cluster.env)
     assert run.returncode != 0 and "put the scene in a folder of its own" in run.stderr, run.stderr
     assert len(run.stderr.strip().splitlines()) == 1
+
+
+def test_an_include_bomb_is_refused_413_naming_what_ran_out(cluster: Cluster) -> None:
+    """A small archive whose includes would open 64,000 files (40 per file, three deep, far
+    within the depth limit): the load stops at its file budget, naming the file and line."""
+    leaf = b'<scene version="3.0.0"/>'
+    entries = {"s.xml": _scene_xml('<include filename="i1.xml"/>' * 40),
+               "room.xml": (MITSUBA / "room.xml").read_bytes(),
+               "i1.xml": b'<scene version="3.0.0">' + b'<include filename="i2.xml"/>' * 40 + b"</scene>",
+               "i2.xml": b'<scene version="3.0.0">' + b'<include filename="i3.xml"/>' * 40 + b"</scene>",
+               "i3.xml": leaf}
+    archive = _zip(entries)
+    assert len(archive) < 8192
+    resp = _upload(cluster, "s.xml", archive=("bomb.zip", archive))
+    assert resp.status_code == 413, resp.text
+    detail = resp.json()["detail"]
+    assert re.fullmatch(r"i\d\.xml: line \d+: <include>: the scene needs more than \d+ scene files .*", detail), detail
+    _still_serving(cluster)
+
+
+def test_a_json_integer_past_pythons_digit_limit_is_named_as_such(cluster: Cluster) -> None:
+    body = '{"scene_name": "cornell-box", "settings": {"seed": ' + "7" * 5000 + "}}"
+    resp = cluster.http.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
+    assert resp.status_code == 422, resp.text
+    detail = resp.json()["detail"]
+    assert detail[0]["loc"] == ["body"] and "integer with more than 4300 digits" in detail[0]["msg"], detail
+    _still_serving(cluster)

@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import os
+import sys
 import tempfile
 import threading
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -47,6 +48,7 @@ from service.models import (
     PixelView,
     SceneSummary,
 )
+from service.scene_loader import LoadedScene, LoadUnavailable, SceneLoader, SceneRequest
 from service.upload import Unpacker, UploadError, scene_path
 from worker.image_io import error_colours, write_image
 from worker.integrators import camera_problem
@@ -54,15 +56,10 @@ from worker.outputs import write_render
 from worker.scene import (
     MAX_SCENE_NAME,
     SCENE_NAME_PATTERN,
-    SCENES_DIR,
-    Scene,
     SceneError,
+    SceneLimitError,
     bundled_scene_names,
     bundled_scene_path,
-    inline_meshes,
-    load_any_scene,
-    load_scene_file,
-    parse_scene,
 )
 from worker.scheduler import Reaper, feed
 from worker.settings import Settings
@@ -192,11 +189,15 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         # FastAPI answers 400 for a body json.loads cannot take: undecodable bytes
-        # (UnicodeDecodeError) or nesting past the parser's recursion limit (RecursionError);
+        # (UnicodeDecodeError), an integer past Python's digit limit (ValueError), or nesting
+        # past the parser's recursion limit (RecursionError);
         # Starlette for a malformed multipart form (its reason in the detail).
         if exc.status_code == 400:
             if isinstance(exc.__cause__, RecursionError):
                 reason, kind = "body is nested too deeply", "json_invalid"
+            elif isinstance(exc.__cause__, ValueError) and "integer string conversion" in str(exc.__cause__):
+                reason = f"body holds an integer with more than {sys.get_int_max_str_digits()} digits"
+                kind = "json_invalid"
             elif isinstance(exc.__cause__, ValueError):
                 reason, kind = "body is not UTF-8 JSON", "json_invalid"
             else:
@@ -310,23 +311,33 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         except SceneError as exc:
             raise HTTPException(404, detail=exc.message) from None
 
-    def create_job(parsed: Scene, base_dir: Path, root: Path, settings: JobSettings, scene_name: str | None,
-                   scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
-        """The one way a job is made (JSON body or upload): inline the meshes and check the
-        geometry, check the pixels, store the job, issue its batches."""
+    loader = SceneLoader()
+
+    def load_scene(request: SceneRequest, scene_loc: Callable[[SceneError], list[str | int]]) -> LoadedScene:
+        """The scene loaded in a child process (service/scene_loader.py): a bad scene is a 422
+        naming its field, one past the load's limits a 413, a load that cannot finish a 503."""
         try:
-            scene_json = inline_meshes(parsed, base_dir, root)
+            return loader.load(request)
+        except SceneLimitError as exc:
+            raise HTTPException(413, detail=str(exc)) from None
         except SceneError as exc:
             raise _unprocessable(scene_loc(exc), exc.message) from None
-        problem = camera_problem(settings, parsed.camera.aperture_radius)
+        except LoadUnavailable as exc:
+            raise HTTPException(503, detail=str(exc)) from None
+
+    def create_job(loaded: LoadedScene, settings: JobSettings, scene_name: str | None,
+                   scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
+        """The one way a job is made (JSON body or upload) from its loaded scene: check the
+        pixels, store the job, issue its batches."""
+        problem = camera_problem(settings, loaded.aperture_radius)
         if problem:
             raise _unprocessable(["body", "settings", "method"], problem)
-        width, height = settings.resolution or parsed.camera.resolution
+        width, height = settings.resolution or loaded.resolution
         if width * height > MAX_SERVICE_PIXELS:
             raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
         try:
-            job_id = jobs.create(scene_json, Settings(**dict(settings)), width, height, scene_name,
+            job_id = jobs.create(loaded.scene_json, Settings(**dict(settings)), width, height, scene_name,
                                  max_active=MAX_ACTIVE_JOBS)
         except JobLimitReached as exc:  # not the request's fault: the same request succeeds later
             raise HTTPException(429, detail=str(exc)) from None
@@ -342,14 +353,8 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             if body.scene_name is not None:
                 return ["body", "scene_name"]
             return ["body", "scene", *[int(p) if p.isdigit() else p for p in exc.field.split(".") if p]]
-        try:
-            if body.scene_name is not None:
-                parsed, base_dir = load_scene_file(bundled_scene_path(body.scene_name))
-            else:
-                parsed, base_dir = parse_scene(body.scene), SCENES_DIR
-        except SceneError as exc:
-            raise _unprocessable(scene_loc(exc), exc.message) from None
-        return create_job(parsed, base_dir, SCENES_DIR, body.settings, body.scene_name, scene_loc, response)
+        loaded = load_scene(SceneRequest(scene_name=body.scene_name, scene=body.scene), scene_loc)
+        return create_job(loaded, body.settings, body.scene_name, scene_loc, response)
 
     @app.post("/v1/jobs/upload", status_code=201, response_model=JobView, dependencies=secured,
               responses=errors(*auth, 413, 422, 429))
@@ -387,11 +392,8 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
 
             def scene_loc(exc: SceneError) -> list[str | int]:
                 return ["body", "scene", *([exc.field] if exc.field else [])]
-            try:
-                parsed, base_dir = load_any_scene(path, root=root)
-            except SceneError as exc:
-                raise _unprocessable(scene_loc(exc), exc.message) from None
-            return create_job(parsed, base_dir, root, job_settings, None, scene_loc, response)
+            loaded = load_scene(SceneRequest(path=path, root=root), scene_loc)
+            return create_job(loaded, job_settings, None, scene_loc, response)
 
     @app.get("/v1/jobs", response_model=list[JobView], dependencies=secured, responses=errors(*auth, 422))
     def list_jobs(response: Response, offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),

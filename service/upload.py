@@ -66,23 +66,35 @@ class Unpacker:
         if self.entries > MAX_UPLOAD_FILES:
             raise UploadError(field, f"more than {MAX_UPLOAD_FILES} files", 413)
 
+    def _make_folder(self, field: str, name: str, folder: PurePosixPath) -> None:
+        """`folder` (relative) and the folders above it; a file already on the way is a clash."""
+        path = self.root
+        for part in folder.parts:
+            path = path / part
+            if path.is_file():
+                clash = path.relative_to(self.root).as_posix()
+                raise UploadError(field, f"{name[:80]!r}: {clash[:80]!r} is both a file and a folder in the upload")
+            path.mkdir(exist_ok=True)
+
     def folder(self, field: str, name: str) -> None:
         self._count_entry(field)
         if name and not PurePosixPath(name).parts:  # "./", the archive's own top (tar -C DIR .)
             return
-        (self.root / relative_name(field, name)).mkdir(parents=True, exist_ok=True)
+        self._make_folder(field, name, relative_name(field, name))
 
     def write(self, field: str, name: str, source: Source) -> None:
         """One file, copied in chunks; refused past the byte limit or if the name is taken."""
         self._count_entry(field)
-        target = self.root / relative_name(field, name)
-        target.parent.mkdir(parents=True, exist_ok=True)
+        relative = relative_name(field, name)
+        self._make_folder(field, name, relative.parent)
+        target = self.root / relative
         try:
             out = target.open("xb")
-        except FileExistsError:
+        except (FileExistsError, IsADirectoryError):
+            if target.is_dir():
+                raise UploadError(field, f"{name[:80]!r}: {relative.as_posix()[:80]!r} is both a file and a folder "
+                                         "in the upload") from None
             raise UploadError(field, f"{name[:80]!r} appears twice in the upload") from None
-        except (IsADirectoryError, NotADirectoryError):
-            raise UploadError(field, f"{name[:80]!r} is both a file and a folder") from None
         with out:
             while chunk := source.read(CHUNK):
                 self.bytes += len(chunk)

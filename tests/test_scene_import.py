@@ -23,6 +23,7 @@ from worker.meshes import MeshError, load_mesh
 from worker.mitsuba_scene import Node, beckmann_alpha, convert_mitsuba, look_at, phong_exponent, to_world_matrix
 from worker.scene import (
     SCENES_DIR,
+    LoadBudget,
     SceneError,
     load_any_scene,
     parse_scene,
@@ -118,7 +119,7 @@ def transform_node(ops: str) -> Node:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "t.xml"
         path.write_text(f'<transform name="to_world">{ops}</transform>')
-        return _read_xml(path)
+        return _read_xml(path, LoadBudget())
 
 
 def test_translate() -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import logging
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,29 +34,44 @@ class MeshData:
     normals: np.ndarray | None  # (V, 3) float64 per-vertex shading normals, or None (flat)
 
 
-def _check_obj_indices(path: Path) -> None:
+_OBJ_FACE = re.compile(rb"^[ \t]*f[ \t][^\n]*", re.MULTILINE)
+_OBJ_VERTEX = re.compile(rb"^[ \t]*v[ \t]", re.MULTILINE)
+# A face line with a vertex index (a word's part before any "/") of 0 or -0.
+_OBJ_ZERO_INDEX = re.compile(rb"^[ \t]*f[ \t][^\n]*?(?<=[ \t])-?0(?=[/ \t\r\n]|$)", re.MULTILINE)
+_PLY_ELEMENT = re.compile(rb"^element[ \t]+(vertex|face)[ \t]+(\d{1,18})[ \t]*\r?$", re.MULTILINE)
+
+
+def declared_counts(suffix: str, data: bytes) -> tuple[int, int]:
+    """(vertices, triangles) a mesh file declares, found without parsing it: an OBJ's `v`
+    and `f` lines (each face at least one triangle), a PLY header's element counts."""
+    if suffix.lower() == ".obj":
+        return len(_OBJ_VERTEX.findall(data)), len(_OBJ_FACE.findall(data))
+    header = data[: data.find(b"end_header")] if b"end_header" in data else data[:4096]
+    counts = {kind.decode(): int(n) for kind, n in _PLY_ELEMENT.findall(header)}
+    return counts.get("vertex", 0), counts.get("face", 0)
+
+
+def _check_obj_indices(data: bytes) -> None:
     """OBJ indices are 1-based (negative: from the end); trimesh reads a 0 as vertex 1."""
-    with path.open("rb") as fh:
-        for lineno, line in enumerate(fh, 1):
-            parts = line.split()
-            if parts and parts[0] == b"f" and any(p.split(b"/")[0] in (b"0", b"-0") for p in parts[1:]):
-                raise MeshError(f"line {lineno}: face index 0 (OBJ indices start at 1)")
+    match = _OBJ_ZERO_INDEX.search(data)
+    if match:
+        lineno = data.count(b"\n", 0, match.start()) + 1
+        raise MeshError(f"line {lineno}: face index 0 (OBJ indices start at 1)")
 
 
-def _parse(path: Path) -> list[dict]:
+def _parse(suffix: str, data: bytes) -> list[dict]:
     """The parser's raw geometry dicts (one per OBJ object; one for a PLY)."""
     from trimesh.exchange import obj, ply
 
-    if path.suffix.lower() == ".obj":
-        _check_obj_indices(path)
-    with warnings.catch_warnings(), path.open("rb") as fh:
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numpy warnings from trimesh's texture code
-        if path.suffix.lower() == ".ply":
-            return [ply.load_ply(fh)]
+        if suffix == ".ply":
+            return [ply.load_ply(io.BytesIO(data))]
+        _check_obj_indices(data)
         # OBJ is ASCII text; bytes that are not UTF-8 (a comment or a name in another
         # encoding) become U+FFFD here, where trimesh would guess an encoding with a package
         # we do not install.
-        text = io.StringIO(fh.read().decode("utf-8", errors="replace"))
+        text = io.StringIO(data.decode("utf-8", errors="replace"))
         return list(obj.load_obj(text, maintain_order=True)["geometry"].values())
 
 
@@ -92,12 +108,14 @@ def check_mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray 
     return MeshData(v, f, n)
 
 
-def load_mesh(path: Path) -> MeshData:
-    """Read an .obj or .ply file; MeshError with a one-line reason if it is not a mesh."""
-    if path.suffix.lower() not in MESH_SUFFIXES:
+def load_mesh(path: Path, data: bytes | None = None) -> MeshData:
+    """Read an .obj or .ply file (`data`: its bytes, if already read); MeshError with a
+    one-line reason if it is not a mesh."""
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
         raise MeshError(f"unsupported mesh format {path.suffix!r} (have: .obj, .ply)")
     try:
-        parts = _parse(path)
+        parts = _parse(suffix, path.read_bytes() if data is None else data)
     except MeshError:
         raise
     except Exception as exc:  # noqa: BLE001 - any parser failure is a malformed file

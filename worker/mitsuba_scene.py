@@ -20,8 +20,17 @@ from xml.parsers import expat
 
 import numpy as np
 
-from worker.meshes import MeshError, load_mesh
-from worker.scene import MAX_TRIANGLES, SceneError, parse_scene
+from worker.meshes import MeshError
+from worker.scene import (
+    MAX_INCLUDE_DEPTH,
+    MAX_TRIANGLES,
+    MAX_XML_DEPTH,
+    LoadBudget,
+    Scene,
+    SceneError,
+    parse_scene,
+    read_mesh,
+)
 
 # Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
 NAMED_IOR = {
@@ -32,7 +41,6 @@ NAMED_IOR = {
     "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
-MAX_INCLUDE_DEPTH = 8
 GLOSSY_EXPONENT_MAX = 100_000.0  # the schema's bound on the Phong exponent
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
@@ -74,10 +82,11 @@ def _error(node: Node, message: str) -> SceneError:
     return SceneError(node.file.name, f"{node.where()}: {message}")
 
 
-def _read_xml(path: Path) -> Node:
-    """The element tree of an XML file, each element with its line number."""
+def _read_xml(path: Path, budget: LoadBudget, field: str = "", at: str = "") -> Node:
+    """The element tree of an XML file, each element with its line number, read within the
+    budget (`field` and `at` name the element that includes it) and at most MAX_XML_DEPTH deep."""
     try:
-        data = path.read_bytes()
+        data = budget.read(path, "scene files", field or path.name, at)
     except FileNotFoundError:
         raise SceneError("", f"scene file {str(path)!r} not found") from None
     except OSError as exc:
@@ -88,6 +97,9 @@ def _read_xml(path: Path) -> Node:
 
     def start(tag: str, attrs: dict[str, str]) -> None:
         node = Node(tag, dict(attrs), parser.CurrentLineNumber, path)
+        budget.take("XML elements", 1, path.name, node.where())
+        if len(stack) >= MAX_XML_DEPTH:
+            raise _error(node, f"XML nested deeper than {MAX_XML_DEPTH} elements")
         (stack[-1].children if stack else roots).append(node)
         stack.append(node)
 
@@ -293,20 +305,25 @@ class Converter:
     shapes: list[dict] = field(default_factory=list)
     lights: list[dict] = field(default_factory=list)
     camera: dict | None = None
-    triangles: int = 0  # so far, against MAX_TRIANGLES before the JSON grows past it
+    budget: LoadBudget = field(default_factory=LoadBudget)  # of the whole load, includes and meshes too
+    triangles: int = 0  # so far, every shape's, against MAX_TRIANGLES before the JSON grows past it
     origin: dict[str, Node] = field(default_factory=dict)  # our JSON path -> XML element
 
     # -------------------------------------------------------------- scene walk
-    def substitute(self, node: Node) -> None:
-        """Replace $name in every attribute of node and its children (Mitsuba's parameters)."""
-        def repl(match: re.Match) -> str:
-            if match.group(1) not in self.params:
-                raise _error(node, f"undefined parameter ${match.group(1)}")
-            return self.params[match.group(1)]
+    def substitute(self, top: Node) -> None:
+        """Replace $name in every attribute of top and its descendants (Mitsuba's parameters),
+        walking the tree with a list rather than the call stack."""
+        pending = [top]
+        while pending:
+            node = pending.pop()
 
-        node.attrs = {k: re.sub(r"\$(\w+)", repl, v) for k, v in node.attrs.items()}
-        for child in node.children:
-            self.substitute(child)
+            def repl(match: re.Match, node: Node = node) -> str:
+                if match.group(1) not in self.params:
+                    raise _error(node, f"undefined parameter ${match.group(1)}")
+                return self.params[match.group(1)]
+
+            node.attrs = {k: re.sub(r"\$(\w+)", repl, v) for k, v in node.attrs.items()}
+            pending.extend(node.children)
 
     def scene(self, node: Node, depth: int = 0) -> None:
         if node.tag != "scene":
@@ -338,11 +355,16 @@ class Converter:
 
     def resolve(self, node: Node, name: str) -> Path:
         """A file named by the scene, relative to the XML file that names it, inside root."""
-        path = (node.file.parent / name).resolve()
-        if not path.is_relative_to(self.root):
-            raise _error(node, f"{name!r} leaves the scene's directory")
-        if not path.is_file():
-            raise _error(node, f"file {name!r} not found")
+        shown = name if len(name) <= 80 else f"{name[:80]}..."
+        try:
+            path = (node.file.parent / name).resolve()
+            if not path.is_relative_to(self.root):
+                raise _error(node, f"{shown!r} leaves the scene's directory")
+            found = path.is_file()
+        except (OSError, ValueError) as exc:  # a name the file system refuses (too long in bytes, NUL)
+            raise _error(node, f"file {shown!r} cannot be opened: {getattr(exc, 'strerror', None) or exc}") from None
+        if not found:
+            raise _error(node, f"file {shown!r} not found")
         return path
 
     def include(self, node: Node, depth: int) -> None:
@@ -353,7 +375,7 @@ class Converter:
         path = self.resolve(node, node.attrs["filename"])
         if path.suffix.lower() != ".xml":
             raise _error(node, "only XML files can be included")
-        self.scene(_read_xml(path), depth + 1)
+        self.scene(_read_xml(path, self.budget, node.file.name, node.where()), depth + 1)
 
     # -------------------------------------------------------------- sensor
     def sensor(self, node: Node) -> None:
@@ -569,7 +591,7 @@ class Converter:
         flip = p.boolean("flip_normals", False)
         shape = builders[kind](p, m, flip)
         p.done()
-        self.triangles += len(shape.get("triangles", ()))
+        self.triangles += 2 if shape["type"] == "quad" else len(shape.get("triangles", ()))
         if self.triangles > MAX_TRIANGLES:
             raise _error(node, f"the scene has more than {MAX_TRIANGLES} triangles")
         shape["material"] = material
@@ -637,10 +659,13 @@ class Converter:
         face_normals = p.boolean("face_normals", False)
         if p.owner.attrs["type"] == "obj":
             p.boolean("flip_tex_coords", True)  # texture coordinates: not used
+        named = p.node_of("filename")
         try:
-            mesh = load_mesh(path)
+            mesh = read_mesh(path, self.budget, named.file.name, named.where())
+        except OSError as exc:
+            raise _error(named, f"cannot read {filename}: {exc.strerror or exc}") from None
         except MeshError as exc:
-            raise _error(p.node_of("filename"), f"{filename}: {exc}") from None
+            raise _error(named, f"{filename}: {exc}") from None
         tris = mesh.triangles
         normals = None
         if not face_normals:  # Mitsuba computes angle-weighted vertex normals where the file has none
@@ -705,17 +730,26 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.asarray(mesh.vertex_normals, np.float64)
 
 
-def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None) -> dict:
+def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
+                    budget: LoadBudget | None = None) -> dict:
     """Our scene JSON from a Mitsuba 3 XML file; `params` override its <default>s. Meshes
-    are inlined (transformed). Files it names must lie inside `root` (default: its folder).
-    The result is validated: errors name the XML element and line that produced the value."""
+    are inlined (transformed). Files it names must lie inside `root` (default: its folder)
+    and are read within `budget` (a new one if none). The result is validated: errors name
+    the XML element and line that produced the value."""
+    return convert_and_validate(path, params, root, budget)[0]
+
+
+def convert_and_validate(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
+                         budget: LoadBudget | None = None) -> tuple[dict, Scene]:
+    """`convert_mitsuba`'s JSON and the Scene it validated to (validated once)."""
     path = Path(path).resolve()
-    conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()})
-    top = _read_xml(path)
+    conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()},
+                     budget=budget or LoadBudget())
+    top = _read_xml(path, conv.budget)
     conv.scene(top)
     data = conv.result(top)
     try:
-        parse_scene(data)
+        scene = parse_scene(data)
     except SceneError as exc:
         parts = exc.field.split(".")
         for n in (2, 1):
@@ -723,4 +757,4 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
             if node is not None:
                 raise SceneError(node.file.name, f"{node.where()}: {exc.field}: {exc.message}") from None
         raise
-    return data
+    return data, scene

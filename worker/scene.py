@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, load_mesh
+from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, declared_counts, load_mesh
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
@@ -33,6 +33,19 @@ MAX_COORD = 1e7  # |coordinate| bound: keeps float32 positions meaningful
 MAX_PATH_CHARS = 255  # a mesh file name: what a file system accepts for one name
 SCENE_NAME_PATTERN = r"^[a-z0-9][a-z0-9-]*$"  # a bundled scene's name: never a path
 MAX_SCENE_NAME = 64
+# What one scene load may do in all, whatever the scene's shape (README, "Limits"): a file
+# counts every time it is opened, so K includes of K includes cost K^2 files, not K. Real
+# scenes (Mitsuba's published ones: hundreds of includes and meshes at most) pass far below.
+MAX_XML_DEPTH = 64  # elements nested in one XML file
+MAX_INCLUDE_DEPTH = 8  # XML includes nested
+LOAD_LIMITS = {
+    "scene files": 1_000,  # the scene file and every XML inclusion
+    "XML elements": 200_000,  # in all XML files read, each time it is read
+    "mesh files": 2_000,  # each mesh file, each time a shape names it
+    "bytes": 64 * 1024 * 1024,  # read from every file together
+    "mesh vertices": 3 * MAX_TRIANGLES,  # as declared in mesh files (checked before they are parsed)
+    "triangles": MAX_TRIANGLES,  # read from mesh files (declared counts checked before parsing)
+}
 
 Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = tuple[Coord, Coord, Coord]
@@ -49,6 +62,39 @@ class SceneError(ValueError):
         super().__init__(f"{field}: {message}" if field else message)
         self.field = field
         self.message = message
+
+
+class SceneLimitError(SceneError):
+    """A scene load that ran past one of LOAD_LIMITS (the API answers 413)."""
+
+
+class LoadBudget:
+    """The work one scene load has done, against LOAD_LIMITS: one object is passed through
+    the whole load (JSON or XML, every include, every mesh). Running out raises a
+    SceneLimitError with `field` (the file, or the scene field) and `at` (e.g. its line)."""
+
+    def __init__(self) -> None:
+        self.used = dict.fromkeys(LOAD_LIMITS, 0)
+
+    def check(self, what: str, amount: int, field: str, at: str = "") -> None:
+        """Refuse `amount` more of `what` if it would pass the limit; counts nothing."""
+        limit = LOAD_LIMITS[what]
+        if self.used[what] + amount > limit:
+            raise SceneLimitError(field, f"{at + ': ' if at else ''}the scene needs more than {limit} {what} "
+                                         "(the limit for one scene load)")
+
+    def take(self, what: str, amount: int, field: str, at: str = "") -> None:
+        self.check(what, amount, field, at)
+        self.used[what] += amount
+
+    def read(self, path: Path, kind: str, field: str, at: str = "") -> bytes:
+        """A file's bytes, counted as one of `kind` ("scene files", "mesh files") and in bytes;
+        a file past the remaining bytes is refused without reading it all."""
+        self.take(kind, 1, field, at)
+        with path.open("rb") as fh:
+            data = fh.read(LOAD_LIMITS["bytes"] - self.used["bytes"] + 1)
+        self.take("bytes", len(data), field, at)
+        return data
 
 
 class _Model(BaseModel):
@@ -224,11 +270,11 @@ class ShapeGeometry:
     normals: np.ndarray | None  # (n, 3, 3) float64, unit length, or None (flat)
 
 
-def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> dict:
+def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> dict:
     """The scene as JSON with every mesh file replaced by its triangles (and normals), so
     that a worker on any machine renders it with no file at hand. Also runs the checks
     that need the geometry (mesh paths, triangle limit, zero-area emitters)."""
-    geometry = shape_geometry(scene, base_dir, root)
+    geometry = shape_geometry(scene, base_dir, root, budget)
     data = scene.model_dump(mode="json", exclude_none=True)
     for i, shape in enumerate(scene.shapes):
         if isinstance(shape, Mesh) and shape.file is not None:
@@ -243,7 +289,29 @@ def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> dict
     return data
 
 
-def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path) -> MeshData:
+def inline_json(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> str:
+    """`inline_meshes` as JSON text; a scene with no mesh file to inline (the checks still
+    run) goes through pydantic's own encoder, about twice as fast for large meshes."""
+    if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+        return json.dumps(inline_meshes(scene, base_dir, root, budget))
+    shape_geometry(scene, base_dir, root, budget, shading=False)
+    return scene.model_dump_json(exclude_none=True)
+
+
+def read_mesh(path: Path, budget: LoadBudget, field: str, at: str = "") -> MeshData:
+    """A mesh file read within the budget: its declared vertices and triangles are checked
+    before it is parsed (parsing is what costs), its real triangles counted after."""
+    data = budget.read(path, "mesh files", field, at)
+    vertices, triangles = declared_counts(path.suffix, data)
+    budget.check("mesh vertices", vertices, field, at)
+    budget.check("triangles", triangles, field, at)
+    mesh = load_mesh(path, data)
+    budget.take("mesh vertices", len(mesh.vertices), field, at)
+    budget.take("triangles", len(mesh.triangles), field, at)
+    return mesh
+
+
+def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path, budget: LoadBudget) -> MeshData:
     """The mesh of a shape: its file (confined to `root`) or its inline arrays."""
     if shape.file is None:
         try:
@@ -266,7 +334,9 @@ def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path) -> MeshData:
     if not found:
         raise SceneError(f"{field}.file", f"mesh file {shape.file!r} not found")
     try:
-        return load_mesh(path)
+        return read_mesh(path, budget, f"{field}.file")
+    except OSError as exc:
+        raise SceneError(f"{field}.file", f"cannot read mesh file {shape.file!r}: {exc.strerror or exc}") from None
     except MeshError as exc:
         raise SceneError(f"{field}.file", f"{shape.file}: {exc}") from None
 
@@ -283,13 +353,16 @@ def _corner_normals(mesh: MeshData) -> np.ndarray | None:
     return n / np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-300)
 
 
-def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> list[ShapeGeometry | None]:
-    """Per shape, its triangles and shading normals (None for spheres).
+def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None,
+                   shading: bool = True) -> list[ShapeGeometry | None]:
+    """Per shape, its triangles and shading normals (None for spheres; no normals at all
+    without `shading`, for a caller that only wants the checks).
 
     Mesh files are resolved relative to `base_dir` and must lie inside `root` (the scene
     file's folder for the CLI, the upload for the service): a scene can never make the
-    renderer read an arbitrary file.
+    renderer read an arbitrary file. Files are read within `budget` (a new one if none).
     """
+    budget = budget or LoadBudget()
     out: list[ShapeGeometry | None] = []
     total = 0
     root = root.resolve()
@@ -302,9 +375,9 @@ def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> lis
             c, e1, e2 = (np.array(x, dtype=np.float64) for x in (shape.corner, shape.edge1, shape.edge2))
             tris = np.array([[c, c + e1, c + e1 + e2], [c, c + e1 + e2, c + e2]])
         else:
-            mesh = _mesh_data(shape, f"shapes.{i}", base_dir, root)
+            mesh = _mesh_data(shape, f"shapes.{i}", base_dir, root, budget)
             tris = mesh.vertices[mesh.triangles]
-            normals = _corner_normals(mesh)
+            normals = _corner_normals(mesh) if shading else None
         total += len(tris)
         if total > MAX_TRIANGLES:
             raise SceneError(f"shapes.{i}", f"scene has more than {MAX_TRIANGLES} triangles")
@@ -351,16 +424,18 @@ def parse_scene(data: object) -> Scene:
     return scene
 
 
-def load_scene_file(path: Path | str) -> tuple[Scene, Path]:
+def load_scene_file(path: Path | str, budget: LoadBudget | None = None) -> tuple[Scene, Path]:
     """Read and validate a scene file; returns the scene and its directory (for meshes)."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads((budget or LoadBudget()).read(path, "scene files", path.name))
     except FileNotFoundError:
         raise SceneError("", f"scene file {str(path)!r} not found") from None
     except OSError as exc:
         raise SceneError("", f"cannot read scene file {str(path)!r}: {exc.strerror or exc}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except RecursionError:
+        raise SceneError("", f"{path.name} is not valid JSON: nested too deeply") from None
+    except ValueError as exc:  # not JSON, not UTF-8, or an integer past Python's digit limit
         raise SceneError("", f"{path.name} is not valid JSON: {exc}") from None
     return parse_scene(data), path.resolve().parent
 
@@ -371,23 +446,25 @@ def bundled_scene_names() -> list[str]:
 
 
 def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
-                   root: Path | None = None) -> tuple[Scene, Path]:
+                   root: Path | None = None, budget: LoadBudget | None = None) -> tuple[Scene, Path]:
     """A scene from our JSON or a Mitsuba 3 XML file (by suffix), and its directory.
 
     The scene comes back self-contained: every mesh file it names is read now, confined
     to `root` (default: the scene file's folder; the service passes its upload), and
-    inlined, so it renders wherever it is sent. `params` override the XML's <default>s."""
+    inlined, so it renders wherever it is sent. `params` override the XML's <default>s.
+    Everything is read within one `budget` (a new one if none)."""
     path = Path(path)
     base_dir = path.resolve().parent
+    budget = budget or LoadBudget()
     if path.suffix.lower() == ".xml":
-        from worker.mitsuba_scene import convert_mitsuba  # it builds on this module
+        from worker.mitsuba_scene import convert_and_validate  # it builds on this module
 
-        return parse_scene(convert_mitsuba(path, params, root)), base_dir
+        return convert_and_validate(path, params, root, budget)[1], base_dir
     if params:
         raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
-    scene, base_dir = load_scene_file(path)
+    scene, base_dir = load_scene_file(path, budget)
     if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
-        scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir))
+        scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir, budget))
     return scene, base_dir
 
 

@@ -177,9 +177,10 @@ class Jobs:
         self._set_if_exists = conn.register_script(SET_IF_EXISTS)
 
     # ------------------------------------------------------------------ records
-    def create(self, scene: dict[str, Any], settings: Settings, width: int, height: int,
+    def create(self, scene: dict[str, Any] | str, settings: Settings, width: int, height: int,
                scene_name: str | None, max_active: int | None = None) -> str:
-        """A new queued job; raises JobLimitReached if `max_active` jobs are active."""
+        """A new queued job; raises JobLimitReached if `max_active` jobs are active. `scene` is
+        the scene JSON, as a dict or already encoded (the API's loads encode it off its threads)."""
         job_id = uuid.uuid4().hex[:16]
         now = time.time()
         fields = {"status": Status.QUEUED.value, "settings": settings.model_dump_json(),
@@ -194,7 +195,7 @@ class Jobs:
                         raise JobLimitReached(f"at most {max_active} jobs may be active at once: retry when one ends")
                     pipe.multi()
                     pipe.hset(keys.job(job_id), mapping=fields)
-                    pipe.set(keys.scene(job_id), json.dumps(scene))
+                    pipe.set(keys.scene(job_id), scene if isinstance(scene, str) else json.dumps(scene))
                     pipe.zadd(keys.JOBS, {job_id: now})
                     pipe.sadd(keys.ACTIVE, job_id)
                     pipe.execute()
