@@ -114,7 +114,7 @@ def environment_table() -> str:
 
 def limits_table() -> str:
     """Every documented limit, its value read from the constant that enforces it."""
-    from service import models, upload
+    from service import models, scene_loader, upload
     from worker import scene
     from worker.settings import MAX_PHOTONS_PER_PASS
     from worker.store import policy, tiles
@@ -144,6 +144,14 @@ def limits_table() -> str:
          "413", "counted as written: a zip bomb stops here", "`service/upload.py`"),
         ("upload names", f"{upload.MAX_NAME_CHARS:,} characters a path, {upload.MAX_PART_CHARS} a part", "422",
          "what file systems accept", "`service/upload.py`"),
+        ("one scene load, in all", ", ".join(f"{v:,} {k.replace('_', ' ')}" for k, v in scene.LOAD_LIMITS.items()),
+         "413 naming what ran out and where", "every include and mesh counted each time it is named: a small "
+         "upload cannot cost unbounded CPU", "`worker/scene.py` (`LOAD_LIMITS`)"),
+        ("XML nesting", f"{scene.MAX_XML_DEPTH} elements deep, includes {scene.MAX_INCLUDE_DEPTH} deep", "422",
+         "bounds the converter's work and stack", "`worker/scene.py`"),
+        ("scene loads in the API", f"{scene_loader.LOAD_PROCESSES} at once, {scene_loader.LOAD_QUEUE} waiting, "
+         f"{scene_loader.LOAD_SECONDS:g} s each", "503", "each in a child process: parsing never holds the "
+         "threads that serve requests", "`service/scene_loader.py`"),
         ("batch lease", f"{policy.LEASE_SECONDS:g} s", "re-issue",
          "a batch whose worker stops beating is rendered again", "`PHOTONFARM_LEASE_SECONDS`"),
         ("finished jobs kept", f"{policy.RETENTION_SECONDS / 86_400:g} days", "deleted",
