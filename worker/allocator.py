@@ -44,7 +44,7 @@ def retain_large_allocations() -> bool:
     try:
         libc = ctypes.CDLL(name)
         mallopt = libc.mallopt
-        libc.gnu_get_libc_version  # glibc only: another C library's mallopt takes other numbers
+        _ = libc.gnu_get_libc_version  # glibc only: another C library's mallopt takes other numbers
     except (OSError, AttributeError, TypeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int

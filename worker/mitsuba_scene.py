@@ -525,7 +525,8 @@ class Converter:
         reflect = self._albedo(p, "specular_reflectance", 1.0)
         transmit = self._albedo(p, "specular_transmittance", 1.0)
         if reflect != transmit:
-            raise _error(p.owner, "specular_reflectance and specular_transmittance must be equal (our glass has one tint)")
+            raise _error(p.owner, "specular_reflectance and specular_transmittance must be equal "
+                                  "(our glass has one tint)")
         if not 1.0 <= ior <= 3.0:
             raise _error(p.owner, f"int_ior / ext_ior = {ior:g} must lie in [1, 3]")
         return {"type": "glass", "ior": ior, "albedo": reflect}

@@ -55,8 +55,8 @@ class Settings(BaseModel):
                                 "rule); vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
                                 + ", ".join(f"{m} {a:g}" for m, a in DEFAULT_ALPHA.items()) + ")",
                                 json_schema_extra={"x-default-by": {"method": DEFAULT_ALPHA}})
-    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass (light subpaths "
-                                                                               "for vcm, bpt, lt)")
+    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS,
+                                  description="photon paths per pass (light subpaths for vcm, bpt, lt)")
     initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "

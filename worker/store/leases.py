@@ -91,7 +91,7 @@ class Leases:
         pipe = self.r.pipeline()
         for batch in batches:
             pipe.hexists(keys.LEASE_OWNER, batch.member)
-        return [batch for batch, owned in zip(batches, pipe.execute()) if not owned]
+        return [batch for batch, owned in zip(batches, pipe.execute(), strict=True) if not owned]
 
     def set_carrier(self, batch: Batch, rq_id: str) -> None:
         self.r.hset(keys.BATCH_RQ, batch.member, rq_id)
@@ -185,4 +185,4 @@ class Leases:
         pipe = self.r.pipeline()
         for name in names:
             pipe.hgetall(keys.worker(name))
-        return {name: _decode(h) for name, h in zip(names, pipe.execute()) if h}
+        return {name: _decode(h) for name, h in zip(names, pipe.execute(), strict=True) if h}

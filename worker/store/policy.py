@@ -209,7 +209,7 @@ def _tail_end(n: int, passes_left: int, pass_seconds: float, due: Sequence[float
     left = passes_left - n
     level = _fill_level(left * pass_seconds, due, 0)
     takes = [max(0, math.floor((level - d) / pass_seconds)) for d in due]
-    free = [d + k * pass_seconds for d, k in zip(due, takes)]
+    free = [d + k * pass_seconds for d, k in zip(due, takes, strict=True)]
     heapq.heapify(free)
     for _ in range(left - sum(takes)):
         heapq.heapreplace(free, free[0] + pass_seconds)
@@ -295,10 +295,11 @@ def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     s = [r.seconds for r in kept]
     n_mean, s_mean = sum(n) / len(n), sum(s) / len(s)
     spread = sum((x - n_mean) ** 2 for x in n)
-    per_batch = sum((x - n_mean) * (y - s_mean) for x, y in zip(n, s)) / spread if spread else s_mean / (1 + n_mean)
+    covariance = sum((x - n_mean) * (y - s_mean) for x, y in zip(n, s, strict=True))
+    per_batch = covariance / spread if spread else s_mean / (1 + n_mean)
     per_batch = max(0.0, per_batch)
     fixed = max(0.0, s_mean - per_batch * n_mean)
-    over = max(y - (fixed + per_batch * x) for x, y in zip(n, s))
+    over = max(y - (fixed + per_batch * x) for x, y in zip(n, s, strict=True))
     return fixed + per_batch * batches + ROUND_MARGIN * max(0.0, over)
 
 

@@ -261,7 +261,7 @@ class Jobs:
         pipe = self.r.pipeline()
         for job_id in ids:
             pipe.exists(keys.job(job_id))
-        gone = [job_id for job_id, exists in zip(ids, pipe.execute()) if not exists]
+        gone = [job_id for job_id, exists in zip(ids, pipe.execute(), strict=True) if not exists]
         if gone:
             self.r.zrem(keys.JOBS, *gone)
             self.r.srem(keys.ACTIVE, *gone)

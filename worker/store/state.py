@@ -231,7 +231,7 @@ class TiledState:
                     counts.append(len(pipe) - before)
                 results = pipe.execute()
                 first = 0
-                for k, count in zip(ks, counts):
+                for k, count in zip(ks, counts, strict=True):
                     out[k] = results[first:first + count]
                     first += count
             return out
@@ -299,7 +299,8 @@ class TiledState:
         got = self._each_node(tiling, lambda pipe, k: (
             pipe.hget(keys.tile(job_id, k, "meta"), "version"),
             batch_ids and pipe.smismember(keys.tile(job_id, k, "folded"), list(batch_ids))))
-        lacking = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items() if batch_ids}
+        lacking = {k: [b for b, done in zip(batch_ids, g[1], strict=True) if not done]
+                   for k, g in got.items() if batch_ids}
         return {k: int(g[0] or 0) for k, g in got.items()}, {k: ids for k, ids in lacking.items() if ids}
 
     def _blobs(self, job_id: str, tiling: Tiling, integrator: Integrator,
@@ -323,7 +324,7 @@ class TiledState:
                 version, flat = read[k]
                 if int(version or 0) != versions[k]:
                     raise FoldContended(f"tile {k} changed while read")
-                fields = dict(zip(flat[::2], flat[1::2]))
+                fields = dict(zip(flat[::2], flat[1::2], strict=True))
                 CACHE.put(job_id, k, versions[k], fields)
                 out[k] = fields
         return out
@@ -360,7 +361,8 @@ class TiledState:
                 now, lacking = self._versions(job_id, tiling, batch_ids)
                 if now != versions:
                     continue
-                state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
+                blobs = self._blobs(job_id, tiling, integrator, versions)
+                state = integrator.restore(self._arrays(tiling, integrator, blobs),
                                            snap.emitted, snap.passes, snap.counters)
                 written = [b for b in batch_ids if sum(b in ids for ids in lacking.values()) < tiling.count]
                 if written:
@@ -393,7 +395,7 @@ class TiledState:
                 span = tiling.span(k)
                 payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), fresh[k])
                 names = carried.setdefault(k, set())
-                for batch_id, payload in zip(fresh[k], payloads):
+                for batch_id, payload in zip(fresh[k], payloads, strict=True):
                     if payload is None:
                         if int(self.nodes[node].hget(keys.tile(job_id, k, "meta"), "version") or 0) != versions[k]:
                             raise FoldContended(f"tile {k} was written by another folder")

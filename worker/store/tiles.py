@@ -1,11 +1,12 @@
 """The job state cut into pixel tiles, each on one of the state's Redis nodes, and the
 encodings of what moves per tile: the folded state, a batch's delta and a batch's inputs.
 
-A tile is a run of TILE_PIXELS consecutive pixels (row-major, so a band of rows at most
-frame sizes: 65,536 pixels, 8.4 MB of state at 128 bytes a pixel); tile k lives on node k mod (number of nodes). The nodes are the Redis URLs
-in PHOTONFARM_STATE_URLS (comma-separated), else the main Redis alone; a job records how
-many nodes it was created with, and every process must name the same nodes in the same
-order. Queues, job records and leases always stay on the main Redis.
+A tile is a run of TILE_PIXELS consecutive pixels (row-major, so a band of rows at most;
+65,536 pixels by default, 8.4 MB of state at 128 bytes a pixel); tile k lives on node
+k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
+(comma-separated), else the main Redis alone; a job records how many nodes it was created
+with, and every process must name the same nodes in the same order. Queues, job records
+and leases always stay on the main Redis.
 
 Encodings (all little-endian numpy bytes, no pickle: nothing read from Redis runs code):
 - state: a hash, one field per array of the integrator's `state_widths`, float64. A field
@@ -234,7 +235,7 @@ def delta_arrays(payload: bytes) -> list[tuple[str, np.dtype, int]]:
             and all(isinstance(e, int) and e in HALF_EXPONENTS for e in exponents)):
         raise DeltaFormatError("its delta's header does not give a scale for each array it names "
                                "(a worker of another photonfarm version?)")
-    return [(name, DELTA_DTYPES[d], e) for name, d, e in zip(arrays, dtypes, exponents)]
+    return [(name, DELTA_DTYPES[d], e) for name, d, e in zip(arrays, dtypes, exponents, strict=True)]
 
 
 def decode_delta(payload: bytes, widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
@@ -308,7 +309,7 @@ def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: t
     if header is None:
         return None
     fields: dict[str, Any] = {name: np.empty(n_pixels, np.float32) for name in header["arrays"]}
-    for blob, span in zip(blobs, spans):
+    for blob, span in zip(blobs, spans, strict=True):
         own, body = _unpack(blob, INPUTS_DTYPE)
         if whole and own != header:
             raise TornInputs(f"tile inputs of passes {header['scalars'].get('passes')} and "
