@@ -60,7 +60,7 @@ def triangle_neighbours(tris: np.ndarray) -> np.ndarray:
     by_position = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))  # (np.unique by rows: 14x slower)
     new_corner = np.ones(len(by_position), bool)
     new_corner[1:] = (bits[by_position[1:]] != bits[by_position[:-1]]).any(axis=1)
-    corner_id = np.empty(len(by_position), np.int64)
+    corner_id: np.ndarray = np.empty(len(by_position), np.int64)
     corner_id[by_position] = np.cumsum(new_corner) - 1
     corner_id = corner_id.reshape(n, 3)
     tri = np.repeat(np.arange(n), 3)

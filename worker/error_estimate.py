@@ -284,8 +284,8 @@ def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
                  unlit_scale(state, lum, known, confidence) if dark.any() else math.inf)  # (used only where dark)
     out = {name: np.empty(len(lum)) for name in ("bias", "noise", "bound")}
     state.radius()  # computed once, before the blocks share it
-    each(lambda blk: _block(run, blk, direct[blk] if nee else None, dark[blk], out), blocks(len(lum)))
-    if nee:
+    each(lambda blk: _block(run, blk, None if direct is None else direct[blk], dark[blk], out), blocks(len(lum)))
+    if direct is not None:
         lum += direct
     # Relative errors against a floor, and the image average.
     lit = measured & (lum > 0.0)

@@ -15,7 +15,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 from xml.parsers import expat
 
 import numpy as np
@@ -223,6 +223,11 @@ class Props:
             raise _error(node, f"{name} must be one of <{'>, <'.join(sorted(tags))}>")
         return node
 
+    @overload
+    def number(self, name: str) -> float | None: ...
+    @overload
+    def number(self, name: str, default: float) -> float: ...
+
     def number(self, name: str, default: float | None = None) -> float | None:
         node = self._take(name, {"float", "integer"})
         return default if node is None else _floats(node, node.attrs.get("value", ""), 1)[0]
@@ -245,6 +250,11 @@ class Props:
             raise _error(node, "a boolean is true or false")
         return value == "true"
 
+    @overload
+    def string(self, name: str) -> str | None: ...
+    @overload
+    def string(self, name: str, default: str) -> str: ...
+
     def string(self, name: str, default: str | None = None) -> str | None:
         node = self._take(name, {"string"})
         return default if node is None else node.attrs.get("value", "")
@@ -258,6 +268,7 @@ class Props:
                     raise _error(obj, "textures are not supported (constant colours only)")
             return (default,) * 3
         node = self._take(name, {"rgb", "spectrum", "float"})
+        assert node is not None, "taken just after it was found"
         values = _floats(node, node.attrs.get("value", ""))
         if len(values) == 1:
             values *= 3
@@ -375,7 +386,9 @@ class Converter:
         if "fov" in p.values:
             if "focal_length" in p.values:
                 raise _error(p.values["focal_length"], "give fov or focal_length, not both")
-            fov, axis = p.number("fov"), p.string("fov_axis", "x")
+            given_fov, axis = p.number("fov"), p.string("fov_axis", "x")
+            assert given_fov is not None, "fov is among the values"
+            fov = given_fov
         else:
             text = p.string("focal_length", "50mm")
             try:

@@ -170,6 +170,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
             add(EMIT_SPHERE, tuple(shape.center), (0, 0, 0, 0), (0, 0, 0, shape.radius), math.pi * le * area)
             continue
         t = per_shape[i]
+        assert t is not None, "every shape but a sphere has triangles"
         e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
         areas = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
         for k in np.nonzero(areas > 0.0)[0]:  # Lambertian emitter: flux = pi * Le * area
