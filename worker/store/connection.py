@@ -37,6 +37,13 @@ def text(reply: object) -> str:
     raise TypeError(f"expected a Redis string reply, got {type(reply).__name__}")
 
 
+def binary(reply: object) -> bytes:
+    """A Redis string reply that holds bytes (our connections reply bytes: no decode_responses)."""
+    if isinstance(reply, bytes):
+        return reply
+    raise TypeError(f"expected a Redis bytes reply, got {type(reply).__name__}")
+
+
 def text_hash(reply: Mapping[bytes, bytes] | Mapping[bytes | str, bytes | str]) -> dict[str, str]:
     """A Redis hash reply (HGETALL) with its fields and values as str."""
     return {text(k): text(v) for k, v in reply.items()}

@@ -42,6 +42,7 @@ from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.stats import add_counts
 from worker.store import keys, policy
+from worker.store.connection import Fields, binary
 from worker.store.overlay import OVERLAYS, Overlay
 from worker.store.tiles import (
     CACHE,
@@ -272,7 +273,8 @@ class TiledState:
         """Push a batch's delta, the sums named in `half` in half precision (SumLayout.half)."""
         self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k), half))
 
-    def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str, payload: Callable[[int], bytes]) -> None:
+    def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str,
+                     payload: Callable[[int], bytes | memoryview]) -> None:
         """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash,
         outside the append-only file (PUSH)."""
         self._each_node(tiling, lambda pipe, k: self._push[tiling.node(k)](
@@ -304,10 +306,11 @@ class TiledState:
         return {k: int(g[0] or 0) for k, g in got.items()}, {k: ids for k, ids in lacking.items() if ids}
 
     def _blobs(self, job_id: str, tiling: Tiling, integrator: Integrator,
-               versions: dict[int, int]) -> dict[int, dict[str, Any]]:
+               versions: dict[int, int]) -> dict[int, Fields]:
         """Each tile's state fields at the version given: from the cache, else read (and checked)."""
-        out = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
-        missing = [k for k, blob in out.items() if blob is None]
+        cached = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
+        out = {k: fields for k, fields in cached.items() if fields is not None}
+        missing = [k for k in cached if k not in out]
         if missing:
             want = set(missing)
 
@@ -330,7 +333,7 @@ class TiledState:
         return out
 
     @staticmethod
-    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, dict[str, Any]]) -> dict[str, np.ndarray]:
+    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, Fields]) -> dict[str, np.ndarray]:
         """The whole frame's state arrays from its tiles' fields (an array a tile does not
         hold is zero there)."""
         n, widths = tiling.n_pixels, integrator.state_widths
@@ -402,7 +405,7 @@ class TiledState:
                         lost.add(batch_id)
                         continue
                     try:
-                        parts = decode_delta(payload, delta_widths, span.stop - span.start)
+                        parts = decode_delta(binary(payload), delta_widths, span.stop - span.start)
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
                     integrator.merge_sums(state, parts, span)  # tiles are disjoint: threads never add to one pixel
@@ -502,10 +505,12 @@ class TiledState:
                                               [accepted[b] for b in fresh_ids], state) if fresh_ids else ({}, {})
             stages.lap("read and merge deltas")
             # The error.
+            error: float | None
             if fresh_ids:
                 estimate = integrator.estimate(state)
                 error = estimate.average if estimate is not None else None
             else:  # a checkpoint of the overlay as it was (without an overlay every batch is fresh)
+                assert overlay is not None, "without an overlay every batch is fresh"
                 error = overlay.error
             stages.lap("estimate")
             sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}

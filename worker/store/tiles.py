@@ -65,7 +65,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import redis
 
-from worker.store.connection import connect
+from worker.store.connection import Fields, connect, text
 
 # Pixels a tile holds (a job keeps the size it was created with; tests make tiles small).
 TILE_PIXELS = int(os.environ.get("PHOTONFARM_TILE_PIXELS", str(1 << 16)))
@@ -166,19 +166,27 @@ def _unpack(blob: bytes, dtype: np.dtype) -> tuple[Any, np.ndarray]:
 
 
 # ------------------------------------------------------------------- the state
-def encode_state(arrays: dict[str, np.ndarray], names: list[str], span: slice) -> dict[str, memoryview]:
+def encode_state(arrays: dict[str, np.ndarray], names: list[str], span: slice) -> Fields:
     """A tile's fields of the named state arrays: views of the arrays' bytes (sent as they
     are; the arrays must not change until sent)."""
-    return {name: memoryview(np.ascontiguousarray(arrays[name][span], STATE_DTYPE).reshape(-1)).cast("B")
+    return {name: np.ascontiguousarray(arrays[name][span], STATE_DTYPE).reshape(-1).data.cast("B")
             for name in names}
 
 
-def decode_state(fields: dict[bytes, bytes], widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
-    """The arrays a tile's state holds (the rest are zero), read in place."""
+def _buffer(name: object, value: object) -> bytes | memoryview:
+    """A state field's value: bytes as Redis replies them, or the view encode_state made."""
+    if not isinstance(value, bytes | memoryview):
+        raise TypeError(f"state field {name!r} holds {type(value).__name__}, not bytes")
+    return value
+
+
+def decode_state(fields: Fields, widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
+    """The arrays a tile's state holds (the rest are zero), read in place. `fields` are as
+    encode_state wrote them or as Redis replied (names in bytes)."""
     out = {}
     for key, blob in fields.items():
-        name = key.decode() if isinstance(key, bytes) else key
-        flat = np.frombuffer(blob, STATE_DTYPE)
+        name = text(key)
+        flat = np.frombuffer(_buffer(name, blob), STATE_DTYPE)
         out[name] = flat.reshape(n, widths[name]) if widths[name] > 1 else flat
     return out
 
@@ -226,7 +234,7 @@ def delta_arrays(payload: bytes) -> list[tuple[str, np.dtype, int]]:
         header = {**header, "dtypes": [DELTA_DTYPE.str] * len(arrays), "exponents": [0] * len(arrays)}
     dtypes = header.get("dtypes")
     unread = [header.get("dtype")] if dtypes is None else sorted(set(dtypes) - set(DELTA_DTYPES))
-    if unread:
+    if unread or dtypes is None:  # (no dtypes: unread names the header's dtype)
         raise DeltaFormatError(f"its delta is {'in dtype ' + repr(unread[0]) if unread[0] else 'of no named dtype'}, "
                                f"this version reads {' and '.join(map(repr, DELTA_DTYPES))} "
                                f"(a worker of another photonfarm version?)")
@@ -273,14 +281,14 @@ def as_sent(sums: dict[str, np.ndarray], tiling: Tiling, half: Collection[str] =
 
 
 # ------------------------------------------------------------------ the inputs
-def encode_inputs(inputs: Any, span: slice) -> bytes:
+def encode_inputs(inputs: Any, span: slice) -> memoryview:
     """One tile's part of a batch's inputs (a dataclass, or None): per-pixel arrays cut to
     the tile, every other field whole in the header."""
     if inputs is None:
         return _pack(None, [])
     present = {f.name: getattr(inputs, f.name) for f in dataclasses.fields(inputs)}
     sent = [name for name, a in present.items() if isinstance(a, np.ndarray)]
-    scalars = {name: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v
+    scalars = {name: dataclasses.asdict(v) if dataclasses.is_dataclass(v) and not isinstance(v, type) else v
                for name, v in present.items() if name not in sent}
     return _pack({"arrays": sent, "scalars": scalars}, [Part(present[name][span], INPUTS_DTYPE) for name in sent])
 
@@ -291,7 +299,7 @@ def _field_value(kind: type, name: str, value: Any) -> Any:
     if not isinstance(value, dict):
         return value
     hint = typing.get_type_hints(kind)[name]
-    target = next(t for t in (hint, *typing.get_args(hint)) if dataclasses.is_dataclass(t))
+    target = next(t for t in (hint, *typing.get_args(hint)) if isinstance(t, type) and dataclasses.is_dataclass(t))
     return target(**value)
 
 
@@ -317,6 +325,7 @@ def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: t
         n = span.stop - span.start
         for i, name in enumerate(header["arrays"]):
             fields[name][span] = body[i * n:(i + 1) * n]
+    assert kind is not None, "inputs are written only for an integrator that declares their type"
     fields.update({name: _field_value(kind, name, v) for name, v in header["scalars"].items()})
     return kind(**fields)
 
@@ -330,11 +339,11 @@ class TileCache:
 
     def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
         self.max_bytes = max_bytes
-        self._items: OrderedDict[tuple[str, int], tuple[int, dict[str, Any], int]] = OrderedDict()
+        self._items: OrderedDict[tuple[str, int], tuple[int, Fields, int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
-    def get(self, job_id: str, k: int, version: int) -> dict[str, Any] | None:
+    def get(self, job_id: str, k: int, version: int) -> Fields | None:
         with self._lock:
             item = self._items.get((job_id, k))
             if item is None or item[0] != version:
@@ -342,9 +351,9 @@ class TileCache:
             self._items.move_to_end((job_id, k))
             return item[1]
 
-    def put(self, job_id: str, k: int, version: int, fields: dict[str, Any]) -> None:
+    def put(self, job_id: str, k: int, version: int, fields: Fields) -> None:
         """A tile's state fields (name -> bytes) at `version`."""
-        size = sum(len(memoryview(v).cast("B")) for v in fields.values())
+        size = sum(len(memoryview(_buffer(name, v)).cast("B")) for name, v in fields.items())
         with self._lock:
             old = self._items.pop((job_id, k), None)
             self._bytes -= old[2] if old else 0
