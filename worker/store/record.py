@@ -143,8 +143,8 @@ class JobRecord:
     @property
     def fold_cost(self) -> float:
         """What the last fold round cost the job: its whole length, the checkpoint writes
-        after its image included (at 1920x1080 those made a round 0.7-1.0 s against 0.4-0.6 s
-        to the image); what the cost rules count (policy.batch_passes, fold_interval)."""
+        after its image included; what the cost rules count (policy.batch_passes,
+        fold_interval)."""
         return max(self.round_cost, self.fold_seconds)
 
     @property
@@ -538,13 +538,11 @@ class Jobs:
         worker ends it itself if no process has begun to within END_HANDOFF_SECONDS (the
         API down or stuck), reading the state and every pending delta from the tiles.
 
-        A folder that holds the job's fold lease is at work (a round's checkpoint writes
-        take seconds at 3840 x 2160), and alive: its lease lapses within FOLD_LEASE_SECONDS
-        if it dies. So the hand-off waits END_HANDOFF_SECONDS from when the lease was last
-        seen held, up to the 2 FOLD_LEASE_SECONDS a folder waits for the lease (FoldLease):
-        a worker that took over would only wait for the lease, then rebuild the state the
-        API holds in memory (at 3840 x 2160 the API was still writing a checkpoint when the
-        ending batch came, and every job's final round rebuilt the state: 3.1-3.2 s)."""
+        A folder that holds the job's fold lease is at work, and alive: its lease lapses
+        within FOLD_LEASE_SECONDS if it dies. So the hand-off waits END_HANDOFF_SECONDS from
+        when the lease was last seen held, up to the 2 FOLD_LEASE_SECONDS a folder waits for
+        the lease (FoldLease). Why wait: a worker that took over would only wait for the
+        lease, then rebuild the state the API holds in memory."""
         if self.r.scard(keys.lost(job_id)):
             return  # the last lost batch's refill hands it off
         start = time.monotonic()

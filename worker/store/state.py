@@ -16,9 +16,8 @@ mid-round leaves each tile either folded or not; the next round folds the rest (
 that have the batch skip it).
 
 Deltas stay out of the nodes' append-only files (PUSH): they are the largest part of what
-a job writes, and logging them took a quarter of Redis's CPU at 3840x2160 (bench/RESULTS.md,
-the 4K refresh). Everything
-that counts is logged: the record's acceptance, the checkpoints' states, folded sets and
+a job writes, and logging them would cost the nodes much of their CPU. Everything that
+counts is logged: the record's acceptance, the checkpoints' states, folded sets and
 removals. So a node's restart can lose a pending delta of an accepted batch; a fold round
 that finds one missing on a tile that has not folded it raises LostDeltas, and the record
 has the batch rendered again under its id to refill those tiles (worker/store/record.py).
@@ -429,11 +428,10 @@ class TiledState:
         """Write some of one node's tiles, TILES_PER_TRIP to a transaction: the commands
         `queue(pipe, k)` adds for each tile k, if every tile of the transaction is still at its
         version in `versions` (a WATCH on each); FoldContended if another folder wrote one
-        first. A tile's commands always share one transaction. One transaction for a few tiles,
+        first. A tile's commands always share one transaction. A few tiles to a transaction,
         not one each, because the node writes and fsyncs its append-only file once per
-        transaction: a tile's 3 MB checkpoint alone took 11.4 s a GB there, four together 5.0
-        (bench/RESULTS.md, the 4K refresh). No transaction starts that would end after `until`
-        (epoch seconds) if it took as long as the longest one so far. Returns the tiles written."""
+        transaction. No transaction starts that would end after `until` (epoch seconds) if it
+        took as long as the longest one so far. Returns the tiles written."""
         written: list[int] = []
         longest = 0.0
         for trip in _trips(list(versions)):
@@ -461,9 +459,8 @@ class TiledState:
         """The node is rewriting its append-only file. Redis (6.2, the embedded one) then logs
         each write to the old file, keeps it in memory and pipes it to the rewriting child,
         and at the end, in its main thread, writes what the child lacks to the new file and
-        fsyncs it: at 3840x2160 a round's checkpoint writes took 12.7 s after its image
-        during a rewrite, the workers' pushes 5-6 s (1.5 s outside one), and the rewrite's
-        end held the folder 2 s. False where the node does not say (INFO refused)."""
+        fsyncs it, so writes to it are several times slower. False where the node does not
+        say (INFO refused)."""
         try:
             return bool(self.nodes[node].info("persistence").get("aof_rewrite_in_progress"))
         except redis.ResponseError:
@@ -533,8 +530,7 @@ class TiledState:
         the overlay was built on (the nodes at once). After the image: a batch that starts
         meanwhile reads the last round's inputs, as one that started a moment earlier did
         (its first pass takes the radius rule for the passes they lack), and the image does
-        not wait for a write through the nodes' append-only files (at 3840x2160 100 MB, a
-        slower one while a node rewrites its file). Returns this process's CPU seconds per
+        not wait for a write through the nodes' append-only files. Returns this process's CPU seconds per
         stage; raises FoldContended (the overlay dropped) if another folder got to a tile first."""
         stages = Stages()
         overlay = OVERLAYS.current(job_id)
