@@ -110,8 +110,8 @@ class Device:
 
     def read_sums(self) -> dict[str, np.ndarray]:
         """The batch's per-pixel sums split by name: views of the sums buffer mapped into
-        host memory, which on PoCL's CPU device is no copy at all (a fresh copy cost 184 ms
-        a pass at 1920x1080: page faults on 232 MB, then the copy). They stay valid for as
+        host memory, which on PoCL's CPU device is no copy at all (a fresh copy would fault
+        in every page, then copy). They stay valid for as
         long as they are referenced, whatever runs next (batch_sums). The readback's time
         starts once the kernels that write the sums have run: an integrator need not wait
         for its last kernel (the hybrid's camera pass), whose time is its own stage's."""
