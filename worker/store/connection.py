@@ -6,10 +6,9 @@ waiting longer than redis-py's default 5 s. That wait is load, not a lost server
 socket times out only after SOCKET_TIMEOUT (a server that went away closes the socket,
 which fails at once).
 
-Replies are parsed by hiredis (a tile read at a tenth of the CPU of redis-py's Python
-parser); commands are packed by redis-py's own serializer, which sends a large argument
-(a tile's delta) as it is, where hiredis's packer copies it twice (a 1920 x 1080 push:
-0.03 against 0.11 CPU s)."""
+Replies are parsed by hiredis (far less CPU than redis-py's Python parser); commands are
+packed by redis-py's own serializer, which sends a large argument (a tile's delta) as it
+is, where hiredis's packer copies it twice."""
 
 from __future__ import annotations
 

@@ -70,8 +70,8 @@ from worker.store.connection import Fields, connect, text
 # Pixels a tile holds (a job keeps the size it was created with; tests make tiles small).
 TILE_PIXELS = int(os.environ.get("PHOTONFARM_TILE_PIXELS", str(1 << 16)))
 STATE_URLS_ENV = "PHOTONFARM_STATE_URLS"
-# Folded tiles a process keeps (the API process reads what it folded without a round trip;
-# 2 GB holds a 3840 x 2160 job's state).
+# Folded tiles a process keeps, in bytes (the API process reads what it folded without a
+# round trip; the default holds a 3840 x 2160 job's state at 128 bytes a pixel).
 CACHE_BYTES = int(float(os.environ.get("PHOTONFARM_TILE_CACHE_MB", "2048")) * 1e6)
 
 
