@@ -146,9 +146,8 @@ def _round_half(a: np.ndarray, exponent: int, out: np.ndarray) -> None:
     """`out` (float16's bits, flat) = `a` times 2^`exponent` (non-negative, below
     2^HALF_TOP), rounded to nearest even twice: to float32, scaled by a further 2^-112 so
     that float16's exponents, subnormals included, are float32's less 112, then to float16
-    by dropping 13 mantissa bits (a carry moves into the exponent). numpy's own float16
-    cast took 5-8 ns a value on this machine kind (numpy 2.4, no vector path here); these
-    integer steps take 1.5."""
+    by dropping 13 mantissa bits (a carry moves into the exponent). Integer steps, since
+    numpy's own float16 cast has no vector path on every CPU."""
     x = np.multiply(a, math.ldexp(1.0, exponent - 112), dtype=np.float32).reshape(-1)  # exact but for the rounding
     u = x.view(np.uint32)
     bits = u >> 13
