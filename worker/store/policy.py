@@ -97,18 +97,21 @@ RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 *
 def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
                  fold_seconds: float = 0.0, workers: int = 1, passes_left: int | None = None,
                  others_due: Sequence[float] = ()) -> int:
-    """Passes for the next batch of a job whose `workers` render its batches at once (>= 1).
+    """Passes for the next batch of a job whose `workers` render its batches at once.
 
     Target: about BATCH_TARGET_SECONDS, and at least what keeps the batch's merge plus the
     job's fold round (`fold_seconds`) within MERGE_SHARE of a worker's time and the job's
-    merges within MERGE_PATH_SHARE of its merge path. Bounds, in this order of precedence:
-    - the refresh: the workers together deliver a batch every PLANNED_DELIVERY_SECONDS
-      (merge included), each at most that long after the last of the job's other in-flight
-      batches due before it (`others_due`, seconds from now), so workers fall out of step;
-    - the budgets: `seconds_left` (the job ends within it plus one pass) and `passes_left`,
-      shared with the other in-flight batches so all end together (`tail_share`).
-    One pass while `pass_seconds` is unknown (0). No cap in passes: the refresh bounds a
-    batch, and a worker stops early anyway since it asks after every pass."""
+    merges within MERGE_PATH_SHARE of its merge path. Then bounded by
+    - the refresh, over the merge shares (a budget beats a cost): the workers together
+      deliver a batch every PLANNED_DELIVERY_SECONDS (merge included), each at most that
+      long after the last of the job's other in-flight batches due before it
+      (`others_due`, seconds from now), so that workers fall out of step;
+    - the budgets, over everything: `seconds_left` (the job ends within it plus one pass)
+      and `passes_left`, shared with the other in-flight batches so all end together
+      (`tail_share`).
+    At least one pass while the budgets allow; one while `pass_seconds` is unknown (0). No
+    cap in passes: the refresh bounds a batch, and a worker asks after every pass whether
+    the job still wants it."""
     workers, n = max(1, workers), 1
     if pass_seconds > 0.0:
         # The bounds, in seconds at the recent pace: the refresh (planned deliveries, which
