@@ -17,15 +17,10 @@ the radius rule reads) are in uniform photons and the image is S / E as for unif
 Every splat is a sample of F = V / V_k whatever the pass's pattern of visible draws (a
 chain starts from an exact sample and replica exchange and mutations keep F), so
 E[V_k S_k / splats_k] = I_k, the uniform pass's expectation: per pass, not only pooled.
-Scaling by the pooled V_c instead (the paper's) left two errors. (1) SPPM's radius rule
-takes its count scale from a pixel's first photons (N = alpha M_1) and shrinks by
-(N + alpha M) / (N + M) after: the radius falls per pass only if every pass brings the same
-expected count. Chain passes brought 35x the counts of a uniform pass in the view (splats
-count a state again), and pass 0 twice the later passes (its iterations sized without
-counters): at fov 2.5 the first photons were 57x uniform's against 35x later, and the radius
-at equal passes 5-8% larger where the caustic is, 23% more bias. In uniform photons every
-pass brings the uniform pass's expected count, whatever its iterations. (2) A V_c pooled
-over passes whose V_k drifts as the radius shrinks is biased (mean V times mean 1 / V).
+Why not the pooled V_c (the paper's): (1) SPPM's radius rule (N = alpha M_1, then
+(N + alpha M) / (N + M)) shrinks as intended only if every pass brings the same expected
+count, which uniform photons do whatever a pass's iterations; (2) a V_c pooled over passes
+whose V_k drifts as the radius shrinks is biased (mean V times mean 1 / V).
 
 theta is frozen within a pass and adapted between passes by the controlled-MCMC rule of
 eq. 11, theta += gamma_k (A_k - A*), taken on log theta (theta spans 1e-3..64; a step of a
@@ -38,8 +33,8 @@ summed like the other counters: log theta = (sum of steps) * THETA_QUANTUM, clam
 bit-exact whatever order batches merged in, and a re-issued batch given the same state
 replays its passes bit for bit. A step that would push theta further beyond a bound is 0
 (projection), so the sum cannot wind up there. Passes of one batch share the theta the
-batch started with (the paper adapts after every mutation; per pass, with thousands of
-mutations each, A_k is already a precise measurement).
+batch started with (the paper adapts after every mutation; a pass's thousands of
+mutations already make A_k precise).
 """
 
 from __future__ import annotations
@@ -89,25 +84,13 @@ def gain(v_c: float, target: float) -> float:
 
 def mutates(counters: dict[str, int], target: float) -> bool:
     """Whether a batch's chains mutate: only while their gain over uniform tracing (gain,
-    from the pooled V_c; 1 at V_c ~ A*) is at least MIN_GAIN. Before any V_c (a job's first
-    pass) they do not: the pass is uniform and judges its sample of draws for V_c. Run as
-    chains, it had MIN_CHAINS of them (no V_c to size them by): a few long correlated
-    chains, whose one pass stayed in the image's noise.
-
-    A gain of 1 is not enough. The chains' visible paths are correlated (a state splatted
-    again after each rejection, an accepted mutation a small step from its state), each
-    traced path is judged against the measurement points, and a path kept in view is
-    gathered. Measured at the service's defaults (256x256, 2^18 photons a pass, 12 s, two
-    seeds; docs/results.md, "Adaptive photon tracing"), mutating chains lost to uniform
-    tracing at gains up to 9.3, on gap (gain 1.1) and on the directional-caustic zoom levels
-    fov 5 and 1.25 (gains 6.1 and 9.3: 1.33-1.41x and 1.05-1.11x its noise in four runs). On a
-    point-lit patch they won from a gain of 14 (V_c 0.0085: 0.78-0.80x its error; at gains
-    of about 100 and 1000, V_c 0.0012 and 0.00011, 0.6x and 0.4x). MIN_GAIN lies between.
-    Below it the pass is uniform tracing: the uniform photon pass itself (the paper's
-    "automatically uses uniform random sampling", made exact), plus the visibility of a
-    sample of 1 / VISIBILITY_SAMPLE of its draws for the counters in one pass of JUDGE_EVERY
-    (sample_iterations, judges): V is then used for nothing but V_c. Mutations resume if the
-    pooled V_c falls far enough."""
+    from the pooled V_c; 1 at V_c ~ A*) is at least MIN_GAIN; never before any V_c (a job's
+    first pass). A gain of 1 is not enough: the chains' visible paths are correlated and
+    each costs a judged trace and a gather (docs/results.md, "Adaptive photon tracing").
+    Otherwise the pass is uniform tracing (the paper's "automatically uses uniform random
+    sampling", made exact), plus, in one pass of JUDGE_EVERY, the visibility of
+    1 / VISIBILITY_SAMPLE of its draws for V_c (sample_iterations, judges). Mutations resume
+    if the pooled V_c falls far enough."""
     v_c = visible_fraction(counters)
     return v_c is not None and gain(v_c, target) >= MIN_GAIN
 
@@ -130,17 +113,9 @@ def pass_scale(counts: dict[str, int], photons: int) -> float:
 def iterations(photons: int) -> int:
     """Chain iterations for a pass whose user asked for `photons` photon paths: as many as
     cost about what tracing them would (ITERATION_COST uniform paths an iteration: its one
-    or two judged traces, the state's cache and the gather of the visible photons it keeps;
-    on a 256x256 point-lit patch a chain pass of photons / 8 iterations took 3x a uniform
-    pass, whose paths mostly miss the view and cost little). The pass's sums are in uniform
-    photons whatever its iterations (pass_scale), so this sets its cost and noise, not its
-    radius schedule. Sized instead to bring only the visible paths a uniform pass is
-    expected to, the chains, where they mutate at all (V_c below about 0.01), ran a few
-    hundred iterations after starts costing more than them, and lost (0.8x and 0.4x
-    uniform's error at V_c 0.0012 and 0.00013). (That rule was made for the 64-pixel
-    directional-caustic zoom series, where the radius's bias is most of the error and
-    chain passes of `photons` iterations lost 0.6-0.7x: their gains, below 10, now keep
-    those views uniform.)"""
+    or two judged traces, the state's cache and the gather of the visible photons it keeps).
+    The pass's sums are in uniform photons whatever its iterations (pass_scale), so this
+    sets its cost and noise, not its radius schedule."""
     return max(1, photons // ITERATION_COST)
 
 
@@ -150,16 +125,15 @@ def sample_iterations(photons: int) -> int:
 
 
 def judges(pass_index: int) -> bool:
-    """Whether a pass whose chains do not mutate judges its sample of draws for V_c. The
-    others are the uniform photon pass with nothing more: the judged sample needs the grid
-    over the pass's points and a kernel of its own, which at 64 pixels and 2^13 photons a
-    pass (passes of 7-60 ms) cost 5-13% of the passes in 12 CPU s when every pass judged."""
+    """Whether a pass whose chains do not mutate judges its sample of draws for V_c (one in
+    JUDGE_EVERY). The others are the uniform photon pass with nothing more: the judged
+    sample needs a grid over the pass's points and a kernel of its own."""
     return pass_index % JUDGE_EVERY == 0
 
 
 def chains(counters: dict[str, int], iterations: int) -> int:
     """Chains for a pass of `iterations` chain iterations: CHAIN_SHARE of the visible paths
-    it expects (digest: K <= 0.05 V_c photons keeps the starts' cost near 5%), within bounds."""
+    it expects (K <= 0.05 V_c photons keeps the starts' cost near 5% of the pass), within bounds."""
     v_c = visible_fraction(counters)
     k = MIN_CHAINS if v_c is None else round(CHAIN_SHARE * v_c * iterations)
     return max(1, min(iterations, MAX_CHAINS, max(MIN_CHAINS, k)))

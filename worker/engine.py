@@ -102,7 +102,7 @@ class Device:
         return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, max(nbytes, 4))
 
     def fill(self, buf: cl.Buffer, value: np.generic, count: int) -> cl.Event:
-        return cl.enqueue_fill_buffer(self.queue, buf, value, 0, value.nbytes * count)
+        return cl.enqueue_fill_buffer(self.queue, buf, np.asarray(value), 0, value.nbytes * count)
 
     def zero_sums(self) -> None:
         """Start a batch: every per-pixel sum back to zero."""
@@ -110,15 +110,18 @@ class Device:
 
     def read_sums(self) -> dict[str, np.ndarray]:
         """The batch's per-pixel sums split by name: views of the sums buffer mapped into
-        host memory, which on PoCL's CPU device is no copy at all (a fresh copy cost 184 ms
-        a pass at 1920x1080: page faults on 232 MB, then the copy). They stay valid for as
+        host memory, which on PoCL's CPU device is no copy at all (a fresh copy would fault
+        in every page, then copy). They stay valid for as
         long as they are referenced, whatever runs next (batch_sums). The readback's time
         starts once the kernels that write the sums have run: an integrator need not wait
         for its last kernel (the hybrid's camera pass), whose time is its own stage's."""
         self.queue.finish()
         t0 = time.perf_counter()
-        flat, _ = cl.enqueue_map_buffer(self.queue, self._sums, cl.map_flags.READ | cl.map_flags.WRITE, 0,
-                                        (self.arrays.n_pixels * self.layout.stride,), np.float64, is_blocking=True)
+        # The stub types map_flags as an enum; OpenCL's flags are bits, and their union an int.
+        read_write: cl.map_flags = cl.map_flags.READ | cl.map_flags.WRITE  # type: ignore[assignment]
+        flat, _ = cl.enqueue_map_buffer(self.queue, self._sums, read_write, 0,
+                                        (self.arrays.n_pixels * self.layout.stride,), np.dtype(np.float64),
+                                        is_blocking=True)
         self._lent.append((weakref.ref(flat), flat.base))  # views of flat keep flat (and its map) alive
         self.times.add_seconds("readback", time.perf_counter() - t0)
         self.times.settle()

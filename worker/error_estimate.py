@@ -16,19 +16,16 @@ adaptive sampler's sums are in uniform photons too, worker/adaptive.py):
 
 The bias estimate is itself noisy: lap L comes from the same photons, with per-pass
 samples whose spread gives the standard error s_B of B (from L2). Eq. 6.12 adds |B| as if
-it were exact; under uniform light (true bias 0) the noise of B alone then lifts the
-coverage of a 50% bound to 71% (measured on furnace and point-plane, where the noise
-term alone covers 48-50%). So the bound adds only the part of |B| beyond z = 1.25 of its
-standard errors s_B (soft thresholding). z was chosen by measuring coverage on furnace,
-point-plane and cornell-caustics at z = 0, 1, 1.5, 2 (bench/error_estimation.py): z = 2
-drops the real bias of caustic edges (cornell-caustics 90% bounds cover 84%), z = 1
-keeps some noise (furnace 50% bounds cover 55%). `bias` reports the plain eq. 6.20 (or,
+it were exact, so under uniform light (true bias 0) the noise of B alone would inflate the
+bound. So the bound adds only the part of |B| beyond z = 1.25 of its standard errors s_B
+(soft thresholding): a larger z drops the real bias of caustic edges, a smaller one keeps
+some noise (coverage by z: docs/results.md). `bias` reports the plain eq. 6.20 (or,
 where the bound uses the discontinuity bias below, its estimate EDGE_FACTOR dh).
 
 Discontinuities. The Laplacian describes the bias only where the density is smooth within
 the disc; at a shadow edge, a spot light's cone edge or a surface boundary it is no
-estimate of it (dissertation 6.6: not consistent there), and the bound under-covered more
-as passes went on (issue 11: 47% then 27% of 90% bounds covered a cone edge). So every
+estimate of it (dissertation 6.6: not consistent there), and the bound would under-cover
+more as passes go on. So every
 pass also gathers at r/2 from the same photons: Dh sums the change dh = L_p(r) - L_p(r/2).
 Where the density is smooth the bias grows as r^2, so dh = 3/4 B. Where the mean dh
 contradicts that by more than EDGE_SIGNIFICANCE standard errors, the density is not smooth
@@ -36,15 +33,10 @@ within the disc, and the bias bound becomes B_e = EDGE_FACTOR x (|dh| - EDGE_MAR
 a bias linear in r (an edge inside the disc) changes by half between the radii, and an
 edge between r/2 and r puts all the bias into dh. Pixels within about 0.17 r of an edge
 have more bias than 2 dh, but their pixel footprint straddles the edge. Both z's are
-normal quantiles taken as Student t quantiles with i - 1 degrees of freedom. Measured with
-bench/accuracy.py (90% bounds, 16 / 64 / 256 passes): edge pixels of a spot light's cone
-covered 0.79 / 0.76 / 0.79 without B_e and 0.83 / 0.85 / 0.89 with it; a hard shadow's
-0.78 / 0.78 / 0.80 and 0.80 / 0.83 / 0.85. A detection at 1.5 standard errors found more
-edges (0.81-0.90) but lifted the coverage of 50% bounds in smooth scenes by up to 9
-points (false detections); at 2.0 and a margin of 2.5 smooth scenes stay within 5 points.
-With the stochastic hash the r/2 estimate rests on one or two photons, too heavy-tailed
-for the test (it lifted 50% coverage on point-plane by 3 points), so the integrator uses
-B_e with the exact gather only.
+normal quantiles taken as Student t quantiles with i - 1 degrees of freedom.
+EDGE_SIGNIFICANCE and EDGE_MARGIN trade edges found against false detections in smooth
+scenes. With the stochastic hash the r/2 estimate rests on one or two photons, too
+heavy-tailed for the test, so the integrator uses B_e with the exact gather only.
 
 The constant c. The dissertation writes c = k2 = 10 pi / 168 (k2 the unnormalised second
 moment of K over the unit disc); that reproduces its Fig. 6.1 (the cubic ramp's RMS ratio
@@ -77,9 +69,8 @@ over pixels that found photons, and over every measured pixel (those that never 
 included). A black region then cannot hold the average up forever (its errors fall with
 the bound above), nor, by being most of the image, dilute the error of the lit part
 (which is averaged on its own); and it raises the average in proportion to its size, so a
-few pixels measured in a pass or two without a photon (the corner of cornell-box at
-2^18 photons a pass, passes 15-30: one pixel of 62,500) do not set the whole image's error
-to 100%, which the mean over never-lit pixels alone did.
+few pixels measured in a pass or two without a photon do not set the whole image's error
+to 100%.
 With fewer than two passes the noise is unknown and the average is 1.
 
 Direct light by next-event estimation (`direct: nee`). Then the image is the photon
@@ -284,8 +275,8 @@ def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
                  unlit_scale(state, lum, known, confidence) if dark.any() else math.inf)  # (used only where dark)
     out = {name: np.empty(len(lum)) for name in ("bias", "noise", "bound")}
     state.radius()  # computed once, before the blocks share it
-    each(lambda blk: _block(run, blk, direct[blk] if nee else None, dark[blk], out), blocks(len(lum)))
-    if nee:
+    each(lambda blk: _block(run, blk, None if direct is None else direct[blk], dark[blk], out), blocks(len(lum)))
+    if direct is not None:
         lum += direct
     # Relative errors against a floor, and the image average.
     lit = measured & (lum > 0.0)

@@ -6,8 +6,8 @@ Beating from a thread, not between passes, lets a single pass take longer than a
 SIGSTOP) beats no more: its leases lapse and the reaper re-issues its batch.
 
 While Redis is out of reach the thread beats on, and says so once when the outage starts,
-again at most every OUTAGE_LOG_SECONDS, and once when Redis answers again (it warned at
-every beat: three times a lease, every 1.3 s with the test clusters' leases).
+again at most every OUTAGE_LOG_SECONDS, and once when Redis answers again: not at every
+beat, which would flood the log.
 """
 
 from __future__ import annotations

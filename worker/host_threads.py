@@ -5,13 +5,10 @@ NumPy releases the GIL inside its loops and redis-py while it waits on a socket,
 pieces can run side by side; each writes only its own pixels, so the result is the same as
 running them one after another, bit for bit.
 
-One thread unless PHOTONFARM_HOST_THREADS says more. On this machine kind (2 cores) a
-second thread never shortened a fold round (1920x1080: 0.72 against 0.76 s; 3840x2160:
-4.72 against 4.70 s) and cost a 1920x1080 round 30% more CPU (0.45 against 0.59 s;
-`bench.fold_round`; the error estimate alone 0.11 against 0.16-0.20 s): the pieces are
-memory-bound and trade the GIL back and forth. Where the API shares the cores with
-workers (`photonfarm serve`) that CPU comes out of rendering; an API on a machine of its
-own with more cores and memory channels may set more threads.
+One thread unless PHOTONFARM_HOST_THREADS says more: the pieces are memory-bound and trade
+the GIL back and forth, so on a few cores a second thread costs CPU (which, where the API
+shares the cores with workers, comes out of rendering) without shortening a round. An
+API on a machine of its own with more cores and memory channels may set more threads.
 """
 
 from __future__ import annotations

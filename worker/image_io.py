@@ -59,12 +59,20 @@ def write_image(path: Path | str, pixels_in: np.ndarray, channels: tuple[str, ..
         out.close()
 
 
+def _pixels(buf: oiio.ImageBuf, path: Path | str) -> np.ndarray:
+    """The buffer's pixels as (H, W, channels) float32; OSError where OIIO reads none."""
+    pixels = buf.get_pixels(oiio.FLOAT)
+    if pixels is None:
+        raise OSError(f"cannot read {path}: {buf.geterror()}")
+    return pixels
+
+
 def read_image(path: Path | str) -> np.ndarray:
     """Read an image as (H, W, channels) float32."""
     buf = oiio.ImageBuf(str(path))
     if buf.has_error:
         raise OSError(f"cannot read {path}: {buf.geterror()}")
-    return buf.get_pixels(oiio.FLOAT)
+    return _pixels(buf, path)
 
 
 def read_channels(path: Path | str) -> dict[str, np.ndarray]:
@@ -72,7 +80,7 @@ def read_channels(path: Path | str) -> dict[str, np.ndarray]:
     buf = oiio.ImageBuf(str(path))
     if buf.has_error:
         raise OSError(f"cannot read {path}: {buf.geterror()}")
-    pixels = buf.get_pixels(oiio.FLOAT)
+    pixels = _pixels(buf, path)
     return {name: pixels[..., i] for i, name in enumerate(buf.spec().channelnames)}
 
 

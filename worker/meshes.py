@@ -127,7 +127,7 @@ def load_mesh(path: Path, data: bytes | None = None) -> MeshData:
     # Concatenate the objects, offsetting each one's indices past the vertices before it.
     offsets = np.cumsum([0] + [len(p["vertices"]) for p in parts[:-1]])
     vertices = np.concatenate([np.asarray(p["vertices"], np.float64).reshape(-1, 3) for p in parts])
-    triangles = np.concatenate([_triangulate(p["faces"]) + o for p, o in zip(parts, offsets)])
+    triangles = np.concatenate([_triangulate(p["faces"]) + o for p, o in zip(parts, offsets, strict=True)])
     have_normals = all(p.get("vertex_normals") is not None for p in parts)
     normals = np.concatenate([np.asarray(p["vertex_normals"], np.float64) for p in parts]) if have_normals else None
     return check_mesh(vertices, triangles, normals)

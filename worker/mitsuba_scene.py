@@ -15,7 +15,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 from xml.parsers import expat
 
 import numpy as np
@@ -235,6 +235,11 @@ class Props:
             raise _error(node, f"{name} must be one of <{'>, <'.join(sorted(tags))}>")
         return node
 
+    @overload
+    def number(self, name: str) -> float | None: ...
+    @overload
+    def number(self, name: str, default: float) -> float: ...
+
     def number(self, name: str, default: float | None = None) -> float | None:
         node = self._take(name, {"float", "integer"})
         return default if node is None else _floats(node, node.attrs.get("value", ""), 1)[0]
@@ -257,6 +262,11 @@ class Props:
             raise _error(node, "a boolean is true or false")
         return value == "true"
 
+    @overload
+    def string(self, name: str) -> str | None: ...
+    @overload
+    def string(self, name: str, default: str) -> str: ...
+
     def string(self, name: str, default: str | None = None) -> str | None:
         node = self._take(name, {"string"})
         return default if node is None else node.attrs.get("value", "")
@@ -270,6 +280,7 @@ class Props:
                     raise _error(obj, "textures are not supported (constant colours only)")
             return (default,) * 3
         node = self._take(name, {"rgb", "spectrum", "float"})
+        assert node is not None, "taken just after it was found"
         values = _floats(node, node.attrs.get("value", ""))
         if len(values) == 1:
             values *= 3
@@ -397,7 +408,9 @@ class Converter:
         if "fov" in p.values:
             if "focal_length" in p.values:
                 raise _error(p.values["focal_length"], "give fov or focal_length, not both")
-            fov, axis = p.number("fov"), p.string("fov_axis", "x")
+            given_fov, axis = p.number("fov"), p.string("fov_axis", "x")
+            assert given_fov is not None, "fov is among the values"
+            fov = given_fov
         else:
             text = p.string("focal_length", "50mm")
             try:
@@ -547,7 +560,8 @@ class Converter:
         reflect = self._albedo(p, "specular_reflectance", 1.0)
         transmit = self._albedo(p, "specular_transmittance", 1.0)
         if reflect != transmit:
-            raise _error(p.owner, "specular_reflectance and specular_transmittance must be equal (our glass has one tint)")
+            raise _error(p.owner, "specular_reflectance and specular_transmittance must be equal "
+                                  "(our glass has one tint)")
         if not 1.0 <= ior <= 3.0:
             raise _error(p.owner, f"int_ior / ext_ior = {ior:g} must lie in [1, 3]")
         return {"type": "glass", "ior": ior, "albedo": reflect}

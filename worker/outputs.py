@@ -54,7 +54,8 @@ def write_render(path: Path, integrator: Integrator, state: State, width: int, h
     if state.counters:  # SPPM's radius schedule held (worker/stats.py); the adaptive sampler's draws, splats, ...
         metadata["counters"] = json.dumps(state.counters, sort_keys=True)
     estimate = integrator.estimate(state) if state.passes > 0 else None
-    pixels, channels = rgb, ("R", "G", "B")
+    pixels = rgb
+    channels: tuple[str, ...] = ("R", "G", "B")
     if estimate is not None:
         metadata.update(error_estimate=estimate.average, confidence=estimate.confidence)
         if error_layers:

@@ -8,15 +8,15 @@ fatal, wherever it strikes (RQ's own loop quits on errors it does not handle): t
 waits (1, 2, 4 ... up to RETRY_MAX_SECONDS while Redis stays away) and starts its loop
 again; its batch in flight, if any, is re-issued by the reaper when its lease expires. A
 `--burst` worker, there to drain the queues and exit, gives up with exit status 1 once
-Redis has been out of reach for BURST_PATIENCE_SECONDS (a wrong URL waited forever). A
+Redis has been out of reach for BURST_PATIENCE_SECONDS (a wrong URL must not wait forever). A
 worker asked to stop (SIGTERM, SIGINT) finishes or abandons its batch and exits; it never
 goes on retrying a Redis that went away with it.
 
 A worker runs at a lower CPU priority (nice NICE): where it shares a machine with the API
 and Redis (`photonfarm serve` starts local workers), their fold rounds and requests
 take the CPU when they need it, and the workers render with the rest (on a machine of
-its own a worker loses nothing). It does not make a 3840 x 2160 fold round fit in 10 s
-on a 2-core machine: those rounds wait on Redis's own single thread (bench/RESULTS.md at 7a131e4).
+its own a worker loses nothing). Rounds that wait on Redis's own single thread it does not
+speed up.
 
 Job arguments travel as JSON (RQ's JSONSerializer: loading runs no code), and a worker
 runs only the render task, whatever function a job in the queue names.

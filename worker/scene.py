@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -53,6 +54,7 @@ Unit = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1.0)]
 Albedo = tuple[Unit, Unit, Unit]
 NonNeg = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1e12)]
 Power = tuple[NonNeg, NonNeg, NonNeg]
+Side = Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]  # pixels along one image axis
 
 
 class SceneError(ValueError):
@@ -101,7 +103,7 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-def _norm(v: tuple[float, float, float]) -> float:
+def _norm(v: Sequence[float]) -> float:
     return math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
 
 
@@ -111,14 +113,15 @@ class Camera(_Model):
     look_at: Vec3
     up: Vec3 = (0.0, 1.0, 0.0)
     fov: Annotated[float, Field(gt=0.0, lt=180.0, allow_inf_nan=False)] = 40.0  # vertical, degrees
-    resolution: tuple[Annotated[int, Field(ge=1, le=MAX_RESOLUTION)], Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]] = (512, 512)
+    resolution: tuple[Side, Side] = (512, 512)
     aperture_radius: NonNeg = 0.0  # thin lens when > 0
-    focus_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None  # defaults to |look_at - position|
+    # Defaults to |look_at - position|.
+    focus_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
     near_clip: NonNeg = 0.0  # rays start this far along the view axis (smallppm starts them past its front wall)
 
     @model_validator(mode="after")
     def _check(self) -> Camera:
-        forward = tuple(a - b for a, b in zip(self.look_at, self.position))
+        forward = tuple(a - b for a, b in zip(self.look_at, self.position, strict=True))
         if _norm(forward) == 0.0:
             raise ValueError("look_at equals position")
         cross = np.cross(np.array(forward), np.array(self.up))
@@ -315,7 +318,8 @@ def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path, budget: Load
     """The mesh of a shape: its file (confined to `root`) or its inline arrays."""
     if shape.file is None:
         try:
-            return check_mesh(np.asarray(shape.vertices, np.float64), np.asarray(shape.triangles, np.int64).reshape(-1, 3),
+            return check_mesh(np.asarray(shape.vertices, np.float64),
+                              np.asarray(shape.triangles, np.int64).reshape(-1, 3),
                               None if shape.normals is None else np.asarray(shape.normals, np.float64))
         except MeshError as exc:
             raise SceneError(field, str(exc)) from None

@@ -107,18 +107,20 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     if any(g is not None and g.normals is not None for g in geometry):
         corner = np.concatenate([g.normals if g.normals is not None else np.zeros_like(g.triangles)
                                  for g in geometry if g is not None])[order]
-        smooth = np.concatenate([np.full(len(g.triangles), g.normals is not None) for g in geometry if g is not None])[order]
+        smooth = np.concatenate([np.full(len(g.triangles), g.normals is not None)
+                                 for g in geometry if g is not None])[order]
         tri_e1[:, 3] = smooth
         tri_nrm = np.zeros((3 * len(tris), 4), np.float32)
         tri_nrm[:, :3] = corner.reshape(-1, 3)
 
     sphere_idx = [i for i, s in enumerate(scene.shapes) if isinstance(s, Sphere)]
-    spheres = np.array([[*scene.shapes[i].center, scene.shapes[i].radius] for i in sphere_idx], np.float32).reshape(-1, 4)
+    sphere_list = [s for s in scene.shapes if isinstance(s, Sphere)]
+    spheres = np.array([[*s.center, s.radius] for s in sphere_list], np.float32).reshape(-1, 4)
     sphere_surf = np.array(sphere_idx, np.int32)
 
     # Bounding sphere of everything: directional lights emit from a disc that covers it.
     points = [tris.reshape(-1, 3)]
-    points += [np.array([np.subtract(s.center, s.radius), np.add(s.center, s.radius)]) for s in scene.shapes if isinstance(s, Sphere)]
+    points += [np.array([np.subtract(s.center, s.radius), np.add(s.center, s.radius)]) for s in sphere_list]
     points += [np.array([light.position]) for light in scene.lights if not isinstance(light, DirectionalLight)]
     points += [np.array([scene.camera.position])]
     allp = np.concatenate([p.reshape(-1, 3) for p in points])
@@ -168,6 +170,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
             add(EMIT_SPHERE, tuple(shape.center), (0, 0, 0, 0), (0, 0, 0, shape.radius), math.pi * le * area)
             continue
         t = per_shape[i]
+        assert t is not None, "every shape but a sphere has triangles"
         e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
         areas = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
         for k in np.nonzero(areas > 0.0)[0]:  # Lambertian emitter: flux = pi * Le * area
@@ -191,7 +194,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
 
     weights = np.array([p.sum() for p in powers], np.float64)
     keep = weights > 0.0
-    rows = [r for r, k in zip(rows, keep) if k]
+    rows = [r for r, k in zip(rows, keep, strict=True) if k]
     weights = weights[keep]
     emitters = np.concatenate(rows) if rows else np.zeros((4, 4), np.float32)
     if rows:

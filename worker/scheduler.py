@@ -147,8 +147,7 @@ def fold_active(jobs: Jobs) -> int:
 def next_look_in(jobs: Jobs) -> float:
     """How long the folder waits (for news) before its next look: until the first round of
     an active job is due, so that a paced round starts when due rather than up to a look
-    later (the 10 s refresh allowed FOLD_POLL_SECONDS for that, which a round that ran
-    over its expected length then lacked); at most FOLD_POLL_SECONDS (a batch accepted
+    later; at most FOLD_POLL_SECONDS (a batch accepted
     meanwhile may make a round due) and at least FOLD_WAIT_MIN_SECONDS (a due round another
     process holds the lease for is not polled for in a spin)."""
     due = [d for job_id in jobs.active_ids() if (d := jobs.next_round_in(job_id)) is not None]

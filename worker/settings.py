@@ -26,9 +26,8 @@ Priority = Literal["high", "normal", "low"]
 PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
 # The default radius exponent alpha by method. SPPM's and PPM's 0.7 (the radius rule); the
 # hybrid methods' merging radius wants alpha < 2/3 (dissertation ch. 9: the bias then vanishes
-# from the MIS weights), and at equal passes 0.6 beat 0.75 on cornell-caustics,
-# directional-caustic and cornell-box (README at 7a131e4, the hybrid integrator). bpt and lt do not
-# merge; they share vcm's value so that switching merging on or off changes nothing else.
+# from the MIS weights). bpt and lt do not merge; they share vcm's value so that switching
+# merging on or off changes nothing else.
 DEFAULT_ALPHA: dict[str, float] = {"sppm": 0.7, "ppm": 0.7, "vcm": 0.6, "bpt": 0.6, "lt": 0.6}
 
 
@@ -36,51 +35,51 @@ class Settings(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     # What is rendered, and how.
-    method: Method = Field("sppm", description="sppm: new measurement points every pass (stochastic PPM); "
+    method: Method = Field(default="sppm", description="sppm: new measurement points every pass (stochastic PPM); "
                                                "ppm: one fixed set of points; vcm: vertex connection and "
                                                "merging (bidirectional paths and photon merging, MIS-weighted); "
                                                "bpt: its connections only (unbiased); lt: light tracing")
-    gather: Gather = Field("exact", description="photon lookup: exact grid, or stochastic spatial hashing "
+    gather: Gather = Field(default="exact", description="photon lookup: exact grid, or stochastic spatial hashing "
                                                 "(one photon per cell, dissertation ch. 10)")
-    direct: Direct = Field("photons", description="direct light at the measurement points: photons (density "
+    direct: Direct = Field(default="photons", description="direct light at the measurement points: photons (density "
                                                   "estimate), or nee (a light sample and a BSDF sample per pass, "
                                                   "MIS-weighted; photons then skip their first hit)")
-    sampler: Sampler = Field("uniform", description="photon paths: uniform, or adaptive (Markov chains over "
+    sampler: Sampler = Field(default="uniform", description="photon paths: uniform, or adaptive (Markov chains over "
                                                      "paths that reach a measurement point, replica exchange "
                                                      "with uniform draws; Hachisuka & Jensen 2011)")
-    target_acceptance: float = Field(0.234, gt=0.0, lt=1.0,
+    target_acceptance: float = Field(default=0.234, gt=0.0, lt=1.0,
                                      description="adaptive sampler: the mutation acceptance its mutation size "
                                                  "is adapted toward")
-    alpha: float | None = Field(None, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius "
+    alpha: float | None = Field(default=None, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius "
                                 "rule); vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
                                 + ", ".join(f"{m} {a:g}" for m, a in DEFAULT_ALPHA.items()) + ")",
-                                json_schema_extra={"x-default-by": {"method": DEFAULT_ALPHA}})
-    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass (light subpaths "
-                                                                               "for vcm, bpt, lt)")
-    initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
+                                json_schema_extra={"x-default-by": {"method": {**DEFAULT_ALPHA}}})
+    photons_per_pass: int = Field(default=1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS,
+                                  description="photon paths per pass (light subpaths for vcm, bpt, lt)")
+    initial_radius: float | None = Field(default=None, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "
                                                      "pass at the median lit pixel)")
-    hash_entries_per_photon: float = Field(1.0, gt=0.0, le=64.0,
+    hash_entries_per_photon: float = Field(default=1.0, gt=0.0, le=64.0,
                                            description="stochastic hash table entries per stored photon")
-    seed: int = Field(0, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
-    max_bounces: int = Field(MAX_BOUNCES, ge=1, le=MAX_BOUNCES,
+    seed: int = Field(default=0, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
+    max_bounces: int = Field(default=MAX_BOUNCES, ge=1, le=MAX_BOUNCES,
                              description="safety cap on bounces per path (paths end by Russian roulette; "
                                          "lower it only to study what the cap cuts)")
-    resolution: tuple[int, int] | None = Field(None, description="[width, height] (default: the scene's)")
+    resolution: tuple[int, int] | None = Field(default=None, description="[width, height] (default: the scene's)")
     # The error estimate.
-    error_estimation: bool = Field(True, description="accumulate the error estimator's per-pixel sums")
-    confidence: float = Field(0.9, gt=0.0, lt=1.0,
+    error_estimation: bool = Field(default=True, description="accumulate the error estimator's per-pixel sums")
+    confidence: float = Field(default=0.9, gt=0.0, lt=1.0,
                               description="of the per-pixel error bound; 0.5 bounds the median error")
-    bias_constant: Literal["taylor", "dissertation"] = Field("taylor", description="constant c of the bias "
+    bias_constant: Literal["taylor", "dissertation"] = Field(default="taylor", description="constant c of the bias "
                                                              "estimate 0.5 R^2 c lap L")
     # The job's budget and place in the queues.
-    max_passes: int | None = Field(None, ge=1, le=10_000_000, description="stop after this many passes")
-    max_seconds: float | None = Field(None, gt=0.0, le=7 * 86_400.0, description="stop after this many seconds")
-    error_threshold: float | None = Field(None, gt=0.0, le=10.0,
+    max_passes: int | None = Field(default=None, ge=1, le=10_000_000, description="stop after this many passes")
+    max_seconds: float | None = Field(default=None, gt=0.0, le=7 * 86_400.0, description="stop after this many seconds")
+    error_threshold: float | None = Field(default=None, gt=0.0, le=10.0,
                                           description="stop, as converged, when the average relative error is "
                                                       "at most this")
-    priority: Priority = Field("normal", description="queue: high, normal or low")
+    priority: Priority = Field(default="normal", description="queue: high, normal or low")
 
     @field_validator("resolution")
     @classmethod

@@ -32,10 +32,9 @@ once for each, and its own photons count at its own step: after the passes its i
 lack, and after those of the concurrent batches that start at an earlier pass. So N is a
 plain sum too: the state does not depend on how passes are grouped into batches, nor on
 which batches share a fold round, nor on merge order, and the radius follows the
-sequential schedule (tests/test_progressive_stats.py: within 2% for concurrent and
-pipelined batches). Before, the merge took N's increment at the radius of the merge
-(digest 11.2 (iii)'s rescaling), which shrank the radius twice for a batch whose device
-had already counted the passes before it. The others' photons on the device are assumed
+sequential schedule (tests/test_progressive_stats.py). Not digest 11.2 (iii)'s rescaling
+at the merge, which would shrink the radius twice for a batch whose device had already
+counted the passes before it. The others' photons on the device are assumed
 of the same density as the pass's own, the same assumption PPM's flux correction makes.
 All of it is float64 on the host.
 
@@ -49,8 +48,8 @@ inputs (batch_start) scale N, and R^2 with it, by A(passes) / (sum of a_k held),
 A(K) = sum_{k<K} a_k = Gamma(K + alpha) / (Gamma(1 + alpha) Gamma(K)): 1 for the passes
 0 .. passes-1, 1 / alpha for a state holding pass 1 alone (whose N / (pi D) is
 alpha^2 R_0^2 where one pass leaves alpha R_0^2). The sum held is a counter (SCHEDULE)
-each batch adds. Without the scale a two-worker 256x256 job whose first fold round saw
-pass 1 before pass 0 ended with the radius 3-9% small, in about one run of three. A batch
+each batch adds; without it a job whose first round folds pass 1 before pass 0 ends with
+too small a radius. A batch
 whose first pass comes before the passes its inputs hold (they were folded before it
 started) goes back along the same schedule (rewind): pass 0 of a job whose first round
 held pass 1 gathers at R_0 with N = 0, not at pass 1's radius.

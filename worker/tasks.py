@@ -47,6 +47,7 @@ def engine_for(jobs: Jobs, record: JobRecord) -> Engine:
 
 def run_batch(job_id: str, first: int, n: int) -> str:
     rq_job = get_current_job()
+    assert rq_job is not None, "run_batch runs only as an RQ job"
     jobs = Jobs(rq_job.connection)
     batch = Batch(job_id, first, n)
     worker = rq_job.worker_name or "worker"
@@ -57,6 +58,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         return "skipped"
     taken = time.perf_counter()
     record = jobs.get(job_id)
+    assert record is not None, "a job whose batch was just leased has a record"
     try:
         engine = engine_for(jobs, record)
     except (SceneError, ValueError) as exc:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import redis
 
 from worker.store import keys
+from worker.store.connection import Fields, text, text_hash
 from worker.store.policy import ALIVE_SECONDS, LEASE_SECONDS, QUEUED_SECONDS
 
 
@@ -42,10 +43,6 @@ class Batch:
     def from_id(cls, job_id: str, batch_id: str) -> Batch:
         first, n = batch_id.split("+")
         return cls(job_id, int(first), int(n))
-
-
-def _decode(h: dict[bytes, bytes]) -> dict[str, str]:
-    return {k.decode(): v.decode() for k, v in h.items()}
 
 
 class Leases:
@@ -80,7 +77,7 @@ class Leases:
         return self.r.scard(keys.inflight(job_id))
 
     def inflight_batches(self, job_id: str) -> list[Batch]:
-        return [Batch.from_id(job_id, b.decode()) for b in self.r.smembers(keys.inflight(job_id))]
+        return [Batch.from_id(job_id, text(b)) for b in self.r.smembers(keys.inflight(job_id))]
 
     def is_inflight(self, batch: Batch) -> bool:
         return bool(self.r.sismember(keys.inflight(batch.job_id), batch.id))
@@ -91,14 +88,14 @@ class Leases:
         pipe = self.r.pipeline()
         for batch in batches:
             pipe.hexists(keys.LEASE_OWNER, batch.member)
-        return [batch for batch, owned in zip(batches, pipe.execute()) if not owned]
+        return [batch for batch, owned in zip(batches, pipe.execute(), strict=True) if not owned]
 
     def set_carrier(self, batch: Batch, rq_id: str) -> None:
         self.r.hset(keys.BATCH_RQ, batch.member, rq_id)
 
     def carrier(self, batch: Batch) -> str | None:
         rq_id = self.r.hget(keys.BATCH_RQ, batch.member)
-        return rq_id.decode() if rq_id is not None else None
+        return text(rq_id) if rq_id is not None else None
 
     # ----------------------------------------------------------------- leases
     def take(self, batch: Batch, worker: str) -> None:
@@ -117,7 +114,7 @@ class Leases:
         batch it renders: a pass may take longer than a lease, a dead process beats no more."""
         pipe = self.r.pipeline()
         now = time.time()
-        idle = {} if batch is not None else {"job": "", "batch": ""}  # an idle worker shows no job
+        idle: Fields = {} if batch is not None else {"job": "", "batch": ""}  # an idle worker shows no job
         pipe.hset(keys.worker(worker), mapping={"last_seen": now, **idle})
         pipe.expire(keys.worker(worker), int(ALIVE_SECONDS))
         pipe.zadd(keys.WORKER_SEEN, {worker: now})
@@ -127,7 +124,7 @@ class Leases:
 
     def expired(self, now: float | None = None) -> list[Batch]:
         now = time.time() if now is None else now
-        return [Batch.parse(m.decode()) for m in self.r.zrangebyscore(keys.LEASES, "-inf", now)]
+        return [Batch.parse(text(m)) for m in self.r.zrangebyscore(keys.LEASES, "-inf", now)]
 
     def extend_queued(self, batch: Batch) -> None:
         self.r.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS}, xx=True)
@@ -141,7 +138,7 @@ class Leases:
 
     def owners(self, job_id: str) -> int:
         """Workers holding a live lease on one of the job's batches."""
-        members = [Batch.from_id(job_id, b.decode()).member for b in self.r.smembers(keys.inflight(job_id))]
+        members = [Batch.from_id(job_id, text(b)).member for b in self.r.smembers(keys.inflight(job_id))]
         if not members:
             return 0
         now = time.time()
@@ -169,7 +166,7 @@ class Leases:
     def dead_workers(self) -> list[str]:
         """Forget workers not heard from within ALIVE_SECONDS; returns their names."""
         cutoff = time.time() - ALIVE_SECONDS
-        names = [n.decode() for n in self.r.zrangebyscore(keys.WORKER_SEEN, "-inf", cutoff)]
+        names = [text(n) for n in self.r.zrangebyscore(keys.WORKER_SEEN, "-inf", cutoff)]
         if names:
             self.r.zrem(keys.WORKER_SEEN, *names)
         return names
@@ -181,8 +178,8 @@ class Leases:
 
     def heartbeats(self) -> dict[str, dict[str, str]]:
         """Live worker name -> its last heartbeat (job, batch, passes, last_seen)."""
-        names = [n.decode() for n in self.r.zrangebyscore(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")]
+        names = [text(n) for n in self.r.zrangebyscore(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")]
         pipe = self.r.pipeline()
         for name in names:
             pipe.hgetall(keys.worker(name))
-        return {name: _decode(h) for name, h in zip(names, pipe.execute()) if h}
+        return {name: text_hash(h) for name, h in zip(names, pipe.execute(), strict=True) if h}

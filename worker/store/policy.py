@@ -43,7 +43,7 @@ MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge, and
 # includes its waits, less when the nodes are busy with other jobs too).
 MERGE_PATH_SHARE = 0.5
 MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
-MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy (issue 14: 100 on one job)
+MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy
 # The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
 # The API's folder thread folds a job FOLD_SECONDS after its last round, or later for a
 # large state (`fold_interval`); a worker folds after its merge when the API has not for
@@ -63,10 +63,8 @@ ROUND_MARGIN = 2.0  # ... with this many times the most one of them ran over the
 # follows each by the folder's next look and its round.
 DELIVERY_SECONDS = REFRESH_SECONDS - FOLD_POLL_SECONDS
 # ... even when their passes and merges run this much slower than the recent ones the next
-# batch is sized by: the workers share their machine (here with the API and Redis), and
-# two workers' 3840x2160 passes took 40-45% longer while Redis rewrote its append-only file
-# (bench/RESULTS.md at 7a131e4, the 4K refresh). Batches planned to deliver exactly DELIVERY_SECONDS
-# apart had no room for that: no batch was accepted for 19-22 s, and the image waited 13-16 s.
+# batch is sized by: workers share their machine with the API and Redis, whose append-only
+# file rewrites slow them.
 PASS_SLACK = 0.5
 PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries as planned at the recent pace
 # A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes
@@ -78,10 +76,8 @@ PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries a
 CHECKPOINT_SECONDS = 30.0
 CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (docs/limits.md)
 # A regular round writes its tiles after its image only until the next round is due
-# (checkpoint_seconds); the rest wait for later rounds. A round whose writes ran on
-# delayed the next image: at 3840x2160 every tile after 30 s took 4-7 s beside two workers,
-# 12.7 s while Redis rewrote its append-only file, and the next round started that much
-# late. Past this share of the state's bytes in pending deltas (memory) a round writes
+# (checkpoint_seconds); the rest wait for later rounds, so that writes never delay the next
+# image. Past this share of the state's bytes in pending deltas (memory) a round writes
 # the tiles that bring them back within it whatever that takes (checkpoint_required).
 CHECKPOINT_HELD_SHARE = 1.0
 FOLD_STALE_SECONDS = 5.0
@@ -103,36 +99,19 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
                  others_due: Sequence[float] = ()) -> int:
     """Passes for the next batch of a job whose `workers` render its batches at once.
 
-    About BATCH_TARGET_SECONDS of rendering, and long enough that the batch's merge and the
-    fold round that takes it in (`fold_seconds`, the job's last round, its checkpoint writes
-    included: the folder and the state nodes read, merge and estimate the whole state, and
-    write a part of it) cost at most MERGE_SHARE of a
-    worker's time, and that the job's workers together keep its merge path busy at most
-    MERGE_PATH_SHARE of the time, as far as the refresh allows: the refresh is a budget,
-    the merge share a cost, so the job's workers together still deliver a batch every
-    DELIVERY_SECONDS, each batch's merge included, even with their passes and merges
-    PASS_SLACK slower than the recent ones (a job whose merge alone is long pays a larger
-    share for that; at 3840x2160 on two workers, a batch is one pass).
-    Never past the job's budgets: its time (`seconds_left`: the job ends within its budget
-    plus one pass) and its passes (`passes_left`, shared with the workers of the job's other
-    in-flight batches so that all end together rather than one worker rendering the tail
-    alone: `tail_share`). One pass until a pass was timed.
-
-    No cap in passes: the refresh bounds a batch's length. A cap (32 passes, until
-    2026-11-27) cut exactly the batches the share asks to be long, those of many workers on
-    a job (a 1920x1080 pass of 1.2 s, a merge and round of 2.7 s: 46 passes), so their
-    merges came 1.4x as often as the share allows and loaded the state nodes as much more
-    (bench/merge_capacity.py). A long batch is no slower to stop: a worker asks after every
-    pass whether the job still wants it.
-
-    The refresh assumes the workers' deliveries spread over the interval; workers that
-    start together would deliver in pairs, and the image would wait twice as long between
-    pairs. So a batch is delivered (merge included) at most PLANNED_DELIVERY_SECONDS after
-    the last of the job's other in-flight batches due before it (`others_due`: seconds from
-    now to their expected deliveries), or after now: batches allocated together end one
-    after another, and workers in step fall out of step. Where whole passes cannot put them
-    out of step (a pass near the refresh), the folder's pacing shows their batches one
-    round at a time (paced_batches), which needs the deliveries' rate the slack keeps."""
+    Target: about BATCH_TARGET_SECONDS, and at least what keeps the batch's merge plus the
+    job's fold round (`fold_seconds`) within MERGE_SHARE of a worker's time and the job's
+    merges within MERGE_PATH_SHARE of its merge path. Then bounded by
+    - the refresh, over the merge shares (a budget beats a cost): the workers together
+      deliver a batch every PLANNED_DELIVERY_SECONDS (merge included), each at most that
+      long after the last of the job's other in-flight batches due before it
+      (`others_due`, seconds from now), so that workers fall out of step;
+    - the budgets, over everything: `seconds_left` (the job ends within it plus one pass)
+      and `passes_left`, shared with the other in-flight batches so all end together
+      (`tail_share`).
+    At least one pass while the budgets allow; one while `pass_seconds` is unknown (0). No
+    cap in passes: the refresh bounds a batch, and a worker asks after every pass whether
+    the job still wants it."""
     workers, n = max(1, workers), 1
     if pass_seconds > 0.0:
         # The bounds, in seconds at the recent pace: the refresh (planned deliveries, which
@@ -155,11 +134,8 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
 def recent_pass_seconds(start: float, pass_ends: Sequence[float]) -> float:
     """A worker's render seconds a pass for sizing its next batch, from its batch's start and
     each pass's end: the mean of the later half of the passes (at least the last). Not the
-    batch's mean: a batch's first pass carries the batch's set-up (and an engine's first
-    pass its buffers' first touch), and a job's passes speed up as its radii shrink, so the
-    batch's mean overstates the next pass (a 1920x1080 job: 2.6 s a pass in its first
-    batches, 1.5 s by its end) and its batches come out short, more of them, each a merge
-    and a fold round."""
+    batch's mean, which the first pass's set-up and the shrinking radii make overstate the
+    next pass."""
     ends = [start, *pass_ends]
     later = max(1, (len(ends) - 1) // 2)
     return (ends[-1] - ends[-1 - later]) / later
@@ -209,7 +185,7 @@ def _tail_end(n: int, passes_left: int, pass_seconds: float, due: Sequence[float
     left = passes_left - n
     level = _fill_level(left * pass_seconds, due, 0)
     takes = [max(0, math.floor((level - d) / pass_seconds)) for d in due]
-    free = [d + k * pass_seconds for d, k in zip(due, takes)]
+    free = [d + k * pass_seconds for d, k in zip(due, takes, strict=True)]
     heapq.heapify(free)
     for _ in range(left - sum(takes)):
         heapq.heapreplace(free, free[0] + pass_seconds)
@@ -231,10 +207,10 @@ def fold_interval(fold_seconds: float, next_seconds: float | None = None) -> flo
     round cost (`fold_seconds`: its whole length, checkpoint writes included,
     JobRecord.fold_cost) and how long the next is expected to take to its image
     (`next_seconds`, round_seconds; the last one's cost if unknown): FOLD_SECONDS for a
-    small state; for a large one long
-    enough that rounds take at most FOLD_SHARE of the time (more batches folded per round),
-    but short enough that the next round starts (at the folder's next look) and ends within
-    REFRESH_SECONDS of the last one's end (`_start_by`)."""
+    small state; for a large one long enough that rounds take at most FOLD_SHARE of the
+    time (more batches folded per round), but short enough that the next round starts (at
+    the folder's next look) and ends within REFRESH_SECONDS of the last one's end
+    (`_start_by`)."""
     expected = fold_seconds if next_seconds is None else next_seconds
     return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, _start_by(expected)))
 
@@ -243,8 +219,7 @@ def _start_by(next_seconds: float) -> float:
     """The latest, in seconds after a round's image, the next round starts for its image to
     come DELIVERY_SECONDS after this one's, at its expected length (round_seconds, which has
     a margin for a round longer than the last: ROUND_MARGIN). Not with PASS_SLACK: a round
-    started earlier shows its batches sooner, and the next one then has nothing to show
-    until a delivery comes (two workers in step, a batch each every 19 s: a gap of 11 s)."""
+    started earlier leaves the next one nothing to show until a delivery comes."""
     return DELIVERY_SECONDS - next_seconds
 
 
@@ -252,11 +227,9 @@ def image_due(fold_seconds: float, fold_cost: float) -> float:
     """The latest the API plans the image that takes in a batch accepted as a round read the
     waiting batches, in seconds after that read: the round's length to its image
     (`fold_seconds`), the fold interval after it, and the next round's length (at most the
-    whole cost of the last, `fold_cost`). A paced round at 3840x2160 ends its image about
-    DELIVERY_SECONDS after the last one, so a batch may wait that plus a round: more than
-    the fold interval alone (with FOLD_STALE_SECONDS, 10.5 s there), which had workers fold
-    for the API they took to be behind, each fold a checkpoint of every tile after which the
-    API's next round rebuilt the state."""
+    whole cost of the last, `fold_cost`). Why all three: a paced round may end its image
+    about DELIVERY_SECONDS after the last, and a worker that took the API to be behind would
+    fold in its place (a checkpoint of every tile, then a rebuilt state)."""
     return fold_seconds + fold_interval(fold_cost) + fold_cost
 
 
@@ -278,15 +251,9 @@ def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     state, so it costs a part per batch and a fixed part, fit to those rounds by least
     squares (with no spread in their batches, the fixed part taken as one batch's), plus
     ROUND_MARGIN times the most any of them ran over the fit, so that a round longer than
-    the last one still ends in time: of rounds that vary 15% at random about a fit, 1 in 33
-    ran over in a simulation (1 in 7 with the margin once; tests/test_batch_policy.py).
-    None before any.
-
-    A rebuilt round is left out: it reads every tile into fresh memory (a 3840 x 2160 job's
-    first round took 6.6-10.8 s, the next 1.3-2.6 s), so with it in the fit the margin made
-    every round for the next ROUNDS_KEPT expected to take 14 s, each started at once
-    (fold_interval), and the batches that came together showed a few seconds apart and then
-    nothing until the next pair (bench/RESULTS.md at 7a131e4, "The 10 s refresh at 3840x2160")."""
+    the last one still ends in time. None before any. A rebuilt round is left out: it reads
+    every tile into fresh memory, costs several times a regular one, and would inflate the
+    next ROUNDS_KEPT predictions."""
     kept = [Round(*r) for r in rounds]
     kept = [r for r in kept if not r.rebuilt]
     if not kept:
@@ -295,24 +262,20 @@ def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     s = [r.seconds for r in kept]
     n_mean, s_mean = sum(n) / len(n), sum(s) / len(s)
     spread = sum((x - n_mean) ** 2 for x in n)
-    per_batch = sum((x - n_mean) * (y - s_mean) for x, y in zip(n, s)) / spread if spread else s_mean / (1 + n_mean)
+    covariance = sum((x - n_mean) * (y - s_mean) for x, y in zip(n, s, strict=True))
+    per_batch = covariance / spread if spread else s_mean / (1 + n_mean)
     per_batch = max(0.0, per_batch)
     fixed = max(0.0, s_mean - per_batch * n_mean)
-    over = max(y - (fixed + per_batch * x) for x, y in zip(n, s))
+    over = max(y - (fixed + per_batch * x) for x, y in zip(n, s, strict=True))
     return fixed + per_batch * batches + ROUND_MARGIN * max(0.0, over)
 
 
-# Pacing. Workers that render one long pass per batch deliver together (a 3840x2160 pass
-# took longer than the refresh on one core: two workers in step delivered in pairs 15-20 s
-# apart). A round that folds a pair shows both at once and then nothing until the next pair;
-# rounds that fold them one at a time (fold_interval apart) show a new image each round
-# instead. Pacing spreads the waiting batches over the rounds that fit before the next
-# delivery (batches that arrive often enough, from many workers or short passes, are all
-# folded at once), and while a batch is in flight a round keeps one back: the next delivery
-# may come PASS_SLACK late (its batch's whole length later, not the time left to its due),
-# and a round that folded everything then had nothing new to show (the deliveries of two
-# workers in step, a 3840x2160 pass each, 50% slower than planned: gaps of 12.5-13 s
-# in tests/test_batch_policy.py). The batch held back shows one round later.
+# Pacing. Workers that render one long pass per batch deliver together, and a round that
+# folds such a pair shows both at once and then nothing until the next pair. Pacing spreads
+# the waiting batches over the rounds that fit before the next delivery (batches that
+# arrive often enough are all folded at once), and while a batch is in flight a round keeps
+# one back, since the next delivery may come PASS_SLACK late: the held batch shows one round
+# later, and that round has something new to show.
 def paced_batches(waiting: int, next_delivery: float | None, round_length: float) -> int:
     """How many of the `waiting` batches new to the image a regular fold round takes in
     (the oldest first; the rest wait for the next rounds), given when the job's next batch

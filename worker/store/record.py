@@ -31,9 +31,9 @@ import json
 import logging
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import redis
@@ -42,6 +42,7 @@ from worker.integrators import Integrator, integrator_for
 from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
+from worker.store.connection import Fields, text, text_hash
 from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
@@ -55,6 +56,11 @@ COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
 SET_IF_EXISTS = """
 if redis.call('exists', KEYS[1]) == 1 then redis.call('hset', KEYS[1], ARGV[1], ARGV[2]) end
 """
+
+
+def _scored(reply: object) -> list[tuple[bytes, float]]:
+    """A ZRANGE ... WITHSCORES reply: (member, score) pairs (redis-py types it loosely)."""
+    return cast("list[tuple[bytes, float]]", reply)
 
 
 class JobLimitReached(Exception):
@@ -100,8 +106,8 @@ class JobRecord:
     counters: dict[str, int]  # the integrator's summed scalars (Delta.counters), hash fields "counter:NAME"
 
     @classmethod
-    def parse(cls, job_id: str, h: dict[bytes, bytes]) -> JobRecord:
-        f = {k.decode(): v.decode() for k, v in h.items()}
+    def parse(cls, job_id: str, h: Mapping[bytes, bytes] | Mapping[bytes | str, bytes | str]) -> JobRecord:
+        f = text_hash(h)
 
         def when(name: str) -> float | None:
             return float(f[name]) if f.get(name) else None
@@ -137,8 +143,8 @@ class JobRecord:
     @property
     def fold_cost(self) -> float:
         """What the last fold round cost the job: its whole length, the checkpoint writes
-        after its image included (at 1920x1080 those made a round 0.7-1.0 s against 0.4-0.6 s
-        to the image); what the cost rules count (policy.batch_passes, fold_interval)."""
+        after its image included; what the cost rules count (policy.batch_passes,
+        fold_interval)."""
         return max(self.round_cost, self.fold_seconds)
 
     @property
@@ -183,7 +189,7 @@ class Jobs:
         the scene JSON, as a dict or already encoded (the API's loads encode it off its threads)."""
         job_id = uuid.uuid4().hex[:16]
         now = time.time()
-        fields = {"status": Status.QUEUED.value, "settings": settings.model_dump_json(),
+        fields: Fields = {"status": Status.QUEUED.value, "settings": settings.model_dump_json(),
                   "scene_name": scene_name or "", "width": width, "height": height, "created": now,
                   "passes": 0, "emitted": 0, "next_pass": 0, "pass_seconds": 0.0, "attempts": "{}",
                   "shards": len(self.tiles.nodes), "tile_pixels": self.tile_pixels}
@@ -208,16 +214,19 @@ class Jobs:
         return JobRecord.parse(job_id, h) if h else None
 
     def scene(self, job_id: str) -> dict[str, Any]:
-        return json.loads(self.r.get(keys.scene(job_id)))
+        scene = self.r.get(keys.scene(job_id))
+        if scene is None:
+            raise KeyError(f"job {job_id} has no scene")
+        return json.loads(scene)
 
     def status(self, job_id: str) -> Status | None:
         s = self.r.hget(keys.job(job_id), "status")
-        return Status(s.decode()) if s else None
+        return Status(text(s)) if s else None
 
     def ids(self, offset: int = 0, limit: int | None = None, newest_first: bool = False) -> list[str]:
         end = -1 if limit is None else offset + limit - 1
         ids = self.r.zrevrange(keys.JOBS, offset, end) if newest_first else self.r.zrange(keys.JOBS, offset, end)
-        return [j.decode() for j in ids]
+        return [text(j) for j in ids]
 
     def count(self) -> int:
         return self.r.zcard(keys.JOBS)
@@ -226,7 +235,7 @@ class Jobs:
         return self.r.scard(keys.ACTIVE)
 
     def active_ids(self) -> list[str]:
-        return sorted(j.decode() for j in self.r.smembers(keys.ACTIVE))
+        return sorted(text(j) for j in self.r.smembers(keys.ACTIVE))
 
     def tiling(self, record: JobRecord) -> Tiling:
         return self.tiles.tiling(record.n_pixels, record.shards, record.tile_pixels)
@@ -262,7 +271,7 @@ class Jobs:
         pipe = self.r.pipeline()
         for job_id in ids:
             pipe.exists(keys.job(job_id))
-        gone = [job_id for job_id, exists in zip(ids, pipe.execute()) if not exists]
+        gone = [job_id for job_id, exists in zip(ids, pipe.execute(), strict=True) if not exists]
         if gone:
             self.r.zrem(keys.JOBS, *gone)
             self.r.srem(keys.ACTIVE, *gone)
@@ -325,7 +334,8 @@ class Jobs:
                         return None
                     seconds = pass_seconds or record.pass_seconds
                     now = time.time()
-                    others_due = [due - now for _, due in pipe.zrange(keys.due(job_id), 0, -1, withscores=True)]
+                    due_at = _scored(pipe.zrange(keys.due(job_id), 0, -1, withscores=True))
+                    others_due = [due - now for _, due in due_at]
                     n = policy.batch_passes(seconds, record.mean_merge_seconds,
                                             policy.seconds_left(record.settings, elapsed), record.fold_cost,
                                             workers, policy.passes_left(record.settings, record.next_pass), others_due)
@@ -369,7 +379,7 @@ class Jobs:
         self.leases.renew(pipe, batch, worker)
         pipe.hget(keys.job(batch.job_id), "status")
         status = pipe.execute()[-1]
-        return Status(status.decode()) if status else None
+        return Status(text(status)) if status else None
 
     def is_wanted(self, batch: Batch) -> bool:
         return self.status(batch.job_id) in policy.RENDERING and not self._settled(batch) \
@@ -397,7 +407,7 @@ class Jobs:
         """The record, read inside a transaction that WATCHes it."""
         return JobRecord.parse(job_id, pipe.hgetall(keys.job(job_id)))
 
-    def _end(self, job_id: str, allowed: frozenset[Status], final: Status, fields: dict[str, Any] | None = None,
+    def _end(self, job_id: str, allowed: frozenset[Status], final: Status, fields: Fields | None = None,
              idle: bool = False, fold: bool = True) -> bool:
         """Move a job in one of `allowed` to `final`, atomically, once every accepted batch
         is folded (unless `fold` is off) and, if `idle`, nothing is in flight. False if the
@@ -415,7 +425,7 @@ class Jobs:
                 try:
                     pipe.watch(key, keys.tofold(job_id), keys.inflight(job_id), keys.lost(job_id))
                     status = pipe.hget(key, "status")
-                    if status is None or Status(status.decode()) not in allowed:
+                    if status is None or Status(text(status)) not in allowed:
                         return False
                     if idle and pipe.scard(keys.inflight(job_id)) > 0:
                         return False
@@ -431,7 +441,7 @@ class Jobs:
                         continue
                     if fold and pipe.hlen(keys.tofold(job_id)) > 0:
                         continue  # accepted since the fold: fold it too
-                    image = {} if fold else {"image_passes": pipe.hget(key, "folded_passes") or 0}
+                    image: Fields = {} if fold else {"image_passes": pipe.hget(key, "folded_passes") or 0}
                     pipe.multi()
                     if fields or image:
                         pipe.hset(key, mapping=(fields or {}) | image)
@@ -449,7 +459,7 @@ class Jobs:
         self._end(job_id, frozenset({status}), final, idle=True)
 
     def _transition(self, job_id: str, allowed: frozenset[Status],
-                    write: Callable[[redis.client.Pipeline], None]) -> bool:
+                    write: Callable[[redis.client.Pipeline], object]) -> bool:
         """Atomically: if the job's status is one of `allowed`, run the commands `write`
         queues, in one transaction. False if the status was not allowed."""
         with self.r.pipeline() as pipe:
@@ -457,7 +467,7 @@ class Jobs:
                 try:
                     pipe.watch(keys.job(job_id))
                     status = pipe.hget(keys.job(job_id), "status")
-                    if status is None or Status(status.decode()) not in allowed:
+                    if status is None or Status(text(status)) not in allowed:
                         return False
                     pipe.multi()
                     write(pipe)
@@ -529,13 +539,11 @@ class Jobs:
         worker ends it itself if no process has begun to within END_HANDOFF_SECONDS (the
         API down or stuck), reading the state and every pending delta from the tiles.
 
-        A folder that holds the job's fold lease is at work (a round's checkpoint writes
-        take seconds at 3840 x 2160), and alive: its lease lapses within FOLD_LEASE_SECONDS
-        if it dies. So the hand-off waits END_HANDOFF_SECONDS from when the lease was last
-        seen held, up to the 2 FOLD_LEASE_SECONDS a folder waits for the lease (FoldLease):
-        a worker that took over would only wait for the lease, then rebuild the state the
-        API holds in memory (at 3840 x 2160 the API was still writing a checkpoint when the
-        ending batch came, and every job's final round rebuilt the state: 3.1-3.2 s)."""
+        A folder that holds the job's fold lease is at work, and alive: its lease lapses
+        within FOLD_LEASE_SECONDS if it dies. So the hand-off waits END_HANDOFF_SECONDS from
+        when the lease was last seen held, up to the 2 FOLD_LEASE_SECONDS a folder waits for
+        the lease (FoldLease). Why wait: a worker that took over would only wait for the
+        lease, then rebuild the state the API holds in memory."""
         if self.r.scard(keys.lost(job_id)):
             return  # the last lost batch's refill hands it off
         start = time.monotonic()
@@ -593,7 +601,7 @@ class Jobs:
                     passes, emitted = record.passes + delta.n_passes, record.emitted + delta.emitted
                     status = policy.after_merge(record.status, record.settings, passes, record.elapsed_seconds())
                     per_pass = seconds / batch.n
-                    fields: dict[str, Any] = {
+                    fields: Fields = {
                         "passes": passes, "emitted": emitted,
                         "pass_seconds": per_pass if record.pass_seconds == 0 else
                         0.7 * record.pass_seconds + 0.3 * per_pass,
@@ -726,7 +734,7 @@ class Jobs:
     def _give_up(self, pipe: redis.client.Pipeline, job_id: str) -> None:
         """Queue taking back the job's lost batches (a cancelled job renders nothing more): no
         longer accepted nor counted (a tile that folded one before the loss keeps it)."""
-        lost = [b.decode() for b in pipe.smembers(keys.lost(job_id))]
+        lost = [text(b) for b in pipe.smembers(keys.lost(job_id))]
         headers = [json.loads(h) for h in pipe.hmget(keys.tofold(job_id), lost) if h] if lost else []
         pipe.multi()
         if lost:
@@ -743,7 +751,7 @@ class Jobs:
         """The batches new to the image a regular round takes in (policy.paced_batches, given
         when the next in-flight batch is due: the oldest passes first), and the accepted
         batches less those it leaves for later."""
-        due = self.r.zrange(keys.due(record.id), 0, 0, withscores=True)
+        due = _scored(self.r.zrange(keys.due(record.id), 0, 0, withscores=True))
         take = policy.paced_batches(len(fresh), due[0][1] - time.time() if due else None,
                                     policy.round_seconds(record.fold_rounds, 1) or 0.0)  # None before any round
         later = sorted(fresh, key=lambda b: Batch.from_id(record.id, b).first)[take:]

@@ -16,9 +16,8 @@ mid-round leaves each tile either folded or not; the next round folds the rest (
 that have the batch skip it).
 
 Deltas stay out of the nodes' append-only files (PUSH): they are the largest part of what
-a job writes, and logging them took a quarter of Redis's CPU at 3840x2160 (bench/RESULTS.md at 7a131e4,
-the 4K refresh). Everything
-that counts is logged: the record's acceptance, the checkpoints' states, folded sets and
+a job writes, and logging them would cost the nodes much of their CPU. Everything that
+counts is logged: the record's acceptance, the checkpoints' states, folded sets and
 removals. So a node's restart can lose a pending delta of an accepted batch; a fold round
 that finds one missing on a tile that has not folded it raises LostDeltas, and the record
 has the batch rendered again under its id to refill those tiles (worker/store/record.py).
@@ -42,6 +41,7 @@ from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.stats import add_counts
 from worker.store import keys, policy
+from worker.store.connection import Fields, binary
 from worker.store.overlay import OVERLAYS, Overlay
 from worker.store.tiles import (
     CACHE,
@@ -231,7 +231,7 @@ class TiledState:
                     counts.append(len(pipe) - before)
                 results = pipe.execute()
                 first = 0
-                for k, count in zip(ks, counts):
+                for k, count in zip(ks, counts, strict=True):
                     out[k] = results[first:first + count]
                     first += count
             return out
@@ -272,7 +272,8 @@ class TiledState:
         """Push a batch's delta, the sums named in `half` in half precision (SumLayout.half)."""
         self.push_encoded(job_id, tiling, batch_id, lambda k: encode_delta(delta.sums, tiling.span(k), half))
 
-    def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str, payload: Callable[[int], bytes]) -> None:
+    def push_encoded(self, job_id: str, tiling: Tiling, batch_id: str,
+                     payload: Callable[[int], bytes | memoryview]) -> None:
         """Write each tile's part of a batch (`payload(k)`, encoded) into its pending hash,
         outside the append-only file (PUSH)."""
         self._each_node(tiling, lambda pipe, k: self._push[tiling.node(k)](
@@ -299,14 +300,16 @@ class TiledState:
         got = self._each_node(tiling, lambda pipe, k: (
             pipe.hget(keys.tile(job_id, k, "meta"), "version"),
             batch_ids and pipe.smismember(keys.tile(job_id, k, "folded"), list(batch_ids))))
-        lacking = {k: [b for b, done in zip(batch_ids, g[1]) if not done] for k, g in got.items() if batch_ids}
+        lacking = {k: [b for b, done in zip(batch_ids, g[1], strict=True) if not done]
+                   for k, g in got.items() if batch_ids}
         return {k: int(g[0] or 0) for k, g in got.items()}, {k: ids for k, ids in lacking.items() if ids}
 
     def _blobs(self, job_id: str, tiling: Tiling, integrator: Integrator,
-               versions: dict[int, int]) -> dict[int, dict[str, Any]]:
+               versions: dict[int, int]) -> dict[int, Fields]:
         """Each tile's state fields at the version given: from the cache, else read (and checked)."""
-        out = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
-        missing = [k for k, blob in out.items() if blob is None]
+        cached = {k: CACHE.get(job_id, k, v) for k, v in versions.items()}
+        out = {k: fields for k, fields in cached.items() if fields is not None}
+        missing = [k for k in cached if k not in out]
         if missing:
             want = set(missing)
 
@@ -323,13 +326,13 @@ class TiledState:
                 version, flat = read[k]
                 if int(version or 0) != versions[k]:
                     raise FoldContended(f"tile {k} changed while read")
-                fields = dict(zip(flat[::2], flat[1::2]))
+                fields = dict(zip(flat[::2], flat[1::2], strict=True))
                 CACHE.put(job_id, k, versions[k], fields)
                 out[k] = fields
         return out
 
     @staticmethod
-    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, dict[str, Any]]) -> dict[str, np.ndarray]:
+    def _arrays(tiling: Tiling, integrator: Integrator, blobs: dict[int, Fields]) -> dict[str, np.ndarray]:
         """The whole frame's state arrays from its tiles' fields (an array a tile does not
         hold is zero there)."""
         n, widths = tiling.n_pixels, integrator.state_widths
@@ -360,7 +363,8 @@ class TiledState:
                 now, lacking = self._versions(job_id, tiling, batch_ids)
                 if now != versions:
                     continue
-                state = integrator.restore(self._arrays(tiling, integrator, self._blobs(job_id, tiling, integrator, versions)),
+                blobs = self._blobs(job_id, tiling, integrator, versions)
+                state = integrator.restore(self._arrays(tiling, integrator, blobs),
                                            snap.emitted, snap.passes, snap.counters)
                 written = [b for b in batch_ids if sum(b in ids for ids in lacking.values()) < tiling.count]
                 if written:
@@ -393,14 +397,14 @@ class TiledState:
                 span = tiling.span(k)
                 payloads = self.nodes[node].hmget(keys.tile(job_id, k, "pending"), fresh[k])
                 names = carried.setdefault(k, set())
-                for batch_id, payload in zip(fresh[k], payloads):
+                for batch_id, payload in zip(fresh[k], payloads, strict=True):
                     if payload is None:
                         if int(self.nodes[node].hget(keys.tile(job_id, k, "meta"), "version") or 0) != versions[k]:
                             raise FoldContended(f"tile {k} was written by another folder")
                         lost.add(batch_id)
                         continue
                     try:
-                        parts = decode_delta(payload, delta_widths, span.stop - span.start)
+                        parts = decode_delta(binary(payload), delta_widths, span.stop - span.start)
                     except DeltaFormatError as exc:
                         raise UnreadableDelta(batch_id, f"batch {batch_id}, tile {k}: {exc}") from exc
                     integrator.merge_sums(state, parts, span)  # tiles are disjoint: threads never add to one pixel
@@ -424,11 +428,10 @@ class TiledState:
         """Write some of one node's tiles, TILES_PER_TRIP to a transaction: the commands
         `queue(pipe, k)` adds for each tile k, if every tile of the transaction is still at its
         version in `versions` (a WATCH on each); FoldContended if another folder wrote one
-        first. A tile's commands always share one transaction. One transaction for a few tiles,
+        first. A tile's commands always share one transaction. A few tiles to a transaction,
         not one each, because the node writes and fsyncs its append-only file once per
-        transaction: a tile's 3 MB checkpoint alone took 11.4 s a GB there, four together 5.0
-        (bench/RESULTS.md at 7a131e4, the 4K refresh). No transaction starts that would end after `until`
-        (epoch seconds) if it took as long as the longest one so far. Returns the tiles written."""
+        transaction. No transaction starts that would end after `until` (epoch seconds) if it
+        took as long as the longest one so far. Returns the tiles written."""
         written: list[int] = []
         longest = 0.0
         for trip in _trips(list(versions)):
@@ -456,9 +459,8 @@ class TiledState:
         """The node is rewriting its append-only file. Redis (6.2, the embedded one) then logs
         each write to the old file, keeps it in memory and pipes it to the rewriting child,
         and at the end, in its main thread, writes what the child lacks to the new file and
-        fsyncs it: at 3840x2160 a round's checkpoint writes took 12.7 s after its image
-        during a rewrite, the workers' pushes 5-6 s (1.5 s outside one), and the rewrite's
-        end held the folder 2 s. False where the node does not say (INFO refused)."""
+        fsyncs it, so writes to it are several times slower. False where the node does not
+        say (INFO refused)."""
         try:
             return bool(self.nodes[node].info("persistence").get("aof_rewrite_in_progress"))
         except redis.ResponseError:
@@ -500,10 +502,12 @@ class TiledState:
                                               [accepted[b] for b in fresh_ids], state) if fresh_ids else ({}, {})
             stages.lap("read and merge deltas")
             # The error.
+            error: float | None
             if fresh_ids:
                 estimate = integrator.estimate(state)
                 error = estimate.average if estimate is not None else None
             else:  # a checkpoint of the overlay as it was (without an overlay every batch is fresh)
+                assert overlay is not None, "without an overlay every batch is fresh"
                 error = overlay.error
             stages.lap("estimate")
             sent = {k: set(names) for k, names in (overlay.sent if overlay is not None else {}).items()}
@@ -526,8 +530,7 @@ class TiledState:
         the overlay was built on (the nodes at once). After the image: a batch that starts
         meanwhile reads the last round's inputs, as one that started a moment earlier did
         (its first pass takes the radius rule for the passes they lack), and the image does
-        not wait for a write through the nodes' append-only files (at 3840x2160 100 MB, a
-        slower one while a node rewrites its file). Returns this process's CPU seconds per
+        not wait for a write through the nodes' append-only files. Returns this process's CPU seconds per
         stage; raises FoldContended (the overlay dropped) if another folder got to a tile first."""
         stages = Stages()
         overlay = OVERLAYS.current(job_id)

@@ -1,11 +1,12 @@
 """The job state cut into pixel tiles, each on one of the state's Redis nodes, and the
 encodings of what moves per tile: the folded state, a batch's delta and a batch's inputs.
 
-A tile is a run of TILE_PIXELS consecutive pixels (row-major, so a band of rows at most
-frame sizes: 65,536 pixels, 8.4 MB of state at 128 bytes a pixel); tile k lives on node k mod (number of nodes). The nodes are the Redis URLs
-in PHOTONFARM_STATE_URLS (comma-separated), else the main Redis alone; a job records how
-many nodes it was created with, and every process must name the same nodes in the same
-order. Queues, job records and leases always stay on the main Redis.
+A tile is a run of TILE_PIXELS consecutive pixels (row-major, so a band of rows at most;
+65,536 pixels by default, 8.4 MB of state at 128 bytes a pixel); tile k lives on node
+k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
+(comma-separated), else the main Redis alone; a job records how many nodes it was created
+with, and every process must name the same nodes in the same order. Queues, job records
+and leases always stay on the main Redis.
 
 Encodings (all little-endian numpy bytes, no pickle: nothing read from Redis runs code):
 - state: a hash, one field per array of the integrator's `state_widths`, float64. A field
@@ -64,13 +65,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import redis
 
-from worker.store.connection import connect
+from worker.store.connection import Fields, connect, text
 
 # Pixels a tile holds (a job keeps the size it was created with; tests make tiles small).
 TILE_PIXELS = int(os.environ.get("PHOTONFARM_TILE_PIXELS", str(1 << 16)))
 STATE_URLS_ENV = "PHOTONFARM_STATE_URLS"
-# Folded tiles a process keeps (the API process reads what it folded without a round trip;
-# 2 GB holds a 3840 x 2160 job's state).
+# Folded tiles a process keeps, in bytes (the API process reads what it folded without a
+# round trip; the default holds a 3840 x 2160 job's state at 128 bytes a pixel).
 CACHE_BYTES = int(float(os.environ.get("PHOTONFARM_TILE_CACHE_MB", "2048")) * 1e6)
 
 
@@ -145,9 +146,8 @@ def _round_half(a: np.ndarray, exponent: int, out: np.ndarray) -> None:
     """`out` (float16's bits, flat) = `a` times 2^`exponent` (non-negative, below
     2^HALF_TOP), rounded to nearest even twice: to float32, scaled by a further 2^-112 so
     that float16's exponents, subnormals included, are float32's less 112, then to float16
-    by dropping 13 mantissa bits (a carry moves into the exponent). numpy's own float16
-    cast took 5-8 ns a value on this machine kind (numpy 2.4, no vector path here); these
-    integer steps take 1.5."""
+    by dropping 13 mantissa bits (a carry moves into the exponent). Integer steps, since
+    numpy's own float16 cast has no vector path on every CPU."""
     x = np.multiply(a, math.ldexp(1.0, exponent - 112), dtype=np.float32).reshape(-1)  # exact but for the rounding
     u = x.view(np.uint32)
     bits = u >> 13
@@ -165,19 +165,27 @@ def _unpack(blob: bytes, dtype: np.dtype) -> tuple[Any, np.ndarray]:
 
 
 # ------------------------------------------------------------------- the state
-def encode_state(arrays: dict[str, np.ndarray], names: list[str], span: slice) -> dict[str, memoryview]:
+def encode_state(arrays: dict[str, np.ndarray], names: list[str], span: slice) -> Fields:
     """A tile's fields of the named state arrays: views of the arrays' bytes (sent as they
     are; the arrays must not change until sent)."""
-    return {name: memoryview(np.ascontiguousarray(arrays[name][span], STATE_DTYPE).reshape(-1)).cast("B")
+    return {name: np.ascontiguousarray(arrays[name][span], STATE_DTYPE).reshape(-1).data.cast("B")
             for name in names}
 
 
-def decode_state(fields: dict[bytes, bytes], widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
-    """The arrays a tile's state holds (the rest are zero), read in place."""
+def _buffer(name: object, value: object) -> bytes | memoryview:
+    """A state field's value: bytes as Redis replies them, or the view encode_state made."""
+    if not isinstance(value, bytes | memoryview):
+        raise TypeError(f"state field {name!r} holds {type(value).__name__}, not bytes")
+    return value
+
+
+def decode_state(fields: Fields, widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
+    """The arrays a tile's state holds (the rest are zero), read in place. `fields` are as
+    encode_state wrote them or as Redis replied (names in bytes)."""
     out = {}
     for key, blob in fields.items():
-        name = key.decode() if isinstance(key, bytes) else key
-        flat = np.frombuffer(blob, STATE_DTYPE)
+        name = text(key)
+        flat = np.frombuffer(_buffer(name, blob), STATE_DTYPE)
         out[name] = flat.reshape(n, widths[name]) if widths[name] > 1 else flat
     return out
 
@@ -225,7 +233,7 @@ def delta_arrays(payload: bytes) -> list[tuple[str, np.dtype, int]]:
         header = {**header, "dtypes": [DELTA_DTYPE.str] * len(arrays), "exponents": [0] * len(arrays)}
     dtypes = header.get("dtypes")
     unread = [header.get("dtype")] if dtypes is None else sorted(set(dtypes) - set(DELTA_DTYPES))
-    if unread:
+    if unread or dtypes is None:  # (no dtypes: unread names the header's dtype)
         raise DeltaFormatError(f"its delta is {'in dtype ' + repr(unread[0]) if unread[0] else 'of no named dtype'}, "
                                f"this version reads {' and '.join(map(repr, DELTA_DTYPES))} "
                                f"(a worker of another photonfarm version?)")
@@ -234,7 +242,7 @@ def delta_arrays(payload: bytes) -> list[tuple[str, np.dtype, int]]:
             and all(isinstance(e, int) and e in HALF_EXPONENTS for e in exponents)):
         raise DeltaFormatError("its delta's header does not give a scale for each array it names "
                                "(a worker of another photonfarm version?)")
-    return [(name, DELTA_DTYPES[d], e) for name, d, e in zip(arrays, dtypes, exponents)]
+    return [(name, DELTA_DTYPES[d], e) for name, d, e in zip(arrays, dtypes, exponents, strict=True)]
 
 
 def decode_delta(payload: bytes, widths: dict[str, int], n: int) -> dict[str, np.ndarray]:
@@ -272,14 +280,14 @@ def as_sent(sums: dict[str, np.ndarray], tiling: Tiling, half: Collection[str] =
 
 
 # ------------------------------------------------------------------ the inputs
-def encode_inputs(inputs: Any, span: slice) -> bytes:
+def encode_inputs(inputs: Any, span: slice) -> memoryview:
     """One tile's part of a batch's inputs (a dataclass, or None): per-pixel arrays cut to
     the tile, every other field whole in the header."""
     if inputs is None:
         return _pack(None, [])
     present = {f.name: getattr(inputs, f.name) for f in dataclasses.fields(inputs)}
     sent = [name for name, a in present.items() if isinstance(a, np.ndarray)]
-    scalars = {name: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v
+    scalars = {name: dataclasses.asdict(v) if dataclasses.is_dataclass(v) and not isinstance(v, type) else v
                for name, v in present.items() if name not in sent}
     return _pack({"arrays": sent, "scalars": scalars}, [Part(present[name][span], INPUTS_DTYPE) for name in sent])
 
@@ -290,7 +298,7 @@ def _field_value(kind: type, name: str, value: Any) -> Any:
     if not isinstance(value, dict):
         return value
     hint = typing.get_type_hints(kind)[name]
-    target = next(t for t in (hint, *typing.get_args(hint)) if dataclasses.is_dataclass(t))
+    target = next(t for t in (hint, *typing.get_args(hint)) if isinstance(t, type) and dataclasses.is_dataclass(t))
     return target(**value)
 
 
@@ -308,7 +316,7 @@ def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: t
     if header is None:
         return None
     fields: dict[str, Any] = {name: np.empty(n_pixels, np.float32) for name in header["arrays"]}
-    for blob, span in zip(blobs, spans):
+    for blob, span in zip(blobs, spans, strict=True):
         own, body = _unpack(blob, INPUTS_DTYPE)
         if whole and own != header:
             raise TornInputs(f"tile inputs of passes {header['scalars'].get('passes')} and "
@@ -316,6 +324,7 @@ def decode_inputs(blobs: list[bytes], spans: list[slice], n_pixels: int, kind: t
         n = span.stop - span.start
         for i, name in enumerate(header["arrays"]):
             fields[name][span] = body[i * n:(i + 1) * n]
+    assert kind is not None, "inputs are written only for an integrator that declares their type"
     fields.update({name: _field_value(kind, name, v) for name, v in header["scalars"].items()})
     return kind(**fields)
 
@@ -329,11 +338,11 @@ class TileCache:
 
     def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
         self.max_bytes = max_bytes
-        self._items: OrderedDict[tuple[str, int], tuple[int, dict[str, Any], int]] = OrderedDict()
+        self._items: OrderedDict[tuple[str, int], tuple[int, Fields, int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
-    def get(self, job_id: str, k: int, version: int) -> dict[str, Any] | None:
+    def get(self, job_id: str, k: int, version: int) -> Fields | None:
         with self._lock:
             item = self._items.get((job_id, k))
             if item is None or item[0] != version:
@@ -341,9 +350,9 @@ class TileCache:
             self._items.move_to_end((job_id, k))
             return item[1]
 
-    def put(self, job_id: str, k: int, version: int, fields: dict[str, Any]) -> None:
+    def put(self, job_id: str, k: int, version: int, fields: Fields) -> None:
         """A tile's state fields (name -> bytes) at `version`."""
-        size = sum(len(memoryview(v).cast("B")) for v in fields.values())
+        size = sum(len(memoryview(_buffer(name, v)).cast("B")) for name, v in fields.items())
         with self._lock:
             old = self._items.pop((job_id, k), None)
             self._bytes -= old[2] if old else 0
