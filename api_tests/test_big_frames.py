@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from api_tests.cluster import Cluster, finished, merged_passes
-from api_tests.test_jobs import _decode
+from api_tests.helpers import decode_image
 from service.models import MAX_SERVICE_PIXELS
 from worker.store import Jobs
 
@@ -56,7 +56,7 @@ def test_a_3840x2160_job_completes_with_exact_totals(tmp_path: Path) -> None:
         assert _bytes_per_pixel(c, job["id"], "pending") == 0.0
         resp = c.http.get(job["links"]["image_exr"])
         assert resp.status_code == 200 and resp.headers["x-passes"] == str(PASSES)
-        rgb = _decode(resp.content, ".exr")
+        rgb = decode_image(resp.content, ".exr")
         assert rgb.shape == (H, W, 3) and np.isfinite(rgb).all() and rgb.mean() > 0.0
     finally:
         c.close()

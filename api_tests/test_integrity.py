@@ -12,7 +12,8 @@ import httpx
 import redis
 from rq import Worker
 
-from api_tests.cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster
+from api_tests.helpers import assert_exact
 from service.models import MAX_ACTIVE_JOBS
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.scheduler import QUEUE_NAMES
@@ -28,14 +29,6 @@ def _small_job(c: Cluster, passes: int = 4, **settings: object) -> dict:
                                                      "resolution": [16, 16], **settings})
 
 
-def _assert_exact(c: Cluster, job_id: str, passes: int, photons: int = P, timeout: float = 120.0) -> dict:
-    done = c.wait(job_id, finished, timeout=timeout)
-    assert done["status"] == "completed", done
-    assert done["passes"] == passes and done["photons"] == passes * photons, done
-    assert merged_passes(c.redis_client, job_id) == list(range(passes))
-    return done
-
-
 def test_a_batch_dequeued_by_a_worker_that_died_is_reissued(tmp_path: Path) -> None:
     """A worker that dies after RQ moved a batch out of its queue and before starting it
     leaves the RQ job 'queued' in no queue (the state an RQ worker leaves between dequeue
@@ -49,7 +42,7 @@ def test_a_batch_dequeued_by_a_worker_that_died_is_reissued(tmp_path: Path) -> N
         taken = r.lpop(queue)  # the dying worker's dequeue
         assert taken is not None and r.llen(queue) == 0
         c.start_worker()
-        _assert_exact(c, job["id"], 2, timeout=90)
+        assert_exact(c, job["id"], 2, P, timeout=90)
     finally:
         c.close()
 
@@ -155,7 +148,7 @@ def test_a_pass_longer_than_the_lease_keeps_its_lease(tmp_path: Path) -> None:
         photons = 1 << 20
         job = c.submit(scene_name="cornell-caustics", settings={"max_passes": 2, "photons_per_pass": photons,
                                                                 "resolution": [64, 64]})
-        done = _assert_exact(c, job["id"], 2, photons=photons, timeout=300)
+        done = assert_exact(c, job["id"], 2, photons, timeout=300)
         record = Jobs(c.redis_client).get(job["id"])
         assert record.render_seconds / 2 > 1.0, "passes were not longer than the lease: the test proves nothing"
         log = (tmp_path / "api.log").read_text() + (tmp_path / "workers.log").read_text()
@@ -171,7 +164,7 @@ def test_finished_jobs_expire_and_can_be_deleted(tmp_path: Path) -> None:
     try:
         kept, deleted = _small_job(c, passes=2), _small_job(c, passes=2)
         for job in (kept, deleted):
-            _assert_exact(c, job["id"], 2)
+            assert_exact(c, job["id"], 2, P)
         assert c.http.delete(f"/v1/jobs/{deleted['id']}").status_code == 204
         assert c.http.get(f"/v1/jobs/{deleted['id']}").status_code == 404
         assert not c.redis_client.keys(f"pf:job:{deleted['id']}*")

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from api_tests.cluster import Cluster, finished
-from api_tests.test_jobs import FURNACE_L
+from tests.analytic import FURNACE_L
 from worker.image_io import read_image
 from worker.scheduler import QUEUE_NAMES
 

@@ -3,14 +3,13 @@ Python package; no browser is downloaded), against a real cluster: its start sta
 settings form (every JobSettings field), a job that converges with a live image and ticked,
 labelled charts, the exposure control, 1:1 zoom with the pixel readout, ETA, the worker
 list, cancel, delete, the paged job list, scene upload, and the layout at 800 px wide.
-Screenshots of each state go to bench/viewer/ (linked from the README)."""
+Screenshots of each state go to out/viewer/ (git-ignored, made anew by each run)."""
 
 from __future__ import annotations
 
 import json
 import math
 import re
-import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -18,18 +17,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from api_tests.test_upload import _zip
+from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, zip_bytes
 from service.client import eta_seconds
 from service.models import JobSettings
 from worker.image_io import read_channels
 from worker.scene import SCENES_DIR
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = pytest.mark.skipif(shutil.which("chromium") is None,
-                                reason="Debian's chromium is not installed here (.ci/run installs it)")
-FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-         "--disable-component-update", "--disable-sync"]
-SHOTS = Path(__file__).resolve().parent.parent / "bench" / "viewer"
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed here (.ci/run installs it)")
+SHOTS = Path(__file__).resolve().parent.parent / "out" / "viewer"  # git-ignored: a run leaves the tree clean
 MITSUBA = SCENES_DIR / "mitsuba"
 WIDE = {"width": 1400, "height": 1000}
 
@@ -40,7 +35,7 @@ def page(cluster) -> Iterator:  # noqa: ANN001
 
     SHOTS.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
         pg = browser.new_page(viewport=WIDE, device_scale_factor=1)
         pg.goto(str(cluster.http.base_url) + "/")
         pg.wait_for_selector("#scene option", state="attached")
@@ -325,7 +320,7 @@ def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
 
 
 def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> None:  # noqa: ANN001
-    archive = _zip({"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(), "room.xml": (MITSUBA / "room.xml").read_bytes(),
+    archive = zip_bytes({"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(), "room.xml": (MITSUBA / "room.xml").read_bytes(),
                     "meshes/icosphere.ply": (MITSUBA / "meshes" / "icosphere.ply").read_bytes()})
     page.set_input_files("#upload-files", files=[{"name": "scene.zip", "mimeType": "application/zip", "buffer": archive}])
     assert page.is_checked("input[name=source][value=upload]")  # choosing files picks the upload
