@@ -2,8 +2,9 @@
 completes with exact pass and photon totals, its image is the whole frame, and the bytes
 a pixel its state takes in Redis are the ones README states (folded state at most 128: the
 float64 arrays each tile holds, an array only where a delta carried it, within a byte a
-pixel of Redis's allocation; batch inputs 8, nothing left pending). And a time budget holds at a large frame: the job ends
-within its seconds plus one batch (its render, merge and the final fold)."""
+pixel of Redis's allocation; batch inputs 8, nothing left pending). And a time budget holds
+at a large frame: the job ends within its seconds plus one batch (its render, merge and the
+final fold)."""
 
 from __future__ import annotations
 

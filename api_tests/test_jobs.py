@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from itertools import pairwise
 from pathlib import Path
 
 import httpx
@@ -71,7 +72,7 @@ def test_images_read_while_rounds_fold_follow_the_passes(cluster: Cluster) -> No
     assert done["status"] == "completed" and not bad, (done, bad)
     assert cluster.http.get(job["links"]["image_png"]).headers["X-Passes"] == str(passes)
     for reads in seen:
-        assert reads and all(a <= b for a, b in zip(reads, reads[1:])), reads
+        assert reads and all(a <= b for a, b in pairwise(reads)), reads
     assert len(set(seen[0])) >= 2  # the reads spanned rounds
 
 

@@ -1,16 +1,46 @@
-"""An embedded Redis (service/redis_server.py) holding some data, for the tests of what it
-does with its memory and files."""
+"""Real Redis servers for the tests (service/redis_server.py's embedded redis-server): one
+of the test's own, several for sharded job state, one holding some data for the tests of
+what it does with its memory and files, and a restart by SIGKILL."""
 
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import pytest
 import redis
 
 from service.redis_server import EmbeddedRedis
+
+
+@pytest.fixture
+def redis_url(tmp_path: Path) -> Iterator[str]:
+    """A real embedded Redis of the test's own, stopped after it (a fixture of both suites'
+    conftest.py)."""
+    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
+    yield server.url
+    server.stop()
+
+
+@contextmanager
+def redis_servers(base: Path, count: int) -> Iterator[list[EmbeddedRedis]]:
+    """`count` redis-servers in directories under `base`; stopped after."""
+    started = [EmbeddedRedis(base / f"redis{i}").start(supervise=False) for i in range(count)]
+    try:
+        yield started
+    finally:
+        for server in started:
+            server.stop()
+
+
+def restart(server: EmbeddedRedis) -> None:
+    """SIGKILL a redis-server, then start it again on the same port and data."""
+    server.proc.send_signal(signal.SIGKILL)
+    server.proc.wait()
+    server.start(supervise=False)
 
 
 class _Configured(EmbeddedRedis):

@@ -199,7 +199,7 @@ def _inside_cut(cut: np.ndarray, n: np.ndarray, v: np.ndarray, r: float) -> bool
         return False
     cuts = [code / 255.0 * reach if code < 255 else reach for code in codes]
     angles = (phi0 + k * step, phi0 + (k + 1) * step)
-    p0, p1 = (q * r * np.array([math.cos(x), math.sin(x)]) for q, x in zip(cuts, angles))
+    p0, p1 = (q * r * np.array([math.cos(x), math.sin(x)]) for q, x in zip(cuts, angles, strict=True))
     e, w = p1 - p0, p - p0
     return e[0] * w[1] - e[1] * w[0] >= 0.0
 
@@ -234,7 +234,7 @@ def _visible_paths(eng, r: float) -> int:
             nn = nrm[near]
             ok = (nn @ incoming[i] > 0.0) & (nn @ normal[i] > math.cos(math.pi / 4))
             visible[i] = any(_inside_cut(cuts[j], nrm[j], ph_pos[i, :3] - pts[j], r)
-                             for j, good in zip(near, ok) if good)
+                             for j, good in zip(near, ok, strict=True) if good)
     return len(np.unique((ph_key[visible] >> np.uint64(12)) & np.uint64((1 << 24) - 1)))
 
 
