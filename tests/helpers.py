@@ -1,17 +1,76 @@
-"""Helpers the store test modules share: a running job written straight into the store (as
-the API and a worker's setup leave it), and the sharded-state setup of
+"""Helpers several test modules share: the `photonfarm render` command line; scene files
+and the Cornell box's corner check against Mitsuba 3; a running job written straight into
+the store (as the API and a worker's setup leave it), and the sharded-state setup of
 tests/test_sharded_state.py and tests/test_lost_deltas.py (its deltas are the `deltas`
 fixture of tests/conftest.py)."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import redis
 
+from tests.analytic import camera_rays, spot_plane_scene
+from worker.engine import Engine
+from worker.image_io import read_image
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.tiles import as_sent
+
+PHOTONFARM = Path(sys.executable).parent / "photonfarm"  # installed beside the running interpreter
+SMALL = ["--resolution", "16x16", "--photons-per-pass", "4096"]  # `photonfarm render` options of a quick image
+
+
+def render_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    """`photonfarm render ARGS`, its output captured as text."""
+    return subprocess.run([str(PHOTONFARM), "render", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def spot_scene(tmp_path: Path) -> Path:
+    """A spot light over a plane, 75% of the image outside its cone (tests/analytic.py)."""
+    path = tmp_path / "spot.json"
+    path.write_text(json.dumps(spot_plane_scene()))
+    return path
+
+
+CORNELL_CORNERS = Path(__file__).resolve().parent.parent / "bench" / "reference" / "cornell-box-corners-96x96.exr"
+BOX = 555.0  # the Cornell box's walls: x = 0, x = BOX, y = 0, y = BOX, z = BOX (open at z = 0)
+
+
+def concave_corner_pixels(eng: Engine, band: float, sub: int = 4) -> np.ndarray:
+    """(H, W) mask of the pixels whose whole footprint (sub x sub rays) sees a wall within
+    `band` of a perpendicular wall: the Cornell box's concave corners."""
+    w, h = eng.arrays.width, eng.arrays.height
+    o, d = camera_rays(eng, sub)
+    walls = [(0, 0.0), (0, BOX), (1, 0.0), (1, BOX), (2, BOX)]
+    t_hit, wall_hit = np.full(d.shape[:2], np.inf), np.full(d.shape[:2], -1)
+    for k, (axis, c) in enumerate(walls):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (c - o[axis]) / d[..., axis]
+        inside = np.all(np.abs(o + t[..., None] * d - BOX / 2) <= BOX / 2 + 1e-3, axis=-1) & (t > 0) & (t < t_hit)
+        t_hit, wall_hit = np.where(inside, t, t_hit), np.where(inside, k, wall_hit)
+    p = o + t_hit[..., None] * d
+    gap = np.full(d.shape[:2], np.inf)
+    for k, (axis, c) in enumerate(walls):
+        gap = np.where(wall_hit != k, np.minimum(gap, np.abs(p[..., axis] - c)), gap)
+    return (np.isfinite(t_hit) & (gap < band)).reshape(h, sub, w, sub).all(axis=(1, 3))
+
+
+def assert_corners_match_mitsuba(eng: Engine, img: np.ndarray) -> None:
+    """A 96x96 cornell-box image's pixels within 10 and within 30 (of 555) of a concave
+    corner, per channel, within 3% of Mitsuba 3's path tracer (CORNELL_CORNERS)."""
+    ref = read_image(CORNELL_CORNERS)[..., :3]
+    for band in (10.0, 30.0):
+        corners = concave_corner_pixels(eng, band)
+        assert corners.sum() > 150
+        ratio = img[corners].mean(axis=0) / ref[corners].mean(axis=0)
+        np.testing.assert_array_less(np.abs(ratio - 1.0), 0.03, err_msg=f"band {band}: {ratio}")
+
 
 # The sharded setup: the main Redis and SHARDS state nodes; the W x H frame in tiles of
 # TILE pixels has 6 tiles, two on each node; BATCHES deltas of 2 passes each.

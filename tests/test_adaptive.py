@@ -396,12 +396,12 @@ def test_same_seed_same_image(make_engine, gather: str) -> None:
 
 
 def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> None:
-    from tests.test_cli import SMALL, run
+    from tests.helpers import SMALL, render_cli
     from worker.image_io import read_metadata
 
     out = tmp_path / "gap.exr"
-    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--target-acceptance", "0.3",
-               "--out", str(out))
+    proc = render_cli("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--target-acceptance", "0.3",
+                      "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     meta = read_metadata(out)
     counters = json.loads(meta["counters"])
@@ -410,7 +410,7 @@ def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> 
     assert counters["draws"] == adaptive.sample_iterations(4096), counters  # pass 0's: it judges
     assert 0 < counters["visible"] < counters["draws"] and counters["mutations"] == 0, counters
     assert json.loads(meta["settings"])["sampler"] == "adaptive"
-    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
+    proc = render_cli("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert "invalid choice: 'mcmc'" in proc.stderr.strip().splitlines()[-1], proc.stderr
 

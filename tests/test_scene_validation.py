@@ -14,13 +14,13 @@ import json
 import math
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import worker.scene as scene_mod
+from tests.helpers import PHOTONFARM
 from worker.scene import (
     MAX_LIGHTS,
     MAX_PIXELS,
@@ -35,7 +35,6 @@ from worker.scene import (
 from worker.scene_arrays import compile_scene
 
 REPO = Path(__file__).resolve().parent.parent
-PHOTONFARM = Path(sys.executable).parent / "photonfarm"  # installed beside the running interpreter
 BUNDLED = sorted(SCENES_DIR.glob("*.json"))
 
 
