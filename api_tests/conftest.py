@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 
 from api_tests.cluster import Cluster
-from tests.embedded_redis import redis_url  # noqa: F401 - the fixture, defined once for both suites
+from tests.conftest import redis_url  # noqa: F401 - the fixture, defined once for both suites
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ a real Redis of the test's own, and the deltas of the sharded-state tests."""
 from __future__ import annotations
 
 import pickle
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import pyopencl as cl
 import pytest
 
 from kernels.program import create_context
-from tests.embedded_redis import redis_url  # noqa: F401 - the fixture, defined once for both suites
+from service.redis_server import EmbeddedRedis
 from tests.helpers import BATCHES, H, W
 from worker.engine import Engine
 from worker.error_estimate import ErrorEstimate
@@ -38,6 +39,15 @@ def make_engine(ctx: cl.Context):
         return Engine(parsed, base, Settings(resolution=resolution, **settings), ctx=ctx)
 
     return make
+
+
+@pytest.fixture
+def redis_url(tmp_path: Path) -> Iterator[str]:
+    """A real embedded Redis of the test's own, stopped after it (api_tests/conftest.py
+    takes this fixture too)."""
+    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
+    yield server.url
+    server.stop()
 
 
 @pytest.fixture(scope="module")

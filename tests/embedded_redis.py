@@ -1,6 +1,7 @@
-"""Real Redis servers for the tests (service/redis_server.py's embedded redis-server): one
-of the test's own, several for sharded job state, one holding some data for the tests of
-what it does with its memory and files, and a restart by SIGKILL."""
+"""Real Redis servers for the tests (service/redis_server.py's embedded redis-server):
+several for sharded job state, one holding some data for the tests of what it does with
+its memory and files, and a restart by SIGKILL. No pytest here: api_tests/cluster.py, which
+the benchmarks use, imports restart."""
 
 from __future__ import annotations
 
@@ -10,19 +11,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import pytest
 import redis
 
 from service.redis_server import EmbeddedRedis
-
-
-@pytest.fixture
-def redis_url(tmp_path: Path) -> Iterator[str]:
-    """A real embedded Redis of the test's own, stopped after it (a fixture of both suites'
-    conftest.py)."""
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    yield server.url
-    server.stop()
 
 
 @contextmanager
