@@ -18,6 +18,7 @@ import redis
 
 from service.child_process import spawn
 from service.redis_server import EmbeddedRedis, free_port
+from tests.embedded_redis import restart
 from worker.store import Batch, keys
 from worker.store.policy import FINAL
 from worker.store.tiles import STATE_URLS_ENV
@@ -25,19 +26,13 @@ from worker.store.tiles import STATE_URLS_ENV
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
 
 
-def restart(server: EmbeddedRedis) -> None:
-    """SIGKILL a redis-server, then start it again on the same port and data."""
-    server.proc.send_signal(signal.SIGKILL)
-    server.proc.wait()
-    server.start(supervise=False)
-
-
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
                  redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None,
                  redis_maxmemory: str = "1gb", shards: int = 0) -> None:
         self.data_dir = data_dir
-        self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind, maxmemory=redis_maxmemory).start(supervise=False)
+        self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind,
+                                   maxmemory=redis_maxmemory).start(supervise=False)
         # With shards, the job states lie on that many more redis-servers (the same binary).
         self.shards = [EmbeddedRedis(data_dir / f"shard{i}", bind=redis_bind, maxmemory=redis_maxmemory).start(
             supervise=False) for i in range(shards)]

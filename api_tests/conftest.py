@@ -4,12 +4,11 @@ the store gets its own embedded Redis."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
 from api_tests.cluster import Cluster
-from service.redis_server import EmbeddedRedis
+from tests.conftest import redis_url  # noqa: F401 - the fixture, defined once for both suites
 
 
 @pytest.fixture(scope="module")
@@ -17,11 +16,3 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     c = Cluster(tmp_path_factory.mktemp("cluster"))
     yield c
     c.close()
-
-
-@pytest.fixture
-def redis_url(tmp_path: Path) -> Iterator[str]:
-    """A real embedded Redis of the test's own, stopped after it."""
-    server = EmbeddedRedis(tmp_path / "redis").start(supervise=False)
-    yield server.url
-    server.stop()

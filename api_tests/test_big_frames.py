@@ -2,8 +2,9 @@
 completes with exact pass and photon totals, its image is the whole frame, and the bytes
 a pixel its state takes in Redis are the ones docs/limits.md states (folded state at most 128: the
 float64 arrays each tile holds, an array only where a delta carried it, within a byte a
-pixel of Redis's allocation; batch inputs 8, nothing left pending). And a time budget holds at a large frame: the job ends
-within its seconds plus one batch (its render, merge and the final fold)."""
+pixel of Redis's allocation; batch inputs 8, nothing left pending). And a time budget holds
+at a large frame: the job ends within its seconds plus one batch (its render, merge and the
+final fold)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from api_tests.cluster import Cluster, finished, merged_passes
-from api_tests.test_jobs import _decode
+from api_tests.helpers import decode_image
 from service.models import MAX_SERVICE_PIXELS
 from worker.store import Jobs
 
@@ -56,7 +57,7 @@ def test_a_3840x2160_job_completes_with_exact_totals(tmp_path: Path) -> None:
         assert _bytes_per_pixel(c, job["id"], "pending") == 0.0
         resp = c.http.get(job["links"]["image_exr"])
         assert resp.status_code == 200 and resp.headers["x-passes"] == str(PASSES)
-        rgb = _decode(resp.content, ".exr")
+        rgb = decode_image(resp.content, ".exr")
         assert rgb.shape == (H, W, 3) and np.isfinite(rgb).all() and rgb.mean() > 0.0
     finally:
         c.close()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from api_tests.cluster import Cluster, finished
-from api_tests.test_jobs import _decode
+from api_tests.helpers import decode_image
 
 
 def _furnace_variant(cluster: Cluster, dark: str) -> dict:
@@ -30,7 +30,7 @@ def test_black_scene_ends_with_a_black_image_and_a_defined_error(cluster: Cluste
     done = cluster.wait(job["id"], finished, timeout=60)
     assert done["status"] == "completed" and done["passes"] == 6, done  # the threshold cannot be met
     assert done["error_estimate"]["error"] == 1.0  # nothing was ever lit: the error is unknown, 100%
-    rgb = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
+    rgb = decode_image(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
     assert np.all(np.isfinite(rgb)) and rgb.max() == 0.0
     err = cluster.http.get(job["links"]["error_exr"])
     assert err.status_code == 200 and err.headers["x-average-relative-error"] == "1"
@@ -42,5 +42,5 @@ def test_a_scene_of_nothing_renders_black_with_every_method(cluster: Cluster, me
                          settings={"method": method, "max_passes": 2, "photons_per_pass": 1 << 10})
     done = cluster.wait(job["id"], finished, timeout=60)
     assert done["status"] == "completed" and done["passes"] == 2, done
-    rgb = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
+    rgb = decode_image(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
     assert np.all(np.isfinite(rgb)) and rgb.max() == 0.0

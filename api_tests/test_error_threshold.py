@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from api_tests.cluster import Cluster, finished
-from api_tests.test_jobs import _decode
+from api_tests.helpers import decode_image
 from tests.analytic import FURNACE_L, point_plane
 from worker.error_estimate import FLOOR_FRACTION, LUMINANCE
 from worker.image_io import read_channels
@@ -37,7 +37,7 @@ def test_job_converges_and_its_actual_error_is_below_the_threshold(cluster: Clus
     history = done["error_history"]
     assert [h["passes"] for h in history] == sorted(h["passes"] for h in history)
     assert history[-1]["passes"] == done["passes"] and history[0]["error"] > threshold
-    est = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr").reshape(-1, 3) @ LUMINANCE
+    est = decode_image(cluster.http.get(job["links"]["image_exr"]).content, ".exr").reshape(-1, 3) @ LUMINANCE
     truth = _truth(scene)
     floor = FLOOR_FRACTION * truth.mean()  # the same policy the estimate uses
     actual = np.mean(np.abs(est - truth) / np.maximum(truth, floor))
@@ -51,7 +51,7 @@ def test_error_map_png_and_exr(cluster: Cluster) -> None:
     done = cluster.wait(job["id"], finished)
     png = cluster.http.get(job["links"]["error_png"])
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
-    colours = _decode(png.content, ".png")
+    colours = decode_image(png.content, ".png")
     assert colours.shape == (30, 40, 3) and colours.std() > 0.0
     exr = cluster.http.get(job["links"]["error_exr"])
     with tempfile.TemporaryDirectory() as tmp:

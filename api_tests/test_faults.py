@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from api_tests.cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster
+from api_tests.helpers import assert_exact
 from worker.store import Batch, Jobs, Leases, keys
 
 P = 1 << 16
@@ -31,13 +32,6 @@ def faulty(tmp_path, request) -> Cluster:  # noqa: ANN001 - a fresh cluster per 
 def _long_job(c: Cluster, method: str) -> dict:
     return c.submit(scene_name="cornell-box", settings={"method": method, "max_passes": PASSES, "photons_per_pass": P,
                                                         "resolution": [96, 96], "seed": 9})
-
-
-def _assert_exact(c: Cluster, job_id: str) -> None:
-    done = c.wait(job_id, finished, timeout=180)
-    assert done["status"] == "completed", done
-    assert done["passes"] == PASSES and done["photons"] == PASSES * P, done
-    assert merged_passes(c.redis_client, job_id) == list(range(PASSES))  # each pass once, none lost
 
 
 def _worker_holding_a_lease(c: Cluster, job_id: str, timeout: float = 30.0) -> int:
@@ -65,7 +59,7 @@ def test_worker_killed_mid_batch(faulty: Cluster, method: str) -> None:
     faulty.workers[victim].wait()
     passes_then = faulty.job(job["id"])["passes"]
     assert passes_then < PASSES, "the job finished before the kill: make it longer"
-    _assert_exact(faulty, job["id"])
+    assert_exact(faulty, job["id"], PASSES, P, timeout=180)
 
 
 @METHODS
@@ -75,7 +69,7 @@ def test_api_restart(faulty: Cluster, method: str) -> None:
     faulty.kill_api()
     time.sleep(1.0)  # workers keep rendering and feeding the job without the API
     faulty.start_api()
-    _assert_exact(faulty, job["id"])
+    assert_exact(faulty, job["id"], PASSES, P, timeout=180)
 
 
 @METHODS
@@ -87,7 +81,7 @@ def test_redis_restart(faulty: Cluster, method: str) -> None:
         faulty.restart_redis(server)
     after = faulty.wait(job["id"], lambda j: True)
     assert after["passes"] >= before  # nothing merged was lost (append-only file, fsync always)
-    _assert_exact(faulty, job["id"])
+    assert_exact(faulty, job["id"], PASSES, P, timeout=180)
 
 
 @METHODS
@@ -107,7 +101,7 @@ def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: st
     for server in faulty.shards or [faulty.redis]:  # every node that holds the job's state
         faulty.restart_redis(server)
     faulty.start_api()
-    _assert_exact(faulty, job["id"])
+    assert_exact(faulty, job["id"], PASSES, P, timeout=180)
     logs = "".join((faulty.data_dir / f"{name}.log").read_text(errors="replace") for name in ("api", "workers"))
     assert "deltas lost by a state node's restart" in logs
 
@@ -126,7 +120,7 @@ def test_redis_down_while_workers_render(tmp_path) -> None:  # noqa: ANN001
         c.redis.proc.wait()
         time.sleep(3.0)
         c.redis.start(supervise=False)
-        _assert_exact(c, job["id"])
+        assert_exact(c, job["id"], PASSES, P, timeout=180)
         assert all(proc.poll() is None for proc in c.workers), "a worker process exited"
     finally:
         c.close()
@@ -167,7 +161,7 @@ def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path) -> No
             time.sleep(8.0)  # the batch's last passes, then its push waits: 8 leases, 4 looks of the reaper
         finally:
             node.send_signal(signal.SIGCONT)
-        _assert_exact(c, job["id"])
+        assert_exact(c, job["id"], PASSES, P, timeout=180)
         api_log = (c.data_dir / "api.log").read_text()
         assert "re-issued lost batches" not in api_log
     finally:

@@ -9,7 +9,7 @@ import json
 import numpy as np
 
 from api_tests.cluster import Cluster, finished, merged_passes
-from api_tests.test_jobs import _decode
+from api_tests.helpers import decode_image
 from tests.analytic import FURNACE_L
 from worker.error_estimate import FLOOR_FRACTION, LUMINANCE
 from worker.scene import bundled_scene_path
@@ -23,7 +23,7 @@ def test_vcm_job_merges_every_pass_once(cluster: Cluster) -> None:
     assert done["status"] == "completed", done
     assert done["passes"] == 24 and done["photons"] == 24 * p
     assert merged_passes(cluster.redis_client, job["id"]) == list(range(24))
-    rgb = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
+    rgb = decode_image(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
     assert rgb.shape == (64, 64, 3)
     assert abs(rgb.mean() / FURNACE_L - 1.0) < 0.02, rgb.mean()
     assert 0.0 < done["error_estimate"]["error"] < 1.0
@@ -41,7 +41,7 @@ def test_vcm_threshold_job_converges_below_its_threshold(cluster: Cluster) -> No
     passes = merged_passes(cluster.redis_client, job["id"])
     assert sorted(set(passes)) == passes and len(passes) == done["passes"]
     assert done["photons"] == done["passes"] * 4096
-    lum = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr").reshape(-1, 3) @ LUMINANCE
+    lum = decode_image(cluster.http.get(job["links"]["image_exr"]).content, ".exr").reshape(-1, 3) @ LUMINANCE
     actual = np.mean(np.abs(lum - FURNACE_L) / np.maximum(FURNACE_L, FLOOR_FRACTION * FURNACE_L))
     assert actual <= threshold, (actual, done["error_estimate"])
 

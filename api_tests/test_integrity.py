@@ -1,6 +1,7 @@
 """Service integrity where fault, fuzz and load testing broke it (issue 10): each test
 fails on the code before the fix. Real Redis, real workers, real HTTP; where a job is
-involved, exact pass and photon totals (every merged pass exactly once)."""
+involved, exact pass and photon totals (every merged pass exactly once). The store-only
+half is tests/test_store_integrity.py."""
 
 from __future__ import annotations
 
@@ -9,16 +10,13 @@ import time
 from pathlib import Path
 
 import httpx
-import redis
 from rq import Worker
 
-from api_tests.cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster
+from api_tests.helpers import assert_exact
 from service.models import MAX_ACTIVE_JOBS
-from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.scheduler import QUEUE_NAMES
-from worker.settings import Settings
-from worker.store import Batch, Jobs, Status, keys
-from worker.store.policy import DELIVERY_SECONDS
+from worker.store import Jobs
 
 P = 1 << 12
 
@@ -26,14 +24,6 @@ P = 1 << 12
 def _small_job(c: Cluster, passes: int = 4, **settings: object) -> dict:
     return c.submit(scene_name="furnace", settings={"max_passes": passes, "photons_per_pass": P,
                                                      "resolution": [16, 16], **settings})
-
-
-def _assert_exact(c: Cluster, job_id: str, passes: int, photons: int = P, timeout: float = 120.0) -> dict:
-    done = c.wait(job_id, finished, timeout=timeout)
-    assert done["status"] == "completed", done
-    assert done["passes"] == passes and done["photons"] == passes * photons, done
-    assert merged_passes(c.redis_client, job_id) == list(range(passes))
-    return done
 
 
 def test_a_batch_dequeued_by_a_worker_that_died_is_reissued(tmp_path: Path) -> None:
@@ -49,7 +39,7 @@ def test_a_batch_dequeued_by_a_worker_that_died_is_reissued(tmp_path: Path) -> N
         taken = r.lpop(queue)  # the dying worker's dequeue
         assert taken is not None and r.llen(queue) == 0
         c.start_worker()
-        _assert_exact(c, job["id"], 2, timeout=90)
+        assert_exact(c, job["id"], 2, P, timeout=90)
     finally:
         c.close()
 
@@ -65,7 +55,8 @@ def test_dead_workers_do_not_count_as_capacity(tmp_path: Path) -> None:
         c.workers[0].kill()
         c.workers[0].wait()
         deadline = time.time() + 40  # ALIVE_SECONDS is 3 leases (12 s here), then a reap
-        while time.time() < deadline and (jobs.leases.live_workers() != 1 or Worker.count(connection=c.redis_client) != 1):
+        while time.time() < deadline and (jobs.leases.live_workers() != 1
+                                          or Worker.count(connection=c.redis_client) != 1):
             time.sleep(0.5)
         assert jobs.leases.live_workers() == 1
         assert Worker.count(connection=c.redis_client) == 1  # its RQ registration is gone too
@@ -73,39 +64,6 @@ def test_dead_workers_do_not_count_as_capacity(tmp_path: Path) -> None:
         assert [w["pid"] for w in alive] == [c.workers[1].pid]
     finally:
         c.close()
-
-
-def test_a_cancel_between_a_merges_read_and_write_is_kept(redis_url: str) -> None:
-    """The cancel lands while a merge holds its read record (white box: the acceptance's
-    read triggers it). The merge must retry and see it, not write 'running' back."""
-    conn = redis.Redis.from_url(redis_url)
-    parsed, base = load_scene_file(bundled_scene_path("furnace"))
-    settings = Settings(max_passes=100, photons_per_pass=P, resolution=(8, 8))
-    jobs = Jobs(conn)
-    job_id = jobs.create(inline_meshes(parsed, base), settings, 8, 8, "furnace")
-    batch = jobs.allocate(job_id)
-    assert jobs.start(batch, "w1")  # a worker holds it: the cancel cannot just drop it
-    record = jobs.get(job_id)
-    jobs.init_setup(record, {"R0": [0.1] * 64})
-    integrator = record.integrator
-    delta_sums = {name: integrator.sums.zeros(64, name) for name in integrator.sums.names}
-    from worker.integrators.base import Delta
-
-    class CancelledMidMerge(Jobs):
-        fired = False
-
-        def _read(self, pipe, job):  # noqa: ANN001, ANN202 - the acceptance's read, before its write
-            record = super()._read(pipe, job)
-            if not CancelledMidMerge.fired:
-                CancelledMidMerge.fired = True
-                Jobs(conn).cancel(job)
-            return record
-
-    outcome = CancelledMidMerge(conn).merge(batch, Delta(batch.first, batch.n, batch.n * P, delta_sums), 0.1)
-    assert CancelledMidMerge.fired and outcome == "merged"
-    done = jobs.get(job_id)
-    assert done.status == Status.CANCELLED, done.status
-    assert done.passes == batch.n and done.emitted == batch.n * P
 
 
 def test_a_queued_job_cancels_at_once_and_renders_nothing(tmp_path: Path) -> None:
@@ -133,8 +91,8 @@ def test_concurrent_submits_respect_the_active_job_limit(tmp_path: Path) -> None
         def post() -> None:
             with httpx.Client(base_url=str(c.http.base_url), timeout=60) as h:
                 gate.wait()
-                codes.append(h.post("/v1/jobs", json={"scene_name": "furnace",
-                                                      "settings": {"max_seconds": 60, "photons_per_pass": P}}).status_code)
+                settings = {"max_seconds": 60, "photons_per_pass": P}
+                codes.append(h.post("/v1/jobs", json={"scene_name": "furnace", "settings": settings}).status_code)
 
         threads = [threading.Thread(target=post) for _ in range(24)]
         for t in threads:
@@ -155,7 +113,7 @@ def test_a_pass_longer_than_the_lease_keeps_its_lease(tmp_path: Path) -> None:
         photons = 1 << 20
         job = c.submit(scene_name="cornell-caustics", settings={"max_passes": 2, "photons_per_pass": photons,
                                                                 "resolution": [64, 64]})
-        done = _assert_exact(c, job["id"], 2, photons=photons, timeout=300)
+        done = assert_exact(c, job["id"], 2, photons, timeout=300)
         record = Jobs(c.redis_client).get(job["id"])
         assert record.render_seconds / 2 > 1.0, "passes were not longer than the lease: the test proves nothing"
         log = (tmp_path / "api.log").read_text() + (tmp_path / "workers.log").read_text()
@@ -171,7 +129,7 @@ def test_finished_jobs_expire_and_can_be_deleted(tmp_path: Path) -> None:
     try:
         kept, deleted = _small_job(c, passes=2), _small_job(c, passes=2)
         for job in (kept, deleted):
-            _assert_exact(c, job["id"], 2)
+            assert_exact(c, job["id"], 2, P)
         assert c.http.delete(f"/v1/jobs/{deleted['id']}").status_code == 204
         assert c.http.get(f"/v1/jobs/{deleted['id']}").status_code == 404
         assert not c.redis_client.keys(f"pf:job:{deleted['id']}*")
@@ -203,17 +161,6 @@ def test_jobs_are_listed_a_page_at_a_time(tmp_path: Path) -> None:
         c.close()
 
 
-def test_batches_of_an_unknown_job_are_not_rendered(redis_url: str) -> None:
-    """A batch whose job was deleted while it waited is skipped, not rendered."""
-    jobs = Jobs(redis.Redis.from_url(redis_url))
-    job_id = jobs.create({}, Settings(max_passes=2), 8, 8, None)
-    batch = jobs.allocate(job_id)
-    jobs.delete(job_id)
-    assert not jobs.start(batch, "w1")
-    assert not jobs.r.keys(keys.job(job_id) + "*")
-    assert isinstance(batch, Batch)
-
-
 def test_a_full_job_store_answers_507_not_500(tmp_path: Path) -> None:
     """Redis runs with a memory cap and no eviction (a job's state is never dropped): once
     full it refuses writes, and the API says so. A cap below what an empty Redis uses makes
@@ -226,25 +173,3 @@ def test_a_full_job_store_answers_507_not_500(tmp_path: Path) -> None:
         assert c.http.get("/healthz").status_code == 200
     finally:
         c.close()
-
-
-def test_batches_allocated_together_are_due_one_refresh_after_another(redis_url: str) -> None:
-    """Each allocation records when its batch is due; the next one, told, ends at most
-    DELIVERY_SECONDS after it (policy.batch_passes), not together with it. A merged or
-    dropped batch is no longer due."""
-    conn = redis.Redis.from_url(redis_url)
-    parsed, base = load_scene_file(bundled_scene_path("furnace"))
-    jobs = Jobs(conn)
-    job_id = jobs.create(inline_meshes(parsed, base), Settings(photons_per_pass=P, resolution=(8, 8)), 8, 8,
-                         "furnace")
-    conn.hset(keys.job(job_id), mapping={"merge_seconds": 1.0, "merges": 1, "fold_rounds": "[[1, 1.0]]"})
-    first = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
-    second = jobs.allocate(job_id, pass_seconds=1.0, workers=2)
-    assert first is not None and second is not None
-    due = dict(conn.zrange(keys.due(job_id), 0, -1, withscores=True))
-    at_first, at_second = due[first.id.encode()], due[second.id.encode()]
-    assert at_first - time.time() <= DELIVERY_SECONDS
-    assert 0.0 < at_second - at_first <= DELIVERY_SECONDS + 0.5
-    assert second.n > first.n  # longer: its delivery falls between the first worker's
-    jobs.drop(first)
-    assert conn.zrange(keys.due(job_id), 0, -1) == [second.id.encode()]

@@ -2,27 +2,17 @@
 
 from __future__ import annotations
 
-import math
-import tempfile
 import threading
+from itertools import pairwise
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 
 from api_tests.cluster import Cluster, finished, merged_passes
+from api_tests.helpers import decode_image
 from service.models import MAX_ACTIVE_JOBS, MAX_BODY_BYTES, MAX_SERVICE_PHOTONS_PER_PASS
-from worker.image_io import read_image
-
-FURNACE_L = 0.5 * 4.0 * math.pi / (4.0 * math.pi ** 2 * (1.0 - 0.5))
-
-
-def _decode(data: bytes, suffix: str) -> np.ndarray:
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / f"x{suffix}"
-        path.write_bytes(data)
-        return read_image(path)
+from tests.analytic import FURNACE_L
 
 
 def test_submit_poll_and_fetch_images(cluster: Cluster) -> None:
@@ -38,13 +28,13 @@ def test_submit_poll_and_fetch_images(cluster: Cluster) -> None:
 
     exr = cluster.http.get(job["links"]["image_exr"])
     assert exr.status_code == 200 and exr.headers["content-type"] == "image/x-exr"
-    rgb = _decode(exr.content, ".exr")
+    rgb = decode_image(exr.content, ".exr")
     assert rgb.shape == (64, 64, 3)
     assert abs(rgb.mean() / FURNACE_L - 1.0) < 0.02, rgb.mean()
 
     png = cluster.http.get(job["links"]["image_png"])
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
-    pixels = _decode(png.content, ".png")
+    pixels = decode_image(png.content, ".png")
     assert pixels.shape == (64, 64, 3) and 0.2 < pixels.mean() < 0.9  # a lit, not saturated, image
 
     listed = cluster.http.get("/v1/jobs").json()
@@ -82,7 +72,7 @@ def test_images_read_while_rounds_fold_follow_the_passes(cluster: Cluster) -> No
     assert done["status"] == "completed" and not bad, (done, bad)
     assert cluster.http.get(job["links"]["image_png"]).headers["X-Passes"] == str(passes)
     for reads in seen:
-        assert reads and all(a <= b for a, b in zip(reads, reads[1:])), reads
+        assert reads and all(a <= b for a, b in pairwise(reads)), reads
     assert len(set(seen[0])) >= 2  # the reads spanned rounds
 
 
@@ -110,7 +100,7 @@ def test_cancel_stops_quickly_and_keeps_the_image(cluster: Cluster) -> None:
     assert done["status"] == "cancelled"
     assert done["photons"] == done["passes"] * p
     assert sorted(set(merged_passes(cluster.redis_client, job["id"]))) == merged_passes(cluster.redis_client, job["id"])
-    rgb = _decode(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
+    rgb = decode_image(cluster.http.get(job["links"]["image_exr"]).content, ".exr")
     assert rgb.mean() > 0.0  # the image of the merged passes is kept
     # a finished job is deleted, state and images with it
     assert cluster.http.delete(f"/v1/jobs/{job['id']}").status_code == 204

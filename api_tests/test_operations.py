@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from api_tests.cluster import Cluster, finished
-from api_tests.test_jobs import FURNACE_L
+from tests.analytic import FURNACE_L
 from worker.image_io import read_image
+from worker.scheduler import QUEUE_NAMES
 
 PHOTONFARM = [sys.executable, "-m", "service.cli"]
 
@@ -34,7 +35,7 @@ def test_metrics_workers_and_logs(cluster: Cluster) -> None:
     assert _metric(text, "photonfarm_merge_latency_seconds_count") >= 1
     assert _metric(text, "photonfarm_merge_latency_seconds_sum") > 0
     assert 0 <= _metric(text, "photonfarm_image_age_seconds") <= 60
-    assert _metric(text, "photonfarm_queue_depth", '{queue="photonfarm-normal"}') >= 0
+    assert _metric(text, "photonfarm_queue_depth", '{queue="photonfarm-normal"}') == 0  # nothing left waiting
     assert _metric(text, "photonfarm_workers_alive") == len(cluster.workers)
 
     workers = cluster.http.get("/v1/workers").json()
@@ -47,6 +48,23 @@ def test_metrics_workers_and_logs(cluster: Cluster) -> None:
     done = [entry for entry in lines if entry.get("job") == job["id"] and entry["msg"] == "batch done"]
     assert done and all({"batch", "worker", "outcome", "seconds", "ts", "level"} <= set(e) for e in done)
     assert {e["outcome"] for e in done} <= {"merged", "duplicate", "inactive"}
+
+
+def test_queue_depth_counts_waiting_batches(tmp_path: Path) -> None:
+    """With no worker, a submitted job's batch waits in its priority's queue (one batch:
+    scheduler.target_inflight with no live worker), none in the others; a worker then
+    takes it and the job's later batches, and the queue is empty once the job is done."""
+    c = Cluster(tmp_path, workers=0)
+    try:
+        job = c.submit(scene_name="furnace", settings={"max_passes": 4, "photons_per_pass": 1 << 13})
+        text = c.http.get("/metrics").text
+        for name in QUEUE_NAMES:
+            assert _metric(text, "photonfarm_queue_depth", f'{{queue="{name}"}}') == (name == "photonfarm-normal"), name
+        c.start_worker()
+        assert c.wait(job["id"], finished)["status"] == "completed"
+        assert _metric(c.http.get("/metrics").text, "photonfarm_queue_depth", '{queue="photonfarm-normal"}') == 0
+    finally:
+        c.close()
 
 
 def test_submit_watch_writes_the_final_image(cluster: Cluster, tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from api_tests.cluster import Cluster, finished, merged_passes
-from api_tests.test_jobs import _decode
+from api_tests.helpers import decode_image
 
 
 def _ip(*args: str) -> None:
@@ -61,7 +61,7 @@ def test_worker_in_another_network_namespace(remote_host: tuple[str, str], tmp_p
         names = [w.decode() for w in c.redis_client.smembers("rq:workers")]
         assert any(f".{worker.pid}." in n for n in names), names  # the namespaced worker did it
         rho, phi = 0.6, 4 * math.pi
-        mean = _decode(c.http.get(job["links"]["image_exr"]).content, ".exr").mean()
+        mean = decode_image(c.http.get(job["links"]["image_exr"]).content, ".exr").mean()
         assert abs(mean / (rho * phi / (4 * math.pi ** 2 * (1 - rho))) - 1) < 0.03, mean
     finally:
         c.close()

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import signal
 import stat
 import subprocess
@@ -25,7 +24,8 @@ import redis
 from rq import Queue
 from rq.serializers import JSONSerializer
 
-from api_tests.cluster import Cluster, finished, merged_passes
+from api_tests.cluster import Cluster, finished
+from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, assert_exact
 from service.redis_server import DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
 from worker.scheduler import QUEUE_NAMES
 
@@ -42,13 +42,6 @@ def secured(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
 
 def _furnace(c: Cluster) -> dict:
     return c.http.get("/v1/scenes/furnace").json()
-
-
-def _assert_exact(c: Cluster, job_id: str, passes: int) -> None:
-    done = c.wait(job_id, finished, timeout=120)
-    assert done["status"] == "completed", done
-    assert done["passes"] == passes and done["photons"] == passes * P, done
-    assert merged_passes(c.redis_client, job_id) == list(range(passes))
 
 
 def _names_field(resp: httpx.Response, *loc: str | int) -> None:
@@ -68,7 +61,7 @@ def test_scene_name_is_never_a_path(secured: Cluster, tmp_path: Path) -> None:
     assert secured.http.get("/v1/scenes/no-such-scene").status_code == 404
     _names_field(secured.http.get("/v1/scenes/" + "a" * 300), "path", "name")
     job = secured.submit(scene_name="furnace", settings={"max_passes": 3, "photons_per_pass": P})
-    _assert_exact(secured, job["id"], 3)  # a bundled name still renders
+    assert_exact(secured, job["id"], 3, P)  # a bundled name still renders
 
 
 def test_mesh_file_names_the_file_system_refuses_are_422(secured: Cluster) -> None:
@@ -127,16 +120,13 @@ def test_docs_load_from_the_service_alone(secured: Cluster) -> None:
             assert resp.status_code == 200 and len(resp.content) > 1000, asset
     assert any(a.endswith(".css") for a in re.findall(r'href="([^"]+)"', httpx.get(f"{base}/docs").text))
 
-    chromium = shutil.which("chromium")
-    if chromium is None:
+    if CHROMIUM is None:
         pytest.skip("Debian's chromium is not installed here (.ci/run installs it): the browser half is skipped")
     from playwright.sync_api import sync_playwright
 
-    from api_tests.test_web_viewer import FLAGS
-
     requested: list[str] = []
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium, args=FLAGS)
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
         page = browser.new_page()
         page.on("request", lambda req: requested.append(req.url))
         page.goto(f"{base}/docs")
@@ -166,7 +156,7 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
         payloads = [p for p in (r.hget(k, "data") for k in r.scan_iter("rq:job:pf-*")) if p]
         time.sleep(0.05)
     assert payloads and all(json.loads(zlib.decompress(p))[0] == "worker.tasks.run_batch" for p in payloads)
-    _assert_exact(secured, job["id"], 40)
+    assert_exact(secured, job["id"], 40, P)
 
     # private files: directory 0700, password and append-only file 0600, owner only
     data = secured.redis.data_dir
@@ -197,7 +187,7 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     assert not marker.exists() and not other.exists()
     assert all(proc.poll() is None for proc in secured.workers)  # the workers survived both
     job = secured.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P})
-    _assert_exact(secured, job["id"], 2)
+    assert_exact(secured, job["id"], 2, P)
 
 
 def test_password_is_kept_across_restarts_of_a_data_dir(tmp_path: Path) -> None:
@@ -293,7 +283,7 @@ def test_serve_takes_every_child_with_it(how: str, tmp_path: Path) -> None:
 def test_repeated_image_reads_are_served_from_memory(secured: Cluster) -> None:
     job = secured.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P,
                                                          "resolution": [512, 512]})
-    _assert_exact(secured, job["id"], 2)
+    assert_exact(secured, job["id"], 2, P)
     url = job["links"]["image_png"]
     t0 = time.perf_counter()
     first = secured.http.get(url)  # reads the job's state (512 x 512 pixels) and encodes it
@@ -320,7 +310,7 @@ def test_cached_images_follow_every_merge(secured: Cluster) -> None:
     assert "60" in seen and len(seen) > 1, sorted(seen)
     assert all(len(images) == 1 for images in seen.values())  # one image per merge count
     assert len(set().union(*seen.values())) == len(seen)  # a new merge, a new image
-    _assert_exact(secured, job["id"], 60)
+    assert_exact(secured, job["id"], 60, P)
 
 
 def test_metrics_scrapes_do_not_each_read_every_job(secured: Cluster) -> None:

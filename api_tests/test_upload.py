@@ -21,6 +21,7 @@ import httpx
 import pytest
 
 from api_tests.cluster import Cluster, finished
+from api_tests.helpers import zip_bytes
 from service.upload import MAX_UPLOAD_BYTES, MAX_UPLOAD_FILES
 from worker.scene import SCENES_DIR
 
@@ -38,14 +39,6 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     c.close()
 
 
-def _zip(entries: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for name, data in entries.items():
-            z.writestr(name, data)
-    return buf.getvalue()
-
-
 def _zip_link(name: str, target: str) -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
@@ -57,7 +50,7 @@ def _zip_link(name: str, target: str) -> bytes:
 
 def _encrypted_zip(name: str, data: bytes) -> bytes:
     """A zip whose member says it is encrypted (flag bit 0): no password is ever sent."""
-    raw = bytearray(_zip({name: data}))
+    raw = bytearray(zip_bytes({name: data}))
     for signature, flags_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):  # local and central headers
         raw[raw.index(signature) + flags_at] |= 0x1
     return bytes(raw)
@@ -105,7 +98,7 @@ def test_mitsuba_xml_with_its_ply_renders_to_the_exact_totals(cluster: Cluster, 
     if form == "files":
         resp = _upload(cluster, "ply-mesh.xml", files=entries)
     elif form == "zip":
-        resp = _upload(cluster, "ply-mesh.xml", archive=("scene.zip", _zip(entries)))
+        resp = _upload(cluster, "ply-mesh.xml", archive=("scene.zip", zip_bytes(entries)))
     else:
         dot = form == "tar.gz of ./"
         archive = _tar({f"./{name}" if dot else name: data for name, data in entries.items()}, top=dot)
@@ -145,12 +138,13 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
                            "unknown bsdf plugin 'hair'"),
         "missing mesh": ({"files": {"s.xml": missing, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
                          "'meshes/none.ply' not found"),
-        "broken PLY": ({"scene": "ply-mesh.xml", "files": {"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(), "room.xml": room,
-                                  "meshes/icosphere.ply": ply[:300]}}, 422, ["body", "scene", "ply-mesh.xml"],
+        "broken PLY": ({"scene": "ply-mesh.xml", "files": {"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(),
+                                                            "room.xml": room, "meshes/icosphere.ply": ply[:300]}},
+                       422, ["body", "scene", "ply-mesh.xml"],
                        "icosphere.ply"),
         "mesh path outside the upload": ({"files": {"s.xml": outside, "room.xml": room}}, 422,
                                          ["body", "scene", "s.xml"], "leaves the scene's directory"),
-        "archive entry with ..": ({"archive": ("a.zip", _zip({"s.xml": hair, "../evil.ply": ply}))}, 422,
+        "archive entry with ..": ({"archive": ("a.zip", zip_bytes({"s.xml": hair, "../evil.ply": ply}))}, 422,
                                   ["body", "archive"], "outside the upload"),
         "archive folder ..": ({"archive": ("a.tar.gz", _tar({"s.xml": hair}, folders=["../"]))}, 422,
                               ["body", "archive"], "outside the upload"),

@@ -3,33 +3,30 @@ Python package; no browser is downloaded), against a real cluster: its start sta
 settings form (every JobSettings field), a job that converges with a live image and ticked,
 labelled charts, the exposure control, 1:1 zoom with the pixel readout, ETA, the worker
 list, cancel, delete, the paged job list, scene upload, and the layout at 800 px wide.
-Screenshots of each state go to bench/viewer/ (linked from the README)."""
+Screenshots of each state go to out/viewer/ (git-ignored, made anew by each run)."""
 
 from __future__ import annotations
 
 import json
 import math
 import re
-import shutil
 from collections.abc import Iterator
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from api_tests.test_upload import _zip
+from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, zip_bytes
 from service.client import eta_seconds
 from service.models import JobSettings
 from worker.image_io import read_channels
 from worker.scene import SCENES_DIR
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = pytest.mark.skipif(shutil.which("chromium") is None,
+pytestmark = pytest.mark.skipif(CHROMIUM is None,
                                 reason="Debian's chromium is not installed here (.ci/run installs it)")
-FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-         "--disable-component-update", "--disable-sync"]
-SHOTS = Path(__file__).resolve().parent.parent / "bench" / "viewer"
+SHOTS = Path(__file__).resolve().parent.parent / "out" / "viewer"  # git-ignored: a run leaves the tree clean
 MITSUBA = SCENES_DIR / "mitsuba"
 WIDE = {"width": 1400, "height": 1000}
 
@@ -40,7 +37,7 @@ def page(cluster) -> Iterator:  # noqa: ANN001
 
     SHOTS.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
         pg = browser.new_page(viewport=WIDE, device_scale_factor=1)
         pg.goto(str(cluster.http.base_url) + "/")
         pg.wait_for_selector("#scene option", state="attached")
@@ -160,7 +157,7 @@ def test_chart_axes_have_ticks_labels_and_a_labelled_threshold(page) -> None:  #
     """On the converged job above (threshold 10%)."""
     for chart, label in (("#chart-time", "seconds"), ("#chart-passes", "passes")):
         xs = [float(t) for t in page.eval_on_selector_all(f"{chart} text.xtick", "els => els.map(e => e.textContent)")]
-        assert len(xs) >= 3 and xs[0] == 0 and all(b > a for a, b in zip(xs, xs[1:])), xs
+        assert len(xs) >= 3 and xs[0] == 0 and all(b > a for a, b in pairwise(xs)), xs
         last = max(float(c) for c in page.eval_on_selector_all(
             f"{chart} circle.pt", "els => els.map(e => e.getAttribute('cx'))"))
         assert last <= float(page.get_attribute(f"{chart} line.axis", "x2")) + 1e-6  # every point on the axis
@@ -278,8 +275,9 @@ def test_workers_eta_and_cancel_from_the_page(page, cluster) -> None:  # noqa: A
     # a worker shows the job it renders, with the batch
     page.wait_for_function(f"[...document.querySelectorAll('#workers td.job')].some(e => e.textContent === '{short}')",
                            timeout=30_000)
-    batch = page.eval_on_selector_all("#workers tr", f"rows => rows.filter(r => r.querySelector('td.job')?.textContent"
-                                                     f" === '{short}').map(r => r.querySelector('td.batch').textContent)")
+    batch = page.eval_on_selector_all("#workers tr",
+                                      f"rows => rows.filter(r => r.querySelector('td.job')?.textContent"
+                                      f" === '{short}').map(r => r.querySelector('td.batch').textContent)")
     assert batch and batch[0] != "-"
     # ETA from the 300 s budget: between 0 and 300 s, and what the client says of the same view
     assert page.text_content("#status") == "running", page.text_content("#facts")
@@ -301,7 +299,8 @@ def test_delete_a_finished_job(page, cluster) -> None:  # noqa: ANN001
     page.click("#delete")
     page.wait_for_selector("#placeholder", state="visible", timeout=10_000)
     assert cluster.http.get(f"/v1/jobs/{job_id}").status_code == 404
-    page.wait_for_function(f"![...document.querySelectorAll('#jobs tr[data-id]')].some(r => r.dataset.id === '{job_id}')")
+    page.wait_for_function("![...document.querySelectorAll('#jobs tr[data-id]')]"
+                           f".some(r => r.dataset.id === '{job_id}')")
 
 
 def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
@@ -325,9 +324,10 @@ def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
 
 
 def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> None:  # noqa: ANN001
-    archive = _zip({"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(), "room.xml": (MITSUBA / "room.xml").read_bytes(),
-                    "meshes/icosphere.ply": (MITSUBA / "meshes" / "icosphere.ply").read_bytes()})
-    page.set_input_files("#upload-files", files=[{"name": "scene.zip", "mimeType": "application/zip", "buffer": archive}])
+    archive = zip_bytes({name: (MITSUBA / name).read_bytes()
+                         for name in ("ply-mesh.xml", "room.xml", "meshes/icosphere.ply")})
+    page.set_input_files("#upload-files",
+                         files=[{"name": "scene.zip", "mimeType": "application/zip", "buffer": archive}])
     assert page.is_checked("input[name=source][value=upload]")  # choosing files picks the upload
     page.fill("#upload-scene", "ply-mesh.xml")
     for selector, value in {"#set-max_passes": "3", "#set-max_seconds": "", "#set-photons_per_pass": "4096",
@@ -363,7 +363,8 @@ def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> 
 def test_layout_holds_at_800px(page) -> None:  # noqa: ANN001
     page.set_viewport_size({"width": 800, "height": 1000})
     page.click("#jobs tr[data-id]")  # a job with an image
-    page.wait_for_function("!document.querySelector('#image').hidden && document.querySelector('#image').dataset.passes")
+    page.wait_for_function("!document.querySelector('#image').hidden"
+                           " && document.querySelector('#image').dataset.passes")
     page.wait_for_timeout(300)
     assert page.evaluate("document.documentElement.scrollWidth") <= 800
     outside = page.evaluate("""() => [...document.querySelectorAll('header, main, section, form, fieldset, table, '

@@ -1,9 +1,12 @@
-"""An embedded Redis (service/redis_server.py) holding some data, for the tests of what it
-does with its memory and files."""
+"""Real Redis servers for the tests (service/redis_server.py's embedded redis-server):
+several for sharded job state, one holding some data for the tests of what it does with
+its memory and files, and a restart by SIGKILL. No pytest here: api_tests/cluster.py, which
+the benchmarks use, imports restart."""
 
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -11,6 +14,24 @@ from pathlib import Path
 import redis
 
 from service.redis_server import EmbeddedRedis
+
+
+@contextmanager
+def redis_servers(base: Path, count: int) -> Iterator[list[EmbeddedRedis]]:
+    """`count` redis-servers in directories under `base`; stopped after."""
+    started = [EmbeddedRedis(base / f"redis{i}").start(supervise=False) for i in range(count)]
+    try:
+        yield started
+    finally:
+        for server in started:
+            server.stop()
+
+
+def restart(server: EmbeddedRedis) -> None:
+    """SIGKILL a redis-server, then start it again on the same port and data."""
+    server.proc.send_signal(signal.SIGKILL)
+    server.proc.wait()
+    server.start(supervise=False)
 
 
 class _Configured(EmbeddedRedis):

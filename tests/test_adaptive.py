@@ -199,7 +199,7 @@ def _inside_cut(cut: np.ndarray, n: np.ndarray, v: np.ndarray, r: float) -> bool
         return False
     cuts = [code / 255.0 * reach if code < 255 else reach for code in codes]
     angles = (phi0 + k * step, phi0 + (k + 1) * step)
-    p0, p1 = (q * r * np.array([math.cos(x), math.sin(x)]) for q, x in zip(cuts, angles))
+    p0, p1 = (q * r * np.array([math.cos(x), math.sin(x)]) for q, x in zip(cuts, angles, strict=True))
     e, w = p1 - p0, p - p0
     return e[0] * w[1] - e[1] * w[0] >= 0.0
 
@@ -234,7 +234,7 @@ def _visible_paths(eng, r: float) -> int:
             nn = nrm[near]
             ok = (nn @ incoming[i] > 0.0) & (nn @ normal[i] > math.cos(math.pi / 4))
             visible[i] = any(_inside_cut(cuts[j], nrm[j], ph_pos[i, :3] - pts[j], r)
-                             for j, good in zip(near, ok) if good)
+                             for j, good in zip(near, ok, strict=True) if good)
     return len(np.unique((ph_key[visible] >> np.uint64(12)) & np.uint64((1 << 24) - 1)))
 
 
@@ -396,12 +396,12 @@ def test_same_seed_same_image(make_engine, gather: str) -> None:
 
 
 def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> None:
-    from tests.test_cli import SMALL, run
+    from tests.helpers import SMALL, render_cli
     from worker.image_io import read_metadata
 
     out = tmp_path / "gap.exr"
-    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--target-acceptance", "0.3",
-               "--out", str(out))
+    proc = render_cli("gap", "--passes", "3", *SMALL, "--sampler", "adaptive", "--target-acceptance", "0.3",
+                      "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     meta = read_metadata(out)
     counters = json.loads(meta["counters"])
@@ -410,7 +410,7 @@ def test_cli_renders_adaptive_and_refuses_an_unknown_sampler(tmp_path: Path) -> 
     assert counters["draws"] == adaptive.sample_iterations(4096), counters  # pass 0's: it judges
     assert 0 < counters["visible"] < counters["draws"] and counters["mutations"] == 0, counters
     assert json.loads(meta["settings"])["sampler"] == "adaptive"
-    proc = run("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
+    proc = render_cli("gap", "--passes", "3", *SMALL, "--sampler", "mcmc", "--out", str(out))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert "invalid choice: 'mcmc'" in proc.stderr.strip().splitlines()[-1], proc.stderr
 

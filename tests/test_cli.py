@@ -8,24 +8,17 @@ import json
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
+from tests.helpers import PHOTONFARM, SMALL, render_cli
 from worker.image_io import read_channels, read_image, read_metadata
 from worker.queue_worker import BURST_PATIENCE_SECONDS
-
-PHOTONFARM = Path(sys.executable).parent / "photonfarm"
-SMALL = ["--resolution", "16x16", "--photons-per-pass", "4096"]
-
-
-def run(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([str(PHOTONFARM), "render", *args], capture_output=True, text=True, timeout=timeout)
 
 
 def test_missing_output_folders_are_created(tmp_path: Path) -> None:
     out = tmp_path / "out" / "deeper" / "cc.png"
-    proc = run("furnace", "--passes", "2", *SMALL, "--out", str(out))
+    proc = render_cli("furnace", "--passes", "2", *SMALL, "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     assert read_image(out).shape == (16, 16, 3)
 
@@ -34,7 +27,7 @@ def test_an_unwritable_output_is_one_line_before_rendering(tmp_path: Path) -> No
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     t0 = time.perf_counter()
-    proc = run("furnace", "--passes", "100000", *SMALL, "--out", str(blocker / "x.png"))
+    proc = render_cli("furnace", "--passes", "100000", *SMALL, "--out", str(blocker / "x.png"))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "cannot write" in proc.stderr, proc.stderr
     assert time.perf_counter() - t0 < 30  # it did not render 100000 passes first
@@ -44,7 +37,7 @@ def test_a_scene_file_of_another_kind_is_named_as_such(tmp_path: Path) -> None:
     """An existing file that is not .json or .xml is not looked up as a bundled scene's name."""
     other = tmp_path / "scene.txt"
     other.write_text("{}")
-    proc = run(str(other), "--passes", "1", *SMALL, "--out", str(tmp_path / "x.png"))
+    proc = render_cli(str(other), "--passes", "1", *SMALL, "--out", str(tmp_path / "x.png"))
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert ".json" in proc.stderr and "bundled" not in proc.stderr, proc.stderr
 
@@ -66,13 +59,13 @@ def test_ctrl_c_writes_the_image_so_far(tmp_path: Path) -> None:
 
 
 def test_no_progress_redraws_when_stderr_is_not_a_terminal(tmp_path: Path) -> None:
-    proc = run("furnace", "--passes", "3", *SMALL, "--out", str(tmp_path / "x.png"))
+    proc = render_cli("furnace", "--passes", "3", *SMALL, "--out", str(tmp_path / "x.png"))
     assert proc.returncode == 0 and "\r" not in proc.stderr, repr(proc.stderr)
 
 
 def test_exr_carries_metadata_and_error_layers(tmp_path: Path) -> None:
     out = tmp_path / "x.exr"
-    proc = run("furnace", "--passes", "4", *SMALL, "--seed", "5", "--out", str(out))
+    proc = render_cli("furnace", "--passes", "4", *SMALL, "--seed", "5", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     meta = read_metadata(out)
     assert meta["passes"] == "4" and meta["photons"] == str(4 * 4096) and meta["seed"] == "5"
@@ -105,8 +98,8 @@ def test_convert_and_render_a_mitsuba_scene_from_anywhere(tmp_path: Path) -> Non
 
     assert parse_scene(json.loads(out.read_text())).camera  # our JSON, meshes inlined
     image = tmp_path / "xml.png"
-    proc = run(str(Path(__file__).resolve().parent.parent / "scenes" / "mitsuba" / "ply-mesh.xml"), "--passes", "1",
-               *SMALL, "--out", str(image))
+    proc = render_cli(str(Path(__file__).resolve().parent.parent / "scenes" / "mitsuba" / "ply-mesh.xml"),
+                      "--passes", "1", *SMALL, "--out", str(image))
     assert proc.returncode == 0 and read_image(image).shape == (16, 16, 3), proc.stderr
     bad = tmp_path / "bad.xml"
     bad.write_text('<scene version="3.0.0">\n  <bsdf type="hair"/>\n</scene>\n')
@@ -138,5 +131,8 @@ def test_a_burst_worker_gives_up_on_a_redis_it_cannot_reach() -> None:
                           capture_output=True, text=True, timeout=BURST_PATIENCE_SECONDS + 40)
     took = time.monotonic() - start
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
-    assert "gives up" in proc.stderr.strip().splitlines()[-1], proc.stderr[-2000:]
+    # The heartbeat thread may log its own warning after the main loop's last line.
+    logged = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
+    errors = [e["msg"] for e in logged if e["level"] == "error"]
+    assert len(errors) == 1 and "gives up" in errors[0], proc.stderr[-2000:]
     assert BURST_PATIENCE_SECONDS <= took < BURST_PATIENCE_SECONDS + 30, took

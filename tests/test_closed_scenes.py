@@ -14,10 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.analytic import camera_rays, closed_sphere_scene, furnace_radiance
+from tests.analytic import closed_sphere_scene, furnace_radiance
 from tests.conftest import image, render
-from worker.engine import Engine
-from worker.image_io import read_image
+from tests.helpers import assert_corners_match_mitsuba
 
 POWER = 4.0 * math.pi
 # A fixed initial radius: the default probes the density at 8 pixel footprints, which at
@@ -58,40 +57,6 @@ def test_a_cap_of_16_bounces_loses_rho_to_the_16(make_engine, tmp_path) -> None:
                       max_bounces=16)
     mean = image(eng, render(eng, 16)).mean()
     assert mean / furnace_radiance(0.9, POWER) == pytest.approx(1.0 - 0.9 ** 16, abs=0.01)
-
-
-CORNELL_CORNERS = Path(__file__).resolve().parent.parent / "bench" / "reference" / "cornell-box-corners-96x96.exr"
-BOX = 555.0  # the Cornell box's walls: x = 0, x = BOX, y = 0, y = BOX, z = BOX (open at z = 0)
-
-
-def concave_corner_pixels(eng: Engine, band: float, sub: int = 4) -> np.ndarray:
-    """(H, W) mask of the pixels whose whole footprint (sub x sub rays) sees a wall within
-    `band` of a perpendicular wall: the Cornell box's concave corners."""
-    w, h = eng.arrays.width, eng.arrays.height
-    o, d = camera_rays(eng, sub)
-    walls = [(0, 0.0), (0, BOX), (1, 0.0), (1, BOX), (2, BOX)]
-    t_hit, wall_hit = np.full(d.shape[:2], np.inf), np.full(d.shape[:2], -1)
-    for k, (axis, c) in enumerate(walls):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (c - o[axis]) / d[..., axis]
-        inside = np.all(np.abs(o + t[..., None] * d - BOX / 2) <= BOX / 2 + 1e-3, axis=-1) & (t > 0) & (t < t_hit)
-        t_hit, wall_hit = np.where(inside, t, t_hit), np.where(inside, k, wall_hit)
-    p = o + t_hit[..., None] * d
-    gap = np.full(d.shape[:2], np.inf)
-    for k, (axis, c) in enumerate(walls):
-        gap = np.where(wall_hit != k, np.minimum(gap, np.abs(p[..., axis] - c)), gap)
-    return (np.isfinite(t_hit) & (gap < band)).reshape(h, sub, w, sub).all(axis=(1, 3))
-
-
-def assert_corners_match_mitsuba(eng: Engine, img: np.ndarray) -> None:
-    """A 96x96 cornell-box image's pixels within 10 and within 30 (of 555) of a concave
-    corner, per channel, within 3% of Mitsuba 3's path tracer (CORNELL_CORNERS)."""
-    ref = read_image(CORNELL_CORNERS)[..., :3]
-    for band in (10.0, 30.0):
-        corners = concave_corner_pixels(eng, band)
-        assert corners.sum() > 150
-        ratio = img[corners].mean(axis=0) / ref[corners].mean(axis=0)
-        np.testing.assert_array_less(np.abs(ratio - 1.0), 0.03, err_msg=f"band {band}: {ratio}")
 
 
 def test_cornell_box_corners_match_mitsuba(make_engine) -> None:

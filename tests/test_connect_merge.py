@@ -22,7 +22,7 @@ from bench.mitsuba_peer import render as render_mitsuba
 from kernels.contract import LUMINANCE
 from tests.analytic import FURNACE_L, point_plane
 from tests.conftest import render
-from tests.test_closed_scenes import assert_corners_match_mitsuba
+from tests.helpers import assert_corners_match_mitsuba
 from worker.image_io import read_image
 from worker.integrators.base import BatchAborted, Delta
 from worker.integrators.connect_merge import HybridInputs, HybridState, hybrid_estimate

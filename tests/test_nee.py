@@ -21,7 +21,7 @@ from tests.analytic import (
     spot_plane,
 )
 from tests.conftest import image, render
-from tests.test_unlit_regions import spot_scene
+from tests.helpers import spot_scene
 from worker.error_estimate import LUMINANCE
 from worker.image_io import read_image
 from worker.integrators.photon_mapping import GatherInputs

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -143,10 +144,11 @@ def test_the_schedule_a_state_holds(alpha: float) -> None:
     total = 10 ** 6
     a = np.cumprod(np.r_[1.0, (np.arange(total - 1) + alpha) / (np.arange(total - 1) + 1)])
     cuts = np.unique(np.r_[0, np.random.default_rng(3).integers(1, total, 3000), total - 3, total - 1, total])
-    counts = [stats.schedule_count(alpha, int(lo), int(hi - lo)) for lo, hi in zip(cuts[:-1], cuts[1:])]
+    counts = [stats.schedule_count(alpha, int(lo), int(hi - lo)) for lo, hi in pairwise(cuts)]
     A = np.cumsum(a)
-    for (lo, hi), count in zip(zip(cuts[:-1], cuts[1:]), counts):  # to the quantum and 1e-13 of A (the reference's
-        assert abs(count * stats.SCHEDULE_QUANTUM - a[lo:hi].sum()) <= stats.SCHEDULE_QUANTUM + 1e-13 * A[hi - 1]  # own)
+    for (lo, hi), count in zip(pairwise(cuts), counts, strict=True):
+        # to the quantum and 1e-13 of A (the reference's own)
+        assert abs(count * stats.SCHEDULE_QUANTUM - a[lo:hi].sum()) <= stats.SCHEDULE_QUANTUM + 1e-13 * A[hi - 1]
     assert stats.prefix_scale(alpha, total, {stats.SCHEDULE: sum(counts)}) == 1.0
     a = a[:5000]
     assert stats.prefix_scale(alpha, 5000, {}) == 1.0  # a state of no counter (before it)
@@ -274,7 +276,7 @@ def test_a_batch_catches_up_at_its_first_pass_only(make_engine) -> None:
 
     def device() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         out = [np.empty(n, np.float32) for _ in range(3)]
-        for host, buf in zip(out, (eng.passes.radius, eng.passes.radius_count, eng.passes.bias)):
+        for host, buf in zip(out, (eng.passes.radius, eng.passes.radius_count, eng.passes.bias), strict=True):
             cl.enqueue_copy(eng.device.queue, host, buf)
         return tuple(out)
 
@@ -286,7 +288,7 @@ def test_a_batch_catches_up_at_its_first_pass_only(make_engine) -> None:
     split_end = device()
     lit = whole.D > 0
     assert lit.mean() > 0.5
-    for a, b in zip(whole_end, split_end):
+    for a, b in zip(whole_end, split_end, strict=True):
         np.testing.assert_allclose(a[lit], b[lit], rtol=1e-6)
     np.testing.assert_allclose(whole.D, first.D + rest.D, rtol=1e-5)
     # ... and it did count: without the catch-up the radius ends larger at most lit pixels
@@ -332,9 +334,9 @@ def _job_radius(eng, workers: int, total: int, n: int, offsets: tuple[float, ...
     return state
 
 
-@pytest.mark.parametrize("workers, n, offsets, rounds_every", [(2, 8, (0.0, 0.05), 6.0), (2, 8, (0.0, 0.6), 6.0),
-                                                               (4, 6, (0.0, 0.3, 0.5, 0.9), 6.0), (3, 4, (0, 0, 0), 2.5),
-                                                               (2, 8, (0.6, 0.0), 1.2), (3, 3, (0.9, 0.4, 0.0), 0.7)])
+@pytest.mark.parametrize("workers, n, offsets, rounds_every", [
+    (2, 8, (0.0, 0.05), 6.0), (2, 8, (0.0, 0.6), 6.0), (4, 6, (0.0, 0.3, 0.5, 0.9), 6.0), (3, 4, (0, 0, 0), 2.5),
+    (2, 8, (0.6, 0.0), 1.2), (3, 3, (0.9, 0.4, 0.0), 0.7)])
 def test_a_job_follows_the_sequential_radius_schedule_whatever_its_batches(make_engine, workers: int, n: int,
                                                                            offsets: tuple[float, ...],
                                                                            rounds_every: float) -> None:

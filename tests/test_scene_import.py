@@ -254,9 +254,12 @@ def test_glossy_lobe_width_matches_beckmann(alpha: float) -> None:
 def test_lights(tmp_path: Path) -> None:
     data = convert(tmp_path, """
     <emitter type="point"><point name="position" value="1, 2, 3"/><rgb name="intensity" value="2"/></emitter>
-    <emitter type="spot"><transform name="to_world"><lookat origin="0, 2, 0" target="0, 0, 0" up="1, 0, 0"/></transform>
-        <float name="cutoff_angle" value="30"/><float name="beam_width" value="30"/><rgb name="intensity" value="1"/></emitter>
-    <emitter type="directional"><vector name="direction" value="0, -1, 0"/><rgb name="irradiance" value="0.5"/></emitter>
+    <emitter type="spot">
+        <transform name="to_world"><lookat origin="0, 2, 0" target="0, 0, 0" up="1, 0, 0"/></transform>
+        <float name="cutoff_angle" value="30"/><float name="beam_width" value="30"/>
+        <rgb name="intensity" value="1"/></emitter>
+    <emitter type="directional"><vector name="direction" value="0, -1, 0"/>
+        <rgb name="irradiance" value="0.5"/></emitter>
     <shape type="sphere"><emitter type="area"><rgb name="radiance" value="3, 2, 1"/></emitter></shape>""")
     point, spot, sun = data["lights"]
     assert point["position"] == [1, 2, 3] and point["power"] == pytest.approx([8 * math.pi] * 3)
@@ -303,9 +306,10 @@ def triangle_normal_at(t: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("shape", [
-    ('<shape type="rectangle"><transform name="to_world"><scale x="2" y="0.5"/><rotate x="0.6" y="0" z="0.8" angle="30"/>'
-    '<translate x="1" y="2" z="3"/></transform></shape>'),
-    '<shape type="cube"><transform name="to_world"><scale x="0.5" y="1" z="2"/><rotate y="1" angle="20"/></transform></shape>',
+    ('<shape type="rectangle"><transform name="to_world"><scale x="2" y="0.5"/>'
+     '<rotate x="0.6" y="0" z="0.8" angle="30"/><translate x="1" y="2" z="3"/></transform></shape>'),
+    ('<shape type="cube"><transform name="to_world"><scale x="0.5" y="1" z="2"/><rotate y="1" angle="20"/>'
+     '</transform></shape>'),
     ('<shape type="sphere"><point name="center" value="1, 0, 0"/><float name="radius" value="0.5"/>'
     '<transform name="to_world"><scale value="2"/><translate z="1"/></transform></shape>'),
     '<shape type="disk"><transform name="to_world"><scale value="1.5"/><rotate x="1" angle="70"/></transform></shape>',
@@ -412,7 +416,8 @@ def test_outside_the_subset_is_an_error_with_its_line(tmp_path: Path, body: str,
 
 def test_invalid_value_names_the_element(tmp_path: Path) -> None:
     """Values the schema refuses point back at the XML element that gave them."""
-    err = convert_error(tmp_path, '<shape type="sphere">\n<emitter type="area"><rgb name="radiance" value="-1"/></emitter>\n</shape>')
+    err = convert_error(tmp_path, '<shape type="sphere">\n'
+                                  '<emitter type="area"><rgb name="radiance" value="-1"/></emitter>\n</shape>')
     line = line_of(tmp_path / "scene.xml", '<shape type="sphere">')
     assert f"line {line}" in str(err)
     assert "shapes.0.emission" in str(err)

@@ -14,13 +14,13 @@ import json
 import math
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import worker.scene as scene_mod
+from tests.helpers import PHOTONFARM
 from worker.scene import (
     MAX_LIGHTS,
     MAX_PIXELS,
@@ -35,7 +35,6 @@ from worker.scene import (
 from worker.scene_arrays import compile_scene
 
 REPO = Path(__file__).resolve().parent.parent
-PHOTONFARM = Path(sys.executable).parent / "photonfarm"  # installed beside the running interpreter
 BUNDLED = sorted(SCENES_DIR.glob("*.json"))
 
 
@@ -110,8 +109,13 @@ def test_bundled_scene_has_one_line_description(path: Path):
 
 
 def test_minimal_scene_is_valid():
+    """The helper every case below starts from parses and compiles as written: one sphere,
+    one point light, the camera's resolution."""
     scene = parse_scene(minimal_scene())
-    compile_scene(scene, SCENES_DIR)
+    arrays = compile_scene(scene, SCENES_DIR)
+    assert (arrays.width, arrays.height) == (16, 16)
+    assert len(arrays.spheres) == 1 and len(arrays.tri_v0) == 0
+    assert len(scene.lights) == 1 and arrays.emitter_cdf[-1] == 1.0
 
 
 # ------------------------------------------------------------------------ materials
@@ -405,7 +409,9 @@ def test_resolution_zero(k: int):
 def test_resolution_at_max_side_within_pixel_limit():
     d = minimal_scene()
     d["camera"]["resolution"] = [MAX_RESOLUTION, MAX_PIXELS // MAX_RESOLUTION]
-    parse_scene(d)
+    assert tuple(parse_scene(d).camera.resolution) == (MAX_RESOLUTION, MAX_PIXELS // MAX_RESOLUTION)
+    d["camera"]["resolution"] = [MAX_RESOLUTION, MAX_PIXELS // MAX_RESOLUTION + 1]  # one row more is refused
+    assert "pixels" in parse_error(d).message
 
 
 def test_too_many_pixels():
@@ -477,7 +483,8 @@ def test_camera_look_at_equals_position():
     assert "look_at" in err.message
 
 
-@pytest.mark.parametrize("up", [[0.0, 0.0, 1.0], [0.0, 0.0, -3.0], [0.0, 0.0, 0.0]], ids=["parallel", "antiparallel", "zero"])
+@pytest.mark.parametrize("up", [[0.0, 0.0, 1.0], [0.0, 0.0, -3.0], [0.0, 0.0, 0.0]],
+                         ids=["parallel", "antiparallel", "zero"])
 def test_camera_up_parallel_to_view(up):
     d = minimal_scene()  # views along +z
     d["camera"]["up"] = up
@@ -515,7 +522,8 @@ def test_unknown_light_type():
 # ---------------------------------------------------------------- scene file / top level
 @pytest.mark.parametrize("data", [[], "scene", 3, None])
 def test_top_level_not_an_object(data):
-    parse_error(data)
+    err = parse_error(data)
+    assert err.field == "" and "dictionary" in err.message  # the whole document is at fault
 
 
 def test_load_scene_file_not_json(tmp_path: Path):

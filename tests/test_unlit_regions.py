@@ -4,15 +4,14 @@ without letting the dark part dilute the error of the lit part."""
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.analytic import SPOT, spot_plane, spot_plane_scene
+from tests.analytic import SPOT, spot_plane
 from tests.conftest import render_until
+from tests.helpers import spot_scene
 from worker.error_estimate import actual_average, estimate, image_average
 from worker.integrators.photon_mapping import sum_layout
 from worker.stats import Accumulators
@@ -57,13 +56,6 @@ def test_one_never_lit_pixel_does_not_set_the_image_at_100_percent() -> None:
     known = np.ones(62_500, bool)
     known[-1] = False
     assert image_average(rel, known, np.ones_like(known)) == pytest.approx(0.2 + 0.8 / 62_500)
-
-
-def spot_scene(tmp_path: Path) -> Path:
-    """A spot light over a plane, 75% of the image outside its cone (tests/analytic.py)."""
-    path = tmp_path / "spot.json"
-    path.write_text(json.dumps(spot_plane_scene()))
-    return path
 
 
 def test_a_mostly_dark_spot_light_image_converges_with_its_actual_error_below_the_threshold(make_engine,

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import redis
 
+from tests.helpers import running_job
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, Status, keys
@@ -44,10 +45,7 @@ def _sums(widths: dict[str, int], n: int, seed: int) -> dict[str, np.ndarray]:
 def _running_job(redis_url: str) -> tuple[Jobs, str]:
     """A running job of W x H pixels in TILE-pixel tiles on the test's Redis, its setup written."""
     store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=TILE)
-    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
-    store.init_setup(store.get(job_id), {"R0": np.full(W * H, 0.05)})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-    return store, job_id
+    return store, running_job(store, W, H)
 
 
 def _foreign(sums: dict[str, np.ndarray], span: slice, header: object, dtype: str) -> bytes:

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from api_tests.cluster import restart
-from api_tests.test_sharded_state import _assert_folded_once, _job, _merge, _store, deltas, redis_servers  # noqa: F401
 from service.redis_server import EmbeddedRedis
+from tests.embedded_redis import redis_servers, restart
+from tests.helpers import SHARDS, assert_folded_once, caustics_job, merge_new, sharded_store
 from worker.integrators.base import Delta
 from worker.scheduler import reap
 from worker.store import Batch, Jobs, keys, policy
@@ -25,7 +25,7 @@ RESTARTED = 1  # the state node restarted (server 1 + RESTARTED)
 
 @pytest.fixture
 def servers(tmp_path: Path) -> Iterator[list[EmbeddedRedis]]:  # per test: the tests restart servers
-    with redis_servers(tmp_path) as started:
+    with redis_servers(tmp_path, 1 + SHARDS) as started:
         yield started
 
 
@@ -35,13 +35,13 @@ def _lose_deltas_of(servers: list[EmbeddedRedis], sample: tuple, pending: int,
     `pending` more accepted, not folded; then a state node restarts. Returns the store, the
     job, its deltas and the pending batches."""
     made: list[Delta] = pickle.loads(sample[0].read_bytes())[:2 + pending]
-    store = _store([s.url for s in servers])
-    job_id = _job(store, *sample[1:], max_passes=max_passes)
+    store = sharded_store([s.url for s in servers])
+    job_id = caustics_job(store, *sample[1:], max_passes=max_passes)
     for d in made[:2]:
-        _merge(store, job_id, d)
+        merge_new(store, job_id, d)
     store.fold(job_id, wait=True, checkpoint=True)
     for d in made[2:]:
-        _merge(store, job_id, d)
+        merge_new(store, job_id, d)
     tiling = store.tiling(store.get(job_id))
     node = store.tiles.nodes[RESTARTED]
     on_node = [k for k in range(tiling.count) if tiling.node(k) == RESTARTED]
@@ -63,13 +63,13 @@ def test_deltas_a_restart_lost_are_rendered_again_and_fold_once(servers: list[Em
     # the others meanwhile (here none).
     assert all(store.is_wanted(b) for b in lost)
     assert reap(store) == len(lost)
-    for batch, d in zip(lost, made[2:]):
+    for batch, d in zip(lost, made[2:], strict=True):
         assert store.start(batch, "w1")
         assert store.merge(batch, d, 0.1) == "refilled"  # the same passes and seeds (here the same delta)
         assert store.merge(batch, d, 0.1) == "duplicate"
     assert not store.r.exists(keys.lost(job_id)) and not store.leases.inflight(job_id)
     assert store.get(job_id).passes == 8
-    _assert_folded_once(store, job_id, made)  # the state is the sum of the deltas: each once on every tile
+    assert_folded_once(store, job_id, made)  # the state is the sum of the deltas: each once on every tile
 
 
 def test_a_jobs_end_waits_for_its_lost_batches(servers: list[EmbeddedRedis], deltas: tuple,  # noqa: F811
@@ -77,14 +77,14 @@ def test_a_jobs_end_waits_for_its_lost_batches(servers: list[EmbeddedRedis], del
     monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.2)  # no API: the worker ends the job
     store, job_id, made, lost = _lose_deltas_of(servers, deltas, pending=1, max_passes=8)
     last = pickle.loads(deltas[0].read_bytes())[3]
-    _merge(store, job_id, last)  # the budget's last batch: its end's round finds batch 2 lost
+    merge_new(store, job_id, last)  # the budget's last batch: its end's round finds batch 2 lost
     record = store.get(job_id)
     assert record.status == Status.RUNNING and record.ending == Status.COMPLETED and not record.stopping
     assert store.r.smembers(keys.lost(job_id)) == {lost[0].id.encode()}
     assert not store.end_if_decided(job_id)  # the folder waits for the refill
     assert store.start(lost[0], "w1") and store.merge(lost[0], made[2], 0.1) == "refilled"
     assert store.status(job_id) == Status.COMPLETED  # the refill handed the end off
-    _assert_folded_once(store, job_id, [*made, last])
+    assert_folded_once(store, job_id, [*made, last])
 
 
 @pytest.mark.parametrize("issued_again", [True, False], ids=["found-before", "found-by-its-last-round"])

@@ -20,9 +20,10 @@ from __future__ import annotations
 import numpy as np
 import redis
 
+from tests.helpers import running_job
 from worker.integrators.base import Delta
 from worker.settings import Settings
-from worker.store import Batch, Jobs, keys
+from worker.store import Batch, Jobs
 from worker.store.tiles import as_sent
 
 W, H = 32, 16
@@ -50,11 +51,9 @@ def _pass_sums(rng: np.random.Generator, widths: dict[str, int], scale: np.ndarr
 
 def test_ten_thousand_passes_show_no_drift_with_float32_and_float16_deltas(redis_url: str) -> None:
     store = Jobs(redis.Redis.from_url(redis_url), tile_pixels=128)  # 4 tiles
-    job_id = store.create({}, Settings(max_passes=BATCHES * PASSES), W, H, None)
+    job_id = running_job(store, W, H, settings=Settings(max_passes=BATCHES * PASSES))
     record = store.get(job_id)
     n = W * H
-    store.init_setup(record, {"R0": np.full(n, 0.05)})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
     widths, half, tiling = dict(record.integrator.sums.widths), record.integrator.sums.half, store.tiling(record)
     assert {"S", "Ld"} <= set(half) and not {"X1", "X2"} & set(half)
     unit = {name: HALF_UNIT if name in half else UNIT for name in widths}

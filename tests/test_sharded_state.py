@@ -17,7 +17,6 @@ import threading
 import time
 import weakref
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,83 +24,38 @@ import pytest
 import redis
 
 from service.redis_server import EmbeddedRedis
+from tests.embedded_redis import redis_servers
+from tests.helpers import BATCHES, SHARDS, assert_folded_once, caustics_job, merge_new, sharded_store
 from worker import stats
-from worker.engine import Engine
 from worker.integrators import integrator_for
 from worker.integrators.base import Delta, State
-from worker.integrators.photon_mapping import GatherInputs
-from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
-from worker.settings import Settings
 from worker.store import Batch, Jobs, keys, policy
 from worker.store import overlay as overlay_module
 from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.policy import Status
 from worker.store.state import TiledState
-from worker.store.tiles import as_sent, encode_inputs
+from worker.store.tiles import encode_inputs
 
-SHARDS = 3
-TILE = 512  # pixels a tile: the 64 x 48 frame has 6 tiles, two on each node
-W, H = 64, 48
-BATCHES = 12
 PROCESSES = 4
-
-
-@contextmanager
-def redis_servers(base: Path) -> Iterator[list[EmbeddedRedis]]:
-    """The main Redis and SHARDS state nodes, in directories under `base`; stopped after."""
-    started = [EmbeddedRedis(base / f"redis{i}").start(supervise=False) for i in range(1 + SHARDS)]
-    try:
-        yield started
-    finally:
-        for server in started:
-            server.stop()
 
 
 @pytest.fixture(scope="module")
 def servers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[EmbeddedRedis]]:
-    with redis_servers(tmp_path_factory.mktemp("sharded")) as started:
+    with redis_servers(tmp_path_factory.mktemp("sharded"), 1 + SHARDS) as started:
         yield started
-
-
-@pytest.fixture(scope="module")
-def deltas(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, Settings, np.ndarray]:
-    parsed, base = load_scene_file(bundled_scene_path("cornell-caustics"))
-    settings = Settings(photons_per_pass=1 << 14, seed=21, resolution=(W, H))
-    engine = Engine(parsed, base, settings)
-    r0 = engine.start().R0
-    made = [engine.run_batch(GatherInputs(r0 * (1.0 - 0.03 * i)), 2 * i, 2) for i in range(BATCHES)]
-    path = tmp_path_factory.mktemp("deltas") / "deltas.pkl"
-    path.write_bytes(pickle.dumps(made))
-    return path, inline_meshes(parsed, base), settings, r0
-
-
-def _store(urls: list[str]) -> Jobs:
-    return Jobs(redis.Redis.from_url(urls[0]), [redis.Redis.from_url(u) for u in urls[1:]], tile_pixels=TILE)
-
-
-def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray, max_passes: int = 1000) -> str:
-    job_id = store.create(scene, settings.model_copy(update={"max_passes": max_passes, "max_seconds": None}), W, H,
-                          "cornell-caustics")
-    store.init_setup(store.get(job_id), {"R0": r0})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-    return job_id
 
 
 def _fresh_job(servers: list[EmbeddedRedis], deltas: tuple, n: int) -> tuple[Jobs, str, list[Delta]]:
     """A new running job on the servers, and the first n of the module's deltas."""
     path, scene, settings, r0 = deltas
-    store = _store([s.url for s in servers])
-    return store, _job(store, scene, settings, r0), pickle.loads(path.read_bytes())[:n]
-
-
-def _merge(store: Jobs, job_id: str, d: Delta) -> None:
-    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+    store = sharded_store([s.url for s in servers])
+    return store, caustics_job(store, scene, settings, r0), pickle.loads(path.read_bytes())[:n]
 
 
 def _merge_and_fold(urls: list[str], job_id: str, deltas_file: str, order_seed: int) -> list[str]:
     made: list[Delta] = pickle.loads(Path(deltas_file).read_bytes())
-    store = _store(urls)
+    store = sharded_store(urls)
     order = list(range(len(made)))
     random.Random(order_seed).shuffle(order)
     outcomes = []
@@ -113,47 +67,16 @@ def _merge_and_fold(urls: list[str], job_id: str, deltas_file: str, order_seed: 
     return outcomes
 
 
-def _assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
-    store.fold(job_id, wait=True, checkpoint=True)
-    record = store.get(job_id)
-    state = store.state(record)
-    record = store.get(job_id)
-    assert record.folded_passes == record.passes == sum(d.n_passes for d in made)
-    assert record.folded_emitted == record.emitted == sum(d.emitted for d in made)
-    assert not store.r.exists(keys.tofold(job_id))
-    ids = {Batch(job_id, d.first_pass, d.n_passes).id.encode() for d in made}
-    tiling = store.tiling(record)
-    assert tiling.count == 6
-    for k in range(tiling.count):
-        node = store.tiles.nodes[tiling.node(k)]
-        assert node.smembers(keys.tile(job_id, k, "folded")) == ids
-        assert not node.exists(keys.tile(job_id, k, "pending"))
-        for other in store.tiles.nodes:  # each tile on its own node only
-            assert bool(other.exists(keys.tile(job_id, k, "state"))) == (other is node)
-        # A tile stores the arrays its deltas carried (and N, derived from them, and R0): an
-        # array no delta carried there (e.g. directly seen emission away from the light) is absent.
-        span = tiling.span(k)
-        carried = {name for d in made for name, a in d.sums.items() if a[span].any() and name in state.sums}
-        stored = {f.decode() for f in node.hkeys(keys.tile(job_id, k, "state"))}
-        assert stored == {"R0", "N"} | carried, (k, stored, carried)
-    assert any("Ld" not in {n for d in made for n, a in d.sums.items() if a[tiling.span(k)].any()}
-               for k in range(tiling.count))  # the check above sees a missing array somewhere
-    sent = [as_sent(d.sums, tiling, record.integrator.sums.half) for d in made]
-    for name in state.sums:
-        expected = sum(d[name] for d in sent)
-        np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
-
-
 def test_concurrent_shuffled_merges_fold_once_per_tile(servers: list[EmbeddedRedis], deltas: tuple) -> None:
     path, scene, settings, r0 = deltas
     urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
+    store = sharded_store(urls)
+    job_id = caustics_job(store, scene, settings, r0)
     with mp.get_context("spawn").Pool(PROCESSES) as pool:
         outcomes = pool.starmap(_merge_and_fold, [(urls, job_id, str(path), p) for p in range(PROCESSES)])
     flat = [o for per_process in outcomes for o in per_process]
     assert flat.count("merged") == BATCHES and flat.count("duplicate") == (PROCESSES - 1) * BATCHES
-    _assert_folded_once(store, job_id, pickle.loads(path.read_bytes()))
+    assert_folded_once(store, job_id, pickle.loads(path.read_bytes()))
 
 
 def _push_then_die(urls: list[str], job_id: str, deltas_file: str, nodes_before_kill: int) -> None:
@@ -176,7 +99,7 @@ def _push_then_die(urls: list[str], job_id: str, deltas_file: str, nodes_before_
 
     TiledState._each_node = each_node
     Jobs.accept = lambda *args: os.kill(os.getpid(), signal.SIGKILL)  # pushed everywhere: dies before accepting
-    _store(urls).merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1)
+    sharded_store(urls).merge(Batch(job_id, made[0].first_pass, made[0].n_passes), made[0], 0.1)
 
 
 @pytest.mark.parametrize("nodes_before_kill", [1, SHARDS])
@@ -184,8 +107,8 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
                                                                nodes_before_kill: int) -> None:
     path, scene, settings, r0 = deltas
     urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
+    store = sharded_store(urls)
+    job_id = caustics_job(store, scene, settings, r0)
     child = mp.get_context("spawn").Process(target=_push_then_die, args=(urls, job_id, str(path), nodes_before_kill))
     child.start()
     child.join(120)
@@ -196,7 +119,7 @@ def test_a_worker_killed_while_pushing_counts_its_batch_once(servers: list[Embed
     # The re-issued batch (the same passes) and the rest; a second copy of batch 0 is a duplicate.
     assert [store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) for d in made[:3]] == ["merged"] * 3
     assert store.merge(first, made[0], 0.1) == "duplicate"
-    _assert_folded_once(store, job_id, made[:3])
+    assert_folded_once(store, job_id, made[:3])
 
 
 def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpoint: bool) -> None:
@@ -233,7 +156,7 @@ def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpo
 
         state_module.encode_inputs = encode_inputs
     policy.CHECKPOINT_PENDING_SHARE = float("inf")  # a round in memory unless told to checkpoint
-    _store(urls).fold(job_id, checkpoint=checkpoint)
+    sharded_store(urls).fold(job_id, checkpoint=checkpoint)
 
 
 @pytest.mark.parametrize("checkpoint", [True, False])
@@ -241,8 +164,8 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
                                                          monkeypatch: pytest.MonkeyPatch, checkpoint: bool) -> None:
     path, scene, settings, r0 = deltas
     urls = [s.url for s in servers]
-    store = _store(urls)
-    job_id = _job(store, scene, settings, r0)
+    store = sharded_store(urls)
+    job_id = caustics_job(store, scene, settings, r0)
     made: list[Delta] = pickle.loads(path.read_bytes())[:4]
     for d in made:
         assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
@@ -261,7 +184,7 @@ def test_a_folder_killed_mid_round_folds_each_tile_once(servers: list[EmbeddedRe
         assert set(versions) == {0}, versions
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 4
     assert store.fold(job_id, wait=True) is not None  # after its lease lapsed, the next folder
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_an_overlay_is_dropped_once_another_folder_checkpoints(servers: list[EmbeddedRedis], deltas: tuple) -> None:
@@ -270,21 +193,22 @@ def test_an_overlay_is_dropped_once_another_folder_checkpoints(servers: list[Emb
     from the checkpoint: every batch still folds once."""
     store, job_id, made = _fresh_job(servers, deltas, 4)
     for d in made[:2]:
-        _merge(store, job_id, d)
+        merge_new(store, job_id, d)
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed
     record = store.get(job_id)
     assert record.folded_passes == 0 and record.image_passes == 4 == store.state(record).passes
     assert store.fold(job_id) is None  # nothing new, and no checkpoint due
-    child = mp.get_context("spawn").Process(target=_merge_and_checkpoint, args=([s.url for s in servers], job_id, str(deltas[0]), 2))
+    child = mp.get_context("spawn").Process(target=_merge_and_checkpoint,
+                                            args=([s.url for s in servers], job_id, str(deltas[0]), 2))
     child.start()
     child.join(120)
     assert child.exitcode == 0
     assert store.get(job_id).folded_passes == 6
-    _merge(store, job_id, made[3])
+    merge_new(store, job_id, made[3])
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed and folded.state.passes == 8
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_checkpoint_writes_a_nodes_tiles_together_or_not_at_all(servers: list[EmbeddedRedis],
@@ -295,7 +219,7 @@ def test_a_checkpoint_writes_a_nodes_tiles_together_or_not_at_all(servers: list[
     written alone before, then held the batch in a state no record counts), the other
     nodes' are, and the next rounds fold the batch once into every tile."""
     store, job_id, made = _fresh_job(servers, deltas, 1)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert store.fold(job_id) is not None  # a round in memory, no tile written (its delta is under half the state)
     record = store.get(job_id)
     tiling = store.tiling(record)
@@ -310,12 +234,12 @@ def test_a_checkpoint_writes_a_nodes_tiles_together_or_not_at_all(servers: list[
         written = store.tiles.nodes[tiling.node(k)].scard(keys.tile(job_id, k, "folded"))
         assert written == (0 if k in (first, second) else len(made)), k
     node.hincrby(keys.tile(job_id, second, "meta"), "version", -1)  # as it was: no other folder wrote it
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def _merge_and_checkpoint(urls: list[str], job_id: str, deltas_file: str, i: int) -> None:
-    store = _store(urls)
-    _merge(store, job_id, pickle.loads(Path(deltas_file).read_bytes())[i])
+    store = sharded_store(urls)
+    merge_new(store, job_id, pickle.loads(Path(deltas_file).read_bytes())[i])
     assert store.fold(job_id, wait=True, checkpoint=True).checkpointed
 
 
@@ -325,20 +249,20 @@ def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: lis
     pending on the tiles, at the next round with a new batch (none runs for a checkpoint
     alone)."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert not store.fold(job_id).checkpointed
     monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 0.0)
     assert store.fold(job_id) is None  # due, but nothing new to show
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed
     assert store.get(job_id).folded_passes == made[0].n_passes + made[1].n_passes
     assert not store.r.exists(keys.tofold(job_id))
     monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 3600.0)
     monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # any delta kept pending is too much
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[2])
     assert store.fold(job_id).checkpointed
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: list[EmbeddedRedis], deltas: tuple,
@@ -349,7 +273,7 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     last checkpoint's counters). After it the overlay goes on, on the new versions, and
     the next read needs no tile."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert not store.fold(job_id).checkpointed
     seen: list[tuple[int, int, float]] = []  # during the write: the record's image passes, a read's passes and sum
     real = state_module.encode_state
@@ -362,7 +286,7 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
 
     monkeypatch.setattr(state_module, "encode_state", encode_state)
     monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # this round checkpoints
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed
     passes = made[0].n_passes + made[1].n_passes
@@ -374,10 +298,10 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     assert record.folded_passes == passes and not store.r.exists(keys.tofold(job_id))
     monkeypatch.setattr(state_module.TiledState, "_blobs", lambda *args: pytest.fail("read the tiles"))
     assert store.state(record) is folded.state  # the overlay, on the tiles' new versions
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[2])
     assert store.fold(job_id).state.passes == passes + made[2].n_passes
     monkeypatch.undo()
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list[EmbeddedRedis], deltas: tuple,
@@ -388,7 +312,7 @@ def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list
     wrote a tile first, the write fails, the overlay is dropped, and the next round folds
     from the tiles: every batch still folds once."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     store.fold(job_id)
     before = store.batch_inputs(store.get(job_id))
     seen: list[tuple[int, int, int]] = []  # as the write starts: the record's image passes, a read's, the inputs'
@@ -400,7 +324,7 @@ def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list
         return real_write(self, *args)
 
     monkeypatch.setattr(state_module.TiledState, "write_inputs", observed)
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     passes = made[0].n_passes + made[1].n_passes
     assert folded is not None and folded.state.passes == passes and "write inputs" in folded.stages
@@ -416,13 +340,13 @@ def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list
         return real_write(self, *args)
 
     monkeypatch.setattr(state_module.TiledState, "write_inputs", contended)
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[2])
     folded = store.fold(job_id)
     assert folded is not None and folded.state.passes == passes + made[2].n_passes
     assert overlay_module.OVERLAYS.current(job_id) is None  # dropped: built on the old version
     monkeypatch.undo()
     node.hincrby(meta, "version", -1)  # as it was: no other folder wrote it
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_round_adds_to_the_overlay_in_place_unless_a_reader_holds_its_state(
@@ -432,21 +356,21 @@ def test_a_round_adds_to_the_overlay_in_place_unless_a_reader_holds_its_state(
     reader's state keeps the passes and the numbers it was given."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
     monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: [])  # every round in memory
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert not store.fold(job_id).checkpointed
     held = store.state(store.get(job_id))  # a reader holds the state
     seen = (held.passes, {name: a.copy() for name, a in held.arrays().items()})
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded.state is not held and folded.state.passes == made[0].n_passes + made[1].n_passes
     assert held.passes == seen[0] and all(np.array_equal(a, seen[1][name]) for name, a in held.arrays().items())
     previous = weakref.ref(folded.state)  # refers to it without holding it
     del held, folded
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[2])
     folded = store.fold(job_id)
     assert folded.state is previous() and folded.state.passes == sum(d.n_passes for d in made)  # in place
     del folded
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_jobs_last_round_leaves_its_state_to_the_tile_cache(servers: list[EmbeddedRedis], deltas: tuple,
@@ -454,9 +378,9 @@ def test_a_jobs_last_round_leaves_its_state_to_the_tile_cache(servers: list[Embe
     """The round that drops the overlay (a job's last, a worker's) gives the tile cache its
     state, so the finished job's image is read without reading a tile's state."""
     store, job_id, made = _fresh_job(servers, deltas, 2)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert not store.fold(job_id).checkpointed
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id, wait=True, checkpoint=True)
     assert folded.checkpointed and overlay_module.OVERLAYS.current(job_id) is None
     monkeypatch.setattr(store.tiles, "_read_state", [lambda **kw: pytest.fail("read a tile's state")] * (1 + SHARDS))
@@ -499,8 +423,8 @@ def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_sam
     store, job_id, made = _fresh_job(servers, deltas, 3)
     chosen: list[list[int]] = [[0, 2, 4], [1, 3]]  # the tiles each round writes
     monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: chosen.pop(0))
-    _merge(store, job_id, made[0])
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[0])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed
     record = store.get(job_id)
@@ -511,12 +435,12 @@ def test_a_round_writes_some_tiles_and_a_reader_without_the_overlay_sees_the_sam
     _assert_same_state(store.state(record), folded.state)
     # The next round folds a third batch and writes tiles 1 and 3: the first two batches are
     # now on every tile but 5; the third on tiles 1 and 3 only.
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[2])
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed and store.r.hlen(keys.tofold(job_id)) == 3
     _assert_tiles_read_back(store, job_id, folded.state)
     monkeypatch.undo()
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
@@ -531,7 +455,7 @@ def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
     monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: list(tiles))
     monkeypatch.setattr(policy, "checkpoint_required", lambda order, *args: list(order)[:2])
     monkeypatch.setattr(policy, "checkpoint_seconds", lambda *args: 0.0)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     folded = store.fold(job_id)
     assert folded is not None and not folded.checkpointed
     record = store.get(job_id)
@@ -539,12 +463,12 @@ def test_a_round_stops_writing_tiles_when_the_next_round_is_due(
     assert record.folded_passes == 0 and store.r.hlen(keys.tofold(job_id)) == 1
     # The next round, with time to write, writes the tiles that lack a batch: all of them.
     monkeypatch.setattr(policy, "checkpoint_seconds", lambda *args: 60.0)
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed and _tile_versions(store, job_id) == [1, 2, 1, 1, 2, 1]
     _assert_tiles_read_back(store, job_id, folded.state)
     monkeypatch.undo()
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_a_round_leaves_the_tiles_of_a_node_rewriting_its_file_for_later(
@@ -559,7 +483,7 @@ def test_a_round_leaves_the_tiles_of_a_node_rewriting_its_file_for_later(
     busy = tiling.node(0)
     monkeypatch.setattr(overlay_module.policy, "checkpoint_tiles", lambda *args: list(range(tiling.count)))
     monkeypatch.setattr(TiledState, "_rewriting", lambda self, node: node == busy)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert store.fold(job_id) is not None
 
     def written() -> list[int]:
@@ -567,18 +491,18 @@ def test_a_round_leaves_the_tiles_of_a_node_rewriting_its_file_for_later(
 
     assert written() == [k for k in range(tiling.count) if tiling.node(k) != busy]
     monkeypatch.setattr(TiledState, "_rewriting", lambda self, node: False)
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed and written() == list(range(tiling.count))
     monkeypatch.undo()
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_no_write_starts_that_would_end_past_the_deadline(servers: list[EmbeddedRedis]) -> None:
     """TiledState._on_versions with a deadline: a transaction of TILES_PER_TRIP tiles that
     took 0.4 s, 0.6 s before the deadline, is not followed by another (it would end 0.2 s
     late); with no deadline every tile is written."""
-    store = _store([s.url for s in servers])
+    store = sharded_store([s.url for s in servers])
     tiles = {k: 0 for k in range(2 * state_module.TILES_PER_TRIP)}
 
     def slow(pipe: redis.client.Pipeline, k: int) -> None:
@@ -616,12 +540,12 @@ def test_a_batch_is_told_the_passes_its_inputs_hold(servers: list[EmbeddedRedis]
     first pass catches up the passes before it they lack (tests/test_progressive_stats.py)."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
     assert store.batch_inputs(store.get(job_id)).passes == 0  # the set-up's inputs
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert store.batch_inputs(store.get(job_id)).passes == 0  # accepted, not yet folded
     store.fold(job_id)
     assert store.batch_inputs(store.get(job_id)).passes == made[0].n_passes
-    _merge(store, job_id, made[1])
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[1])
+    merge_new(store, job_id, made[2])
     store.fold(job_id, checkpoint=True)
     assert store.batch_inputs(store.get(job_id)).passes == sum(d.n_passes for d in made)
 
@@ -633,7 +557,7 @@ def test_a_state_holding_later_passes_alone_starts_batches_where_the_first_passe
     prefix_scale). The counter goes through the record: after a checkpoint, a round that
     restores the state from the tiles and adds passes 0-1 holds a prefix (no scale)."""
     store, job_id, made = _fresh_job(servers, deltas, 2)
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     store.fold(job_id)
     record = store.get(job_id)
     scale = stats.prefix_scale(record.settings.alpha, 2, made[1].counters)
@@ -641,7 +565,7 @@ def test_a_state_holding_later_passes_alone_starts_batches_where_the_first_passe
     N = store.state(record).N
     np.testing.assert_allclose(store.batch_inputs(record).count, N * scale, rtol=1e-6)
     store.fold(job_id, wait=True, checkpoint=True)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     store.fold(job_id)
     record = store.get(job_id)
     state = store.state(record)
@@ -657,7 +581,7 @@ def test_a_batch_reads_every_tiles_inputs_from_one_round(servers: list[EmbeddedR
     that fails INPUT_READS times (a folder killed mid-write: no hang)."""
     monkeypatch.setattr(state_module, "INPUT_RETRY_SECONDS", 0.02)
     store, job_id, made = _fresh_job(servers, deltas, 2)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     store.fold(job_id)
     record = store.get(job_id)
     whole = store.batch_inputs(record)
@@ -684,7 +608,7 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
     waited for the image past the fold interval and FOLD_STALE_SECONDS (not merely because
     the last round was long ago), and then as a checkpoint (a worker keeps no overlay)."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
-    _merge(store, job_id, made[0])
+    merge_new(store, job_id, made[0])
     assert store.fold_if_stale(job_id) is None  # it has just been accepted
     monkeypatch.setattr(record_module, "FOLD_STALE_SECONDS", -1e6)  # any wait is too long
     folded = store.fold_if_stale(job_id)
@@ -693,12 +617,12 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
     assert record.folded_passes == record.image_passes == record.passes == made[0].n_passes
     assert store.fold_if_stale(job_id) is None  # the image holds every accepted pass
     # The API folds the next batch in memory: its image holds it, so a worker does not fold.
-    _merge(store, job_id, made[1])
+    merge_new(store, job_id, made[1])
     assert not store.fold(job_id).checkpointed
     assert store.fold_if_stale(job_id) is None
-    _merge(store, job_id, made[2])
+    merge_new(store, job_id, made[2])
     assert store.fold_if_stale(job_id).checkpointed
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedRedis], deltas: tuple,
@@ -709,9 +633,9 @@ def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedR
     from worker.scheduler import fold_active
 
     store, broken, made = _fresh_job(servers, deltas, 2)
-    healthy = _job(store, *deltas[1:])
+    healthy = caustics_job(store, *deltas[1:])
     for job_id in (broken, healthy):
-        _merge(store, job_id, made[0])
+        merge_new(store, job_id, made[0])
     real = Jobs.fold_if_due
 
     def fold_if_due(self: Jobs, job_id: str, *args: object, **kwargs: object) -> object:
@@ -737,11 +661,11 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
     from worker.scheduler import fold_active
 
     made = pickle.loads(deltas[0].read_bytes())[:3]
-    store = _store([s.url for s in servers])
+    store = sharded_store([s.url for s in servers])
     budget = sum(d.n_passes for d in made)
     # With the API's folder: the merge does not wait out the hand-off.
     monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 60.0)
-    job_id = _job(store, *deltas[1:], max_passes=budget)
+    job_id = caustics_job(store, *deltas[1:], max_passes=budget)
     stop = threading.Event()
 
     def folder() -> None:
@@ -752,9 +676,9 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
     thread.start()
     try:
         for d in made[:-1]:
-            _merge(store, job_id, d)
+            merge_new(store, job_id, d)
         started = time.monotonic()
-        _merge(store, job_id, made[-1])
+        merge_new(store, job_id, made[-1])
         assert time.monotonic() - started < 30.0
         while store.status(job_id) == Status.RUNNING and time.monotonic() - started < 60.0:
             time.sleep(0.05)
@@ -762,14 +686,14 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
         stop.set()
         thread.join()
     assert store.status(job_id) == Status.COMPLETED
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
     # Without: the worker ends it.
     monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.2)
-    job_id = _job(store, *deltas[1:], max_passes=budget)
+    job_id = caustics_job(store, *deltas[1:], max_passes=budget)
     for d in made:
-        _merge(store, job_id, d)
+        merge_new(store, job_id, d)
     assert store.status(job_id) == Status.COMPLETED
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[EmbeddedRedis], deltas: tuple,
@@ -783,10 +707,10 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
     from worker.store.fold_lease import FoldLease
 
     made = pickle.loads(deltas[0].read_bytes())[:2]
-    store = _store([s.url for s in servers])
+    store = sharded_store([s.url for s in servers])
     monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.3)
-    job_id = _job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
-    _merge(store, job_id, made[0])
+    job_id = caustics_job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
+    merge_new(store, job_id, made[0])
     held, done = threading.Event(), threading.Event()
 
     def api_folder() -> None:
@@ -800,7 +724,7 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
     folder = threading.Thread(target=api_folder, daemon=True)
     folder.start()
     assert held.wait(10.0)
-    merging = threading.Thread(target=_merge, args=(store, job_id, made[1]), daemon=True)
+    merging = threading.Thread(target=merge_new, args=(store, job_id, made[1]), daemon=True)
     merging.start()
     try:
         time.sleep(1.5)  # five hand-off periods
@@ -811,7 +735,7 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
     merging.join(60.0)
     folder.join(60.0)
     assert store.status(job_id) == Status.COMPLETED
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)
 
 
 def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], deltas: tuple,
@@ -823,11 +747,11 @@ def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], 
     from worker.scheduler import fold_active
 
     made = pickle.loads(deltas[0].read_bytes())[:2]
-    store = _store([s.url for s in servers])
+    store = sharded_store([s.url for s in servers])
     store.r.delete(keys.FOLD_NEWS)
     monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 60.0)
-    job_id = _job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
-    _merge(store, job_id, made[0])
+    job_id = caustics_job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
+    merge_new(store, job_id, made[0])
     assert not store.r.exists(keys.FOLD_NEWS)  # a batch that does not end the job is no news
     stop = threading.Event()
 
@@ -842,7 +766,7 @@ def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], 
     try:
         time.sleep(0.2)  # the folder waits on the news
         started = time.monotonic()
-        _merge(store, job_id, made[1])
+        merge_new(store, job_id, made[1])
         assert time.monotonic() - started < 10.0
         while store.status(job_id) == Status.RUNNING and time.monotonic() - started < 60.0:
             time.sleep(0.02)
@@ -852,4 +776,4 @@ def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], 
         store.r.lpush(keys.FOLD_NEWS, "")  # wake the folder to stop
         thread.join()
     assert store.status(job_id) == Status.COMPLETED
-    _assert_folded_once(store, job_id, made)
+    assert_folded_once(store, job_id, made)

@@ -13,12 +13,13 @@ from pathlib import Path
 import numpy as np
 import redis
 
+from tests.helpers import running_job
 from worker.engine import Engine
 from worker.integrators.base import Delta
 from worker.integrators.photon_mapping import GatherInputs
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
-from worker.store import Batch, Jobs, keys
+from worker.store import Batch, Jobs
 from worker.store.tiles import as_sent
 
 BATCHES = 12
@@ -31,14 +32,6 @@ def _merge_all(url: str, job_id: str, deltas_file: str, order_seed: int) -> list
     order = list(range(len(deltas)))
     random.Random(order_seed).shuffle(order)
     return [store.merge(Batch(job_id, deltas[i].first_pass, deltas[i].n_passes), deltas[i], 0.1) for i in order]
-
-
-def _job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray, w: int, h: int) -> str:
-    job_id = store.create(scene, settings.model_copy(update={"max_passes": 1000, "max_seconds": None}), w, h,
-                          "cornell-caustics")
-    store.init_setup(store.get(job_id), {"R0": r0})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": 1.0})
-    return job_id
 
 
 def test_concurrent_shuffled_merges_give_one_state(redis_url: str, tmp_path: Path) -> None:
@@ -54,7 +47,8 @@ def test_concurrent_shuffled_merges_give_one_state(redis_url: str, tmp_path: Pat
     scene = inline_meshes(parsed, base)
     states = []
     for trial in range(2):
-        job_id = _job(store, scene, settings, r0, w, h)
+        unlimited = settings.model_copy(update={"max_passes": 1000, "max_seconds": None})
+        job_id = running_job(store, w, h, r0, unlimited, scene, "cornell-caustics")
         with mp.get_context("spawn").Pool(PROCESSES) as pool:
             outcomes = pool.starmap(_merge_all, [(redis_url, job_id, str(deltas_file), 100 * trial + p)
                                                   for p in range(PROCESSES)])

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import redis
 
+from tests.helpers import running_job
 from worker.integrators.base import Delta
-from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.leases import Leases
 from worker.store.tiles import as_sent
@@ -32,11 +32,9 @@ def store(redis_url: str) -> Jobs:
 def _job_with_two_batches_waiting(store: Jobs, next_due_in: float | None) -> tuple[str, list[Delta]]:
     """A running job with batches 0+2 and 2+2 accepted and not folded, and batch 4+2 in
     flight, due `next_due_in` seconds from now (None: nothing in flight)."""
-    job_id = store.create({}, Settings(max_passes=1000), W, H, None)
+    job_id = running_job(store, W, H, started=time.time())
     record = store.get(job_id)
     n, widths = W * H, dict(record.integrator.sums.widths)
-    store.init_setup(record, {"R0": np.full(n, 0.05)})
-    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": time.time()})
     rng = np.random.default_rng(3)
     deltas = [Delta(2 * b, 2, PHOTONS, {name: rng.uniform(0.5, 1.5, (n, w) if w > 1 else n)
                                         for name, w in widths.items()}) for b in range(2)]

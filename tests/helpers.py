@@ -1,0 +1,143 @@
+"""Helpers several test modules share: the `photonfarm render` command line; scene files
+and the Cornell box's corner check against Mitsuba 3; a running job written straight into
+the store (as the API and a worker's setup leave it), and the sharded-state setup of
+tests/test_sharded_state.py and tests/test_lost_deltas.py (its deltas are the `deltas`
+fixture of tests/conftest.py)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import redis
+
+from tests.analytic import camera_rays, spot_plane_scene
+from worker.engine import Engine
+from worker.image_io import read_image
+from worker.integrators.base import Delta
+from worker.settings import Settings
+from worker.store import Batch, Jobs, keys
+from worker.store.tiles import as_sent
+
+PHOTONFARM = Path(sys.executable).parent / "photonfarm"  # installed beside the running interpreter
+SMALL = ["--resolution", "16x16", "--photons-per-pass", "4096"]  # `photonfarm render` options of a quick image
+
+
+def render_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    """`photonfarm render ARGS`, its output captured as text."""
+    return subprocess.run([str(PHOTONFARM), "render", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def spot_scene(tmp_path: Path) -> Path:
+    """A spot light over a plane, 75% of the image outside its cone (tests/analytic.py)."""
+    path = tmp_path / "spot.json"
+    path.write_text(json.dumps(spot_plane_scene()))
+    return path
+
+
+CORNELL_CORNERS = Path(__file__).resolve().parent.parent / "bench" / "reference" / "cornell-box-corners-96x96.exr"
+BOX = 555.0  # the Cornell box's walls: x = 0, x = BOX, y = 0, y = BOX, z = BOX (open at z = 0)
+
+
+def concave_corner_pixels(eng: Engine, band: float, sub: int = 4) -> np.ndarray:
+    """(H, W) mask of the pixels whose whole footprint (sub x sub rays) sees a wall within
+    `band` of a perpendicular wall: the Cornell box's concave corners."""
+    w, h = eng.arrays.width, eng.arrays.height
+    o, d = camera_rays(eng, sub)
+    walls = [(0, 0.0), (0, BOX), (1, 0.0), (1, BOX), (2, BOX)]
+    t_hit, wall_hit = np.full(d.shape[:2], np.inf), np.full(d.shape[:2], -1)
+    for k, (axis, c) in enumerate(walls):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (c - o[axis]) / d[..., axis]
+        inside = np.all(np.abs(o + t[..., None] * d - BOX / 2) <= BOX / 2 + 1e-3, axis=-1) & (t > 0) & (t < t_hit)
+        t_hit, wall_hit = np.where(inside, t, t_hit), np.where(inside, k, wall_hit)
+    p = o + t_hit[..., None] * d
+    gap = np.full(d.shape[:2], np.inf)
+    for k, (axis, c) in enumerate(walls):
+        gap = np.where(wall_hit != k, np.minimum(gap, np.abs(p[..., axis] - c)), gap)
+    return (np.isfinite(t_hit) & (gap < band)).reshape(h, sub, w, sub).all(axis=(1, 3))
+
+
+def assert_corners_match_mitsuba(eng: Engine, img: np.ndarray) -> None:
+    """A 96x96 cornell-box image's pixels within 10 and within 30 (of 555) of a concave
+    corner, per channel, within 3% of Mitsuba 3's path tracer (CORNELL_CORNERS)."""
+    ref = read_image(CORNELL_CORNERS)[..., :3]
+    for band in (10.0, 30.0):
+        corners = concave_corner_pixels(eng, band)
+        assert corners.sum() > 150
+        ratio = img[corners].mean(axis=0) / ref[corners].mean(axis=0)
+        np.testing.assert_array_less(np.abs(ratio - 1.0), 0.03, err_msg=f"band {band}: {ratio}")
+
+
+# The sharded setup: the main Redis and SHARDS state nodes; the W x H frame in tiles of
+# TILE pixels has 6 tiles, two on each node; BATCHES deltas of 2 passes each.
+SHARDS = 3
+TILE = 512
+W, H = 64, 48
+BATCHES = 12
+
+
+def running_job(store: Jobs, w: int, h: int, r0: np.ndarray | float = 0.05, settings: Settings | None = None,
+                scene: dict | None = None, scene_name: str | None = None, started: float = 1.0) -> str:
+    """A job of w x h pixels (default settings: 1000 passes), its setup written with radius
+    `r0` (an array, or one radius for every pixel) and its record running since `started`:
+    what batches merge into. Returns its id."""
+    settings = settings or Settings(max_passes=1000)
+    job_id = store.create(scene or {}, settings, w, h, scene_name)
+    store.init_setup(store.get(job_id), {"R0": np.broadcast_to(np.asarray(r0, np.float64), w * h).copy()})
+    store.r.hset(keys.job(job_id), mapping={"status": "running", "started": started})
+    return job_id
+
+
+def sharded_store(urls: list[str]) -> Jobs:
+    """The store over the main Redis (urls[0]) and the state nodes (the rest), in TILE-pixel tiles."""
+    return Jobs(redis.Redis.from_url(urls[0]), [redis.Redis.from_url(u) for u in urls[1:]], tile_pixels=TILE)
+
+
+def caustics_job(store: Jobs, scene: dict, settings: Settings, r0: np.ndarray, max_passes: int = 1000) -> str:
+    """A running W x H cornell-caustics job (the `deltas` fixture's scene) of `max_passes`, no time limit."""
+    return running_job(store, W, H, r0, settings.model_copy(update={"max_passes": max_passes, "max_seconds": None}),
+                       scene, "cornell-caustics")
+
+
+def merge_new(store: Jobs, job_id: str, d: Delta) -> None:
+    """Merge a delta the job has not seen: the store must accept it."""
+    assert store.merge(Batch(job_id, d.first_pass, d.n_passes), d, 0.1) == "merged"
+
+
+def assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
+    """After a final fold the record counts each delta of `made` once; every tile of the
+    sharded job folded each of their batches once, holds nothing pending, lies on its own
+    node only, stores exactly the arrays the deltas carried there (with R0 and N), and its
+    state is the sum of the deltas as sent."""
+    store.fold(job_id, wait=True, checkpoint=True)
+    record = store.get(job_id)
+    state = store.state(record)
+    record = store.get(job_id)
+    assert record.folded_passes == record.passes == sum(d.n_passes for d in made)
+    assert record.folded_emitted == record.emitted == sum(d.emitted for d in made)
+    assert not store.r.exists(keys.tofold(job_id))
+    ids = {Batch(job_id, d.first_pass, d.n_passes).id.encode() for d in made}
+    tiling = store.tiling(record)
+    assert tiling.count == 6
+    for k in range(tiling.count):
+        node = store.tiles.nodes[tiling.node(k)]
+        assert node.smembers(keys.tile(job_id, k, "folded")) == ids
+        assert not node.exists(keys.tile(job_id, k, "pending"))
+        for other in store.tiles.nodes:  # each tile on its own node only
+            assert bool(other.exists(keys.tile(job_id, k, "state"))) == (other is node)
+        # A tile stores the arrays its deltas carried (and N, derived from them, and R0): an
+        # array no delta carried there (e.g. directly seen emission away from the light) is absent.
+        span = tiling.span(k)
+        carried = {name for d in made for name, a in d.sums.items() if a[span].any() and name in state.sums}
+        stored = {f.decode() for f in node.hkeys(keys.tile(job_id, k, "state"))}
+        assert stored == {"R0", "N"} | carried, (k, stored, carried)
+    assert any("Ld" not in {n for d in made for n, a in d.sums.items() if a[tiling.span(k)].any()}
+               for k in range(tiling.count))  # the check above sees a missing array somewhere
+    sent = [as_sent(d.sums, tiling, record.integrator.sums.half) for d in made]
+    for name in state.sums:
+        expected = sum(d[name] for d in sent)
+        np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
