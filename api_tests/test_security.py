@@ -22,9 +22,10 @@ from pathlib import Path
 import httpx
 import pytest
 import redis
-from rq import Queue
+from rq import Callback, Queue
 from rq.serializers import JSONSerializer
 
+from api_tests import tripwire
 from api_tests.cluster import Cluster, finished, merged_passes
 from service.redis_server import DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
 from worker.scheduler import QUEUE_NAMES
@@ -198,6 +199,46 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     assert all(proc.poll() is None for proc in secured.workers)  # the workers survived both
     job = secured.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P})
     _assert_exact(secured, job["id"], 2)
+
+
+def test_a_worker_resolves_no_callable_a_queued_job_names(tmp_path: Path) -> None:
+    """Whoever reaches Redis may write any RQ job: a function, success, failure and stopped
+    callbacks, a dependency. A worker imports and runs none of them but the render task: a
+    job naming anything else, as its function or as any callback, is failed unrun, and the
+    tripwire module (a file when imported or called) is never even imported."""
+    sprung = tmp_path / "tripwire"
+    sprung.mkdir()
+    c = Cluster(tmp_path / "cluster", workers=1, env={tripwire.DIR_ENV: str(sprung)})
+    try:
+        r = c.redis_client
+        queue = Queue(QUEUE_NAMES[0], connection=r, serializer=JSONSerializer)
+        trap, task = "api_tests.tripwire.spring", "worker.tasks.run_batch"
+        skipped = ("no-such-job", 0, 1)  # a batch of no job: the task returns "skipped", unrendered
+        refused = [
+            queue.enqueue_call(trap, args=(1,)),
+            queue.enqueue_call(trap, args=(1,), on_failure=Callback(trap)),
+            queue.enqueue_call(task, args=skipped, on_success=Callback(trap)),
+            queue.enqueue_call(task, args=("no-such-job",), on_failure=Callback(trap)),  # the task's TypeError
+            queue.enqueue_call(task, args=skipped, on_stopped=Callback(trap)),
+            queue.enqueue_call("builtins.print", args=("ran",), on_success=Callback("builtins.print")),
+        ]
+        parent = queue.enqueue_call(task, args=skipped)
+        refused.append(queue.enqueue_call(task, args=skipped, depends_on=parent, on_success=Callback(trap)))
+        deadline = time.time() + 60
+        statuses: list[bytes | None] = []
+        while time.time() < deadline:
+            statuses = [r.hget(f"rq:job:{j.id}", "status") for j in refused]
+            if all(s == b"failed" for s in statuses):
+                break
+            time.sleep(0.2)
+        assert statuses == [b"failed"] * len(refused), statuses
+        assert r.hget(f"rq:job:{parent.id}", "status") == b"finished"  # the plain task still runs
+        assert sorted(p.name for p in sprung.iterdir()) == []  # nothing imported, nothing called
+        assert all(proc.poll() is None for proc in c.workers)
+        job = c.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P})
+        _assert_exact(c, job["id"], 2)
+    finally:
+        c.close()
 
 
 def test_password_is_kept_across_restarts_of_a_data_dir(tmp_path: Path) -> None:
