@@ -58,7 +58,8 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     taken = time.perf_counter()
     record = jobs.get(job_id)
     try:
-        engine = engine_for(jobs, record)
+        with holding(batch):  # a first build (scene, kernels) may outlast a lease
+            engine = engine_for(jobs, record)
     except (SceneError, ValueError) as exc:
         jobs.fail(job_id, f"cannot render this scene: {exc}")
         jobs.drop(batch)
