@@ -23,6 +23,10 @@ from worker.store.policy import FINAL
 from worker.store.tiles import STATE_URLS_ENV
 
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
+# The settings that choose each way of rendering the fault tests cover: the two integrators
+# (whose sums the store merges alike) and the adaptive photon sampler (its counters merge too).
+METHODS: dict[str, dict[str, str]] = {"sppm": {"method": "sppm"}, "vcm": {"method": "vcm"},
+                                      "adaptive": {"sampler": "adaptive"}}
 
 
 def restart(server: EmbeddedRedis) -> None:
