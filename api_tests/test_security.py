@@ -27,7 +27,7 @@ from rq.serializers import JSONSerializer
 
 from api_tests import tripwire
 from api_tests.cluster import Cluster, finished, merged_passes
-from service.redis_server import DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
+from service.redis_server import AOF_DIR, AOF_FILE, DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
 from worker.scheduler import QUEUE_NAMES
 
 TOKEN = "s3cret-token"
@@ -169,11 +169,11 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     assert payloads and all(json.loads(zlib.decompress(p))[0] == "worker.tasks.run_batch" for p in payloads)
     _assert_exact(secured, job["id"], 40)
 
-    # private files: directory 0700, password and append-only file 0600, owner only
+    # private files: directories 0700, password and the append-only file's parts 0600, owner only
     data = secured.redis.data_dir
-    assert stat.S_IMODE(data.stat().st_mode) == 0o700
-    files = [f for f in data.iterdir() if f.is_file()]
-    assert {PASSWORD_FILE, "appendonly.aof"} <= {f.name for f in files}
+    assert all(stat.S_IMODE(d.stat().st_mode) == 0o700 for d in (data, data / AOF_DIR))
+    files = [f for d in (data, data / AOF_DIR) for f in d.iterdir() if f.is_file()]
+    assert {PASSWORD_FILE, f"{AOF_FILE}.manifest"} <= {f.name for f in files}
     assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in files), [(f.name, oct(f.stat().st_mode)) for f in files]
 
     # no command line shows the password (any local user reads /proc/PID/cmdline)
