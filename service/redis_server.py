@@ -152,8 +152,8 @@ class EmbeddedRedis:
 
     def _config(self) -> str:
         lines = [f"port {self.port}", f"bind {self.bind}", f'dir "{self.data_dir.resolve()}"',
-                 "appendonly yes", f'appendfilename "{AOF_FILE}"', f'appenddirname "{AOF_DIR}"', "appendfsync always", 'save ""',
-                 "protected-mode yes", "daemonize no",
+                 "appendonly yes", f'appendfilename "{AOF_FILE}"', f'appenddirname "{AOF_DIR}"', "appendfsync always",
+                 'save ""', "protected-mode yes", "daemonize no",
                  "loglevel warning", f"requirepass {self.password}", f"maxmemory {self.maxmemory}",
                  "maxmemory-policy noeviction",
                  # An append-only-file rewrite writes the data set with an RDB preamble; LZF on
