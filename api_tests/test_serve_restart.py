@@ -1,6 +1,6 @@
 """The whole `photonfarm serve` process group (API, embedded Redis, local workers) killed
 at several moments of a batch's life, then restarted on the same data directory: every job
-finishes with exact totals (issue 10)."""
+finishes with exact totals (issue 10), with every method (cluster.METHODS)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from api_tests.cluster import METHODS
 from service.redis_server import free_port
 
 PASSES, P = 24, 1 << 14
@@ -77,12 +78,13 @@ MOMENTS = {
 }
 
 
+@pytest.mark.parametrize("method", list(METHODS))
 @pytest.mark.parametrize("moment", list(MOMENTS))
-def test_serve_killed_and_restarted_keeps_exact_totals(tmp_path: Path, moment: str) -> None:
+def test_serve_killed_and_restarted_keeps_exact_totals(tmp_path: Path, moment: str, method: str) -> None:
     data = tmp_path / "data"
     s = Serve(data)
     try:
-        job = s.http.post("/v1/jobs", json={"scene_name": "cornell-box", "settings": {
+        job = s.http.post("/v1/jobs", json={"scene_name": "cornell-box", "settings": {**METHODS[method],
             "max_passes": PASSES, "photons_per_pass": P, "resolution": [48, 48], "seed": 4}}).json()
         _wait(s, job["id"], MOMENTS[moment], timeout=60)
     finally:

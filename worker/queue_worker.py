@@ -19,7 +19,7 @@ its own a worker loses nothing). Rounds that wait on Redis's own single thread i
 speed up.
 
 Job arguments travel as JSON (RQ's JSONSerializer: loading runs no code), and a worker
-runs only the render task, whatever function a job in the queue names.
+runs only the render task, whatever function or callbacks a job in the queue names.
 """
 
 from __future__ import annotations
@@ -54,13 +54,32 @@ BURST_PATIENCE_SECONDS = 20.0  # a --burst worker gives up once Redis has been o
 
 
 class BatchJob(Job):
-    """An RQ job that resolves only to a photonfarm task."""
+    """An RQ job that resolves only to a photonfarm task, and to no callback.
+
+    RQ imports by name the function a job names and its success, failure and stopped
+    callbacks, all read from the job's Redis hash. A job that names anything but a task
+    (or a method of an instance), or any callback, is refused before any name is imported:
+    its function raises, so RQ files it as failed, and every callback resolves to none.
+    """
 
     @property
     def func(self) -> Callable[..., Any]:
-        if self.func_name not in TASKS or self.instance is not None:
-            raise ValueError(f"refusing to run {self.func_name!r}: not a photonfarm task")
+        named = [self._success_callback_name, self._failure_callback_name, self._stopped_callback_name]
+        if self.func_name not in TASKS or self.instance is not None or any(named):
+            raise ValueError(f"refusing to run {self.func_name!r} (callbacks {named}): not a photonfarm task")
         return super().func
+
+    @property
+    def success_callback(self) -> None:
+        return None
+
+    @property
+    def failure_callback(self) -> None:
+        return None
+
+    @property
+    def stopped_callback(self) -> None:
+        return None
 
 
 class BatchWorker(SimpleWorker):

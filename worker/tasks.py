@@ -60,7 +60,8 @@ def run_batch(job_id: str, first: int, n: int) -> str:
     record = jobs.get(job_id)
     assert record is not None, "a job whose batch was just leased has a record"
     try:
-        engine = engine_for(jobs, record)
+        with holding(batch):  # a first build (scene, kernels) may outlast a lease
+            engine = engine_for(jobs, record)
     except (SceneError, ValueError) as exc:
         jobs.fail(job_id, f"cannot render this scene: {exc}")
         jobs.drop(batch)

@@ -98,11 +98,11 @@ class Leases:
         return text(rq_id) if rq_id is not None else None
 
     # ----------------------------------------------------------------- leases
-    def take(self, batch: Batch, worker: str) -> None:
-        pipe = self.r.pipeline()
+    @staticmethod
+    def take(pipe: redis.client.Pipeline, batch: Batch, worker: str) -> None:
+        """Queue the commands that give `worker` the batch's lease (inside the starting transaction)."""
         pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS})
         pipe.hset(keys.LEASE_OWNER, batch.member, worker)
-        pipe.execute()
 
     def renew(self, pipe: redis.client.Pipeline, batch: Batch, worker: str) -> None:
         """Queue a lease extension and a heartbeat (after every pass)."""

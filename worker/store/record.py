@@ -360,17 +360,35 @@ class Jobs:
 
     def start(self, batch: Batch, worker: str) -> bool:
         """Take the lease on a batch; False if it is merged (and not lost) or no longer wanted.
-        The first batch to start moves the job from queued to running and starts its clock."""
-        if self._settled(batch) or not self.leases.is_inflight(batch):
+        The first batch to start moves the job from queued to running and starts its clock.
+
+        The take is one transaction with its checks (the job renders, the batch is in
+        flight): a cancel either comes first and the batch is not started, or finds the batch
+        owned and the job keeps its slot (cancel-requested) until the batch is dropped."""
+        if self._settled(batch):
             return False
-        if self.status(batch.job_id) not in policy.RENDERING:  # cancelled, failed or gone meanwhile
-            self.drop(batch)
-            return False
-        self.leases.take(batch, worker)
-        self.leases.heartbeat(worker, batch.job_id, batch.id)
-        self._transition(batch.job_id, frozenset({Status.QUEUED}), lambda pipe: pipe.hset(
-            keys.job(batch.job_id), mapping={"status": Status.RUNNING.value, "started": time.time()}))
-        return True
+        key, inflight = keys.job(batch.job_id), keys.inflight(batch.job_id)
+        with self.r.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(key, inflight)
+                    if not pipe.sismember(inflight, batch.id):
+                        return False
+                    raw = pipe.hget(key, "status")
+                    status = Status(raw.decode()) if raw else None
+                    if status not in policy.RENDERING:  # cancelled, failed or gone meanwhile
+                        break
+                    pipe.multi()
+                    self.leases.take(pipe, batch, worker)
+                    if status == Status.QUEUED:
+                        pipe.hset(key, mapping={"status": Status.RUNNING.value, "started": time.time()})
+                    pipe.execute()
+                    self.leases.heartbeat(worker, batch.job_id, batch.id)
+                    return True
+                except redis.WatchError:
+                    continue
+        self.drop(batch)
+        return False
 
     def renew(self, batch: Batch, worker: str) -> Status | None:
         """After every pass: extend the lease, beat the worker's heart, and return the job's
