@@ -21,7 +21,7 @@ class JobSettings(Settings):
     """The settings model (worker/settings.py) with the service's tighter limits; the
     defaults are the model's own."""
 
-    photons_per_pass: int = Field(DEFAULTS.photons_per_pass, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
+    photons_per_pass: int = Field(DEFAULTS.photons_per_pass, strict=True, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
                                   description=Settings.model_fields["photons_per_pass"].description)
 
     @field_validator("resolution")

@@ -8,14 +8,16 @@ tighter limits (pixels and photons per job) are checked in service/models.py.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationInfo, field_validator, model_validator
 
 from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
 
 MAX_PHOTONS_PER_PASS = 1 << 24
+# Numbers and flags are strict: a string or a boolean where a number belongs is refused, not coerced.
+StrictInt = Annotated[int, Strict()]
 DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold may be out of reach)
 
 Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
@@ -48,36 +50,38 @@ class Settings(BaseModel):
     sampler: Sampler = Field("uniform", description="photon paths: uniform, or adaptive (Markov chains over "
                                                      "paths that reach a measurement point, replica exchange "
                                                      "with uniform draws; Hachisuka & Jensen 2011)")
-    target_acceptance: float = Field(0.234, gt=0.0, lt=1.0,
+    target_acceptance: float = Field(0.234, strict=True, gt=0.0, lt=1.0,
                                      description="adaptive sampler: the mutation acceptance its mutation size "
                                                  "is adapted toward")
-    alpha: float | None = Field(None, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius "
-                                "rule); vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
+    alpha: float | None = Field(None, strict=True, gt=0.0, le=1.0,
+                                description="fraction of photons kept per pass (radius rule); vcm: merging radius "
+                                "r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
                                 + ", ".join(f"{m} {a:g}" for m, a in DEFAULT_ALPHA.items()) + ")",
                                 json_schema_extra={"x-default-by": {"method": DEFAULT_ALPHA}})
-    photons_per_pass: int = Field(1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS, description="photon paths per pass (light subpaths "
-                                                                               "for vcm, bpt, lt)")
-    initial_radius: float | None = Field(None, ge=1e-7, le=MAX_COORD,
+    photons_per_pass: int = Field(1 << 18, strict=True, ge=1, le=MAX_PHOTONS_PER_PASS,
+                                  description="photon paths per pass (light subpaths for vcm, bpt, lt)")
+    initial_radius: float | None = Field(None, strict=True, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "
                                                      "pass at the median lit pixel)")
-    hash_entries_per_photon: float = Field(1.0, gt=0.0, le=64.0,
+    hash_entries_per_photon: float = Field(1.0, strict=True, gt=0.0, le=64.0,
                                            description="stochastic hash table entries per stored photon")
-    seed: int = Field(0, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
-    max_bounces: int = Field(MAX_BOUNCES, ge=1, le=MAX_BOUNCES,
+    seed: int = Field(0, strict=True, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
+    max_bounces: int = Field(MAX_BOUNCES, strict=True, ge=1, le=MAX_BOUNCES,
                              description="safety cap on bounces per path (paths end by Russian roulette; "
                                          "lower it only to study what the cap cuts)")
-    resolution: tuple[int, int] | None = Field(None, description="[width, height] (default: the scene's)")
+    resolution: tuple[StrictInt, StrictInt] | None = Field(None, description="[width, height] (default: the scene's)")
     # The error estimate.
-    error_estimation: bool = Field(True, description="accumulate the error estimator's per-pixel sums")
-    confidence: float = Field(0.9, gt=0.0, lt=1.0,
+    error_estimation: bool = Field(True, strict=True, description="accumulate the error estimator's per-pixel sums")
+    confidence: float = Field(0.9, strict=True, gt=0.0, lt=1.0,
                               description="of the per-pixel error bound; 0.5 bounds the median error")
     bias_constant: Literal["taylor", "dissertation"] = Field("taylor", description="constant c of the bias "
                                                              "estimate 0.5 R^2 c lap L")
     # The job's budget and place in the queues.
-    max_passes: int | None = Field(None, ge=1, le=10_000_000, description="stop after this many passes")
-    max_seconds: float | None = Field(None, gt=0.0, le=7 * 86_400.0, description="stop after this many seconds")
-    error_threshold: float | None = Field(None, gt=0.0, le=10.0,
+    max_passes: int | None = Field(None, strict=True, ge=1, le=10_000_000, description="stop after this many passes")
+    max_seconds: float | None = Field(None, strict=True, gt=0.0, le=7 * 86_400.0,
+                                      description="stop after this many seconds")
+    error_threshold: float | None = Field(None, strict=True, gt=0.0, le=10.0,
                                           description="stop, as converged, when the average relative error is "
                                                       "at most this")
     priority: Priority = Field("normal", description="queue: high, normal or low")
