@@ -27,6 +27,7 @@ from fastapi import Path as PathParam
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
@@ -214,7 +215,14 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             else:
                 reason, kind = f"body is not a readable form: {exc.detail}", "form_invalid"
             return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
+        if exc.status_code == 405:  # Starlette names the first route of the path only (RFC 9110, 15.5.6: all)
+            exc.headers = {**(exc.headers or {}), "Allow": ", ".join(sorted(allowed_methods(request.url.path)))}
         return await http_exception_handler(request, exc)
+
+    def allowed_methods(path: str) -> set[str]:
+        """Every method some route of `path` answers."""
+        return {method for route in app.routes if isinstance(route, APIRoute) and route.path_regex.match(path)
+                for method in route.methods}
 
     # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
     # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
