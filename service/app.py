@@ -220,9 +220,11 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         return await http_exception_handler(request, exc)
 
     def allowed_methods(path: str) -> set[str]:
-        """Every method some route of `path` answers."""
-        return {method for route in app.routes if isinstance(route, APIRoute) and route.path_regex.match(path)
-                for method in route.methods}
+        """Every method of the path template that takes `path` (the first that matches, as
+        the router picks it; /v1/jobs/upload is not a job id): its operations in the schema."""
+        api = [route for route in app.routes if isinstance(route, APIRoute)]
+        template = next(route.path for route in api if route.path_regex.match(path))
+        return {method for route in api if route.path == template for method in route.methods or ()}
 
     # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
     # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
