@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_validator
 
 from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, load_mesh
 
@@ -34,11 +34,13 @@ MAX_PATH_CHARS = 255  # a mesh file name: what a file system accepts for one nam
 SCENE_NAME_PATTERN = r"^[a-z0-9][a-z0-9-]*$"  # a bundled scene's name: never a path
 MAX_SCENE_NAME = 64
 
-Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
+# Numbers are strict: a string or a boolean where one belongs is refused, not coerced (JSON lists
+# still make the tuples).
+Coord = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = tuple[Coord, Coord, Coord]
-Unit = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1.0)]
+Unit = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0.0, le=1.0)]
 Albedo = tuple[Unit, Unit, Unit]
-NonNeg = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1e12)]
+NonNeg = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0.0, le=1e12)]
 Power = tuple[NonNeg, NonNeg, NonNeg]
 
 
@@ -64,10 +66,10 @@ class Camera(_Model):
     position: Vec3
     look_at: Vec3
     up: Vec3 = (0.0, 1.0, 0.0)
-    fov: Annotated[float, Field(gt=0.0, lt=180.0, allow_inf_nan=False)] = 40.0  # vertical, degrees
-    resolution: tuple[Annotated[int, Field(ge=1, le=MAX_RESOLUTION)], Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]] = (512, 512)
+    fov: Annotated[float, Field(strict=True, gt=0.0, lt=180.0, allow_inf_nan=False)] = 40.0  # vertical, degrees
+    resolution: tuple[Annotated[int, Field(strict=True, ge=1, le=MAX_RESOLUTION)], Annotated[int, Field(strict=True, ge=1, le=MAX_RESOLUTION)]] = (512, 512)
     aperture_radius: NonNeg = 0.0  # thin lens when > 0
-    focus_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None  # defaults to |look_at - position|
+    focus_distance: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)] | None = None  # defaults to |look_at - position|
     near_clip: NonNeg = 0.0  # rays start this far along the view axis (smallppm starts them past its front wall)
 
     @model_validator(mode="after")
@@ -96,7 +98,7 @@ class Mirror(_Model):
 
 class Glass(_Model):
     type: Literal["glass"]
-    ior: Annotated[float, Field(ge=1.0, le=3.0, allow_inf_nan=False)] = 1.5
+    ior: Annotated[float, Field(strict=True, ge=1.0, le=3.0, allow_inf_nan=False)] = 1.5
     albedo: Albedo = (1.0, 1.0, 1.0)  # tint applied at every interaction
 
 
@@ -105,7 +107,7 @@ class Glossy(_Model):
 
     type: Literal["glossy"]
     albedo: Albedo
-    exponent: Annotated[float, Field(ge=1.0, le=100_000.0, allow_inf_nan=False)]
+    exponent: Annotated[float, Field(strict=True, ge=1.0, le=100_000.0, allow_inf_nan=False)]
 
 
 Material = Annotated[Diffuse | Mirror | Glass | Glossy, Field(discriminator="type")]
@@ -121,7 +123,7 @@ class _Shape(_Model):
 class Sphere(_Shape):
     type: Literal["sphere"]
     center: Vec3
-    radius: Annotated[float, Field(gt=0.0, le=MAX_COORD, allow_inf_nan=False)]
+    radius: Annotated[float, Field(strict=True, gt=0.0, le=MAX_COORD, allow_inf_nan=False)]
 
 
 class Quad(_Shape):
@@ -139,7 +141,7 @@ class Mesh(_Shape):
 
     type: Literal["mesh"]
     vertices: list[Vec3] | None = None
-    triangles: list[tuple[int, int, int]] | None = None
+    triangles: list[tuple[StrictInt, StrictInt, StrictInt]] | None = None
     normals: list[Vec3] | None = None
     file: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
 
@@ -180,7 +182,7 @@ class SpotLight(_Model):
     type: Literal["spot"]
     position: Vec3
     direction: Vec3
-    cone_angle: Annotated[float, Field(gt=0.0, le=90.0, allow_inf_nan=False)]  # half-angle, degrees
+    cone_angle: Annotated[float, Field(strict=True, gt=0.0, le=90.0, allow_inf_nan=False)]  # half-angle, degrees
     power: Power  # total flux, uniform in solid angle inside the cone
 
     _direction = field_validator("direction")(_nonzero_direction)

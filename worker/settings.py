@@ -8,16 +8,14 @@ tighter limits (pixels and photons per job) are checked in service/models.py.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationInfo, field_validator, model_validator
 
 from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
 
 MAX_PHOTONS_PER_PASS = 1 << 24
-# Numbers and flags are strict: a string or a boolean where a number belongs is refused, not coerced.
-StrictInt = Annotated[int, Strict()]
 DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold may be out of reach)
 
 Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
@@ -35,6 +33,7 @@ DEFAULT_ALPHA: dict[str, float] = {"sppm": 0.7, "ppm": 0.7, "vcm": 0.6, "bpt": 0
 
 
 class Settings(BaseModel):
+    # Numbers and flags are strict: a string or a boolean where one belongs is refused, not coerced.
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     # What is rendered, and how.
