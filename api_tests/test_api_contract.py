@@ -23,7 +23,7 @@ VALID: dict[str, Any] = {"target_acceptance": 0.3, "alpha": 0.5, "photons_per_pa
                          "max_passes": 5, "max_seconds": 5.0, "error_threshold": 0.5, "error_estimation": False}
 SMALL = {"resolution": [16, 16], "photons_per_pass": 1024, "max_passes": 3}
 FUZZ_SEED = 52
-FUZZ_EXAMPLES = 200  # per operation: the whole run stays within about two minutes on two cores
+FUZZ_EXAMPLES = 300  # per operation: bounded so that the run stays within about two minutes on two shared cores
 # What the schema cannot say, each for a reason; every other check runs on every operation.
 # use_after_free: DELETE of an active job cancels it (202) and keeps its image; only a finished
 # job is deleted (204), and its routes then answer 404.
