@@ -87,7 +87,9 @@ def test_a_scene_number_given_as_a_string_is_refused(cluster: Cluster) -> None:
 
 @pytest.mark.parametrize(("method", "path", "allowed"), [("PUT", "/v1/jobs", {"GET", "POST"}),
                                                          ("PATCH", "/v1/jobs/nosuchjob", {"GET", "DELETE"}),
-                                                         ("POST", "/v1/jobs/nosuchjob/image", {"GET"})])
+                                                         ("POST", "/v1/jobs/nosuchjob/image", {"GET"}),
+                                                         ("POST", "/openapi.json", {"GET", "HEAD"}),
+                                                         ("POST", "/static/viewer.js", {"GET", "HEAD"})])
 def test_405_names_every_method_of_the_path(cluster: Cluster, method: str, path: str, allowed: set[str]) -> None:
     resp = cluster.http.request(method, path)
     assert resp.status_code == 405, resp.text

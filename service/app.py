@@ -27,13 +27,13 @@ from fastapi import Path as PathParam
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
-from fastapi.routing import APIRoute
 from fastapi.security import HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Mount, Route
 
 from service.metrics import metrics_text, workers
 from service.models import (
@@ -215,16 +215,21 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             else:
                 reason, kind = f"body is not a readable form: {exc.detail}", "form_invalid"
             return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
-        if exc.status_code == 405:  # Starlette names the first route of the path only (RFC 9110, 15.5.6: all)
-            exc.headers = {**(exc.headers or {}), "Allow": ", ".join(sorted(allowed_methods(request.url.path)))}
+        if exc.status_code == 405 and (allowed := allowed_methods(request.url.path)):
+            # Starlette names the first route of the path only (RFC 9110, 15.5.6: every method)
+            exc.headers = {**(exc.headers or {}), "Allow": ", ".join(sorted(allowed))}
         return await http_exception_handler(request, exc)
 
     def allowed_methods(path: str) -> set[str]:
         """Every method of the path template that takes `path` (the first that matches, as
         the router picks it; /v1/jobs/upload is not a job id): its operations in the schema."""
-        api = [route for route in app.routes if isinstance(route, APIRoute)]
-        template = next(route.path for route in api if route.path_regex.match(path))
-        return {method for route in api if route.path == template for method in route.methods or ()}
+        for route in app.routes:
+            if isinstance(route, Route) and route.path_regex.match(path):
+                return {method for other in app.routes if isinstance(other, Route) and other.path == route.path
+                        for method in other.methods or ()}
+            if isinstance(route, Mount) and isinstance(route.app, StaticFiles) and route.path_regex.match(path):
+                return {"GET", "HEAD"}  # what StaticFiles serves
+        return set()
 
     # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
     # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
@@ -445,9 +450,9 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         folded, or an error map of a job that estimates none, has no tag to match (its answer
         is a blank image or a 409)."""
         has_tag = record.image_passes > 0 and (kind == "image" or record.settings.error_estimation)
-        if has_tag and etag(record, kind, fmt, record.image_passes) in if_none_match(request):
-            return Response(status_code=304, headers={"ETag": etag(record, kind, fmt, record.image_passes),
-                                                      "Cache-Control": "no-cache"})
+        current = etag(record, kind, fmt, record.image_passes)
+        if has_tag and current in if_none_match(request):
+            return Response(status_code=304, headers={"ETag": current, "Cache-Control": "no-cache"})
         body, headers = body_of(record, fmt)
         tag = etag(record, kind, fmt, int(headers["X-Passes"]))  # the passes of the state it was made from
         return Response(body, media_type=MEDIA[fmt], headers={**headers, "ETag": tag, "Cache-Control": "no-cache"})
