@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from api_tests.cluster import finished
 from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, zip_bytes
 from service.client import eta_seconds
 from service.models import JobSettings
@@ -378,3 +379,26 @@ def test_layout_holds_at_800px(page) -> None:  # noqa: ANN001
     assert viewer["y"] >= side["y"] + side["height"] and viewer["width"] > 700
     _shot(page, "narrow-800px")
     page.set_viewport_size(WIDE)
+
+
+def test_the_browser_revalidates_an_unchanged_image(page, cluster) -> None:  # noqa: ANN001
+    """The image comes with an ETag and no-cache: the page's second fetch of an unchanged image
+    carries If-None-Match (the browser's cache adds it; viewer.js needs no code of its own)."""
+    job = cluster.submit(scene_name="cornell-box", settings={"resolution": [16, 16], "photons_per_pass": 1024,
+                                                              "max_passes": 2})
+    cluster.wait(job["id"], lambda j: finished(j) and j["image_passes"] == j["passes"])
+    url = job["links"]["image_png"]
+    requests: list[Any] = []
+
+    def record(request: Any) -> None:
+        if url in request.url:
+            requests.append(request)
+    page.on("requestfinished", record)
+    sizes = page.evaluate("async (u) => [(await (await api(u)).blob()).size, (await (await api(u)).blob()).size]", url)
+    page.remove_listener("requestfinished", record)
+    assert sizes[0] > 0 and sizes[0] == sizes[1]  # the page gets the image both times
+    assert len(requests) == 2
+    assert "if-none-match" not in requests[0].all_headers()
+    # The second request names the first answer's tag; the server answers that with a 304
+    # (test_api_contract), which the browser shows the page as its cached 200.
+    assert requests[1].all_headers()["if-none-match"] == requests[0].response().all_headers()["etag"]

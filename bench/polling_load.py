@@ -4,8 +4,9 @@
 
 A real cluster (api_tests/cluster.py: redis-server, one worker per core, the API
 under uvicorn) renders one cornell-caustics 128x128 job for the same wall time, first
-with nobody polling, then with N pollers, each looping over GET the job, GET its PNG and
-GET /metrics and then sleeping `--interval` seconds (1 s is what the web viewer does; 0
+with nobody polling, then with N pollers, each looping over GET the job, GET its PNG (with
+If-None-Match naming the ETag it last got, as a browser's cache does) and GET /metrics and then
+sleeping `--interval` seconds (1 s is what the web viewer does; 0
 polls as fast as the API answers); `--rounds` repeats that sequence, so that load from
 other processes on the host falls on every configuration alike. Throughput is the job
 view's merge history: photons per second between the first and last merge of the window,
@@ -67,11 +68,16 @@ def run(c: Cluster, seconds: float, pollers: int, interval: float, seed: int) ->
     urls = {"job": job["links"]["self"], "image_png": job["links"]["image_png"], "metrics": "/metrics"}
 
     def poll() -> None:
+        tags: dict[str, str] = {}  # the last ETag of each route, sent back as a browser's cache does
         with httpx.Client(base_url=str(c.http.base_url), headers=c.http.headers, timeout=60) as http:
             while not stop.is_set():
                 for route in ROUTES:
                     t0 = time.perf_counter()
-                    http.get(urls[route]).raise_for_status()
+                    resp = http.get(urls[route], headers={"If-None-Match": tags[route]} if route in tags else {})
+                    if resp.status_code != 304:
+                        resp.raise_for_status()
+                    if "ETag" in resp.headers:
+                        tags[route] = resp.headers["ETag"]
                     latencies[route].append(time.perf_counter() - t0)
                 stop.wait(interval)
 

@@ -34,6 +34,7 @@ from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Mount, Route
 
 from service.metrics import metrics_text, workers
 from service.models import (
@@ -129,6 +130,23 @@ def encode_image(pixels: np.ndarray, fmt: Literal["png", "exr"], **options: Any)
 
 
 MEDIA = {"png": "image/png", "exr": "image/x-exr"}
+VALIDATOR_HEADERS = {"ETag": {"description": "strong validator of this image: send it back in If-None-Match",
+                              "schema": {"type": "string"}},
+                     "Cache-Control": {"description": "no-cache: revalidate before each reuse",
+                                       "schema": {"type": "string"}}}
+NOT_MODIFIED = {"description": "the image is the one If-None-Match names (no body)", "headers": VALIDATOR_HEADERS}
+
+
+def etag(record: JobRecord, kind: str, fmt: str, passes: int) -> str:
+    """A strong ETag: an image is a function of its job and the passes folded into it (the
+    encoded cache's key), so one tag names one body."""
+    return f'"{record.id}-{kind}-{fmt}-{passes}"'
+
+
+def if_none_match(request: Request) -> set[str]:
+    """The entity tags of If-None-Match, compared weakly as RFC 9110 (13.1.2) asks: W/ dropped."""
+    tags = request.headers.get("if-none-match", "").split(",")
+    return {tag.strip().removeprefix("W/") for tag in tags if tag.strip()}
 
 
 def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
@@ -203,7 +221,21 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
             else:
                 reason, kind = f"body is not a readable form: {exc.detail}", "form_invalid"
             return JSONResponse({"detail": [{"loc": ["body"], "msg": reason, "type": kind}]}, 422)
+        if exc.status_code == 405 and (allowed := allowed_methods(request.url.path)):
+            # Starlette names the first route of the path only (RFC 9110, 15.5.6: every method)
+            exc.headers = {**(exc.headers or {}), "Allow": ", ".join(sorted(allowed))}
         return await http_exception_handler(request, exc)
+
+    def allowed_methods(path: str) -> set[str]:
+        """Every method of the path template that takes `path` (the first that matches, as
+        the router picks it; /v1/jobs/upload is not a job id): its operations in the schema."""
+        for route in app.routes:
+            if isinstance(route, Route) and route.path_regex.match(path):
+                return {method for other in app.routes if isinstance(other, Route) and other.path == route.path
+                        for method in other.methods or ()}
+            if isinstance(route, Mount) and isinstance(route.app, StaticFiles) and route.path_regex.match(path):
+                return {"GET", "HEAD"}  # what StaticFiles serves
+        return set()
 
     # Encoded bodies keyed by the passes folded into the image: a new fold makes a new key, so
     # nothing stale is served; concurrent misses of one key wait for a single encode (the condition).
@@ -420,19 +452,33 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         jobs.cancel(job_id)
         return job_view(jobs, existing(job_id))
 
+    def validated(request: Request, record: JobRecord, kind: str, fmt: Literal["png", "exr"],
+                  body_of: Callable[[JobRecord, Literal["png", "exr"]], tuple[bytes, dict[str, str]]]) -> Response:
+        """An image or error map with its validator: a client holding the current tag gets
+        a 304 without the state being read or encoded (RFC 9110, 13.1.2). A job with no pass
+        folded, or an error map of a job that estimates none, has no tag to match (its answer
+        is a blank image or a 409)."""
+        has_tag = record.image_passes > 0 and (kind == "image" or record.settings.error_estimation)
+        current = etag(record, kind, fmt, record.image_passes)
+        if has_tag and current in if_none_match(request):
+            return Response(status_code=304, headers={"ETag": current, "Cache-Control": "no-cache"})
+        body, headers = body_of(record, fmt)
+        tag = etag(record, kind, fmt, int(headers["X-Passes"]))  # the passes of the state it was made from
+        return Response(body, media_type=MEDIA[fmt], headers={**headers, "ETag": tag, "Cache-Control": "no-cache"})
+
     @app.get("/v1/jobs/{job_id}/image", dependencies=secured,
-             responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 422)})
-    def image(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
-        body, headers = image_body(existing(job_id), format)
-        return Response(body, media_type=MEDIA[format], headers=headers)
+             responses={200: {"content": {"image/png": {}, "image/x-exr": {}}, "headers": VALIDATOR_HEADERS},
+                        304: NOT_MODIFIED, **errors(*auth, 404, 422)})
+    def image(request: Request, job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
+        return validated(request, existing(job_id), "image", format, image_body)
 
     @app.get("/v1/jobs/{job_id}/error", dependencies=secured,
-             responses={200: {"content": {"image/png": {}, "image/x-exr": {}}}, **errors(*auth, 404, 409, 422)})
-    def error_map(job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
+             responses={200: {"content": {"image/png": {}, "image/x-exr": {}}, "headers": VALIDATOR_HEADERS},
+                        304: NOT_MODIFIED, **errors(*auth, 404, 409, 422)})
+    def error_map(request: Request, job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
         """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
-        body, headers = error_body(existing(job_id), format)
-        return Response(body, media_type=MEDIA[format], headers=headers)
+        return validated(request, existing(job_id), "error", format, error_body)
 
     @app.get("/v1/jobs/{job_id}/pixel", response_model=PixelView, dependencies=secured,
              responses=errors(*auth, 404, 409, 422))

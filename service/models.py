@@ -6,7 +6,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from worker.scene import MAX_SCENE_NAME, SCENE_NAME_PATTERN, bundled_scene_names
+from worker.scene import MAX_RESOLUTION, MAX_SCENE_NAME, SCENE_NAME_PATTERN, bundled_scene_names
 from worker.settings import DEFAULTS, Settings
 from worker.store.policy import Status
 
@@ -17,11 +17,29 @@ MAX_SERVICE_PHOTONS_PER_PASS = 1 << 22
 MAX_ACTIVE_JOBS = 16
 
 
+def _settings_schema(schema: dict[str, Any]) -> None:
+    """The rules the validators check beyond each field's type, said in the JSON schema so
+    that it admits what the API accepts: each side of the resolution, the sampler that
+    needs a photon method, the threshold that needs the error estimate. (The pixels of a
+    job, a product of its sides, are checked but not said: JSON Schema has no product.)"""
+    resolution = schema["properties"]["resolution"]["anyOf"][0]
+    for side in resolution["prefixItems"]:
+        side.update(minimum=1, maximum=MAX_RESOLUTION)
+    schema["allOf"] = [
+        {"if": {"properties": {"sampler": {"const": "adaptive"}}, "required": ["sampler"]},
+         "then": {"properties": {"method": {"enum": ["sppm", "ppm"]}}}},
+        {"if": {"properties": {"error_threshold": {"type": "number"}}, "required": ["error_threshold"]},
+         "then": {"properties": {"error_estimation": {"const": True}}}},
+    ]
+
+
 class JobSettings(Settings):
     """The settings model (worker/settings.py) with the service's tighter limits; the
     defaults are the model's own."""
 
-    photons_per_pass: int = Field(DEFAULTS.photons_per_pass, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
+    model_config = ConfigDict(json_schema_extra=_settings_schema)
+
+    photons_per_pass: int = Field(DEFAULTS.photons_per_pass, strict=True, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
                                   description=Settings.model_fields["photons_per_pass"].description)
 
     @field_validator("resolution")
@@ -33,11 +51,15 @@ class JobSettings(Settings):
 
 
 class JobRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Exactly one of scene and scene_name (the validator below), in the schema too.
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"oneOf": [
+        {"required": ["scene"], "properties": {"scene": {"type": "object"}}},
+        {"required": ["scene_name"], "properties": {"scene_name": {"type": "string"}}}]})
 
     scene: dict[str, Any] | None = Field(None, description="a scene in the format of scenes/*.json")
     scene_name: str | None = Field(None, description="a bundled scene, see GET /v1/scenes",
-                                   pattern=SCENE_NAME_PATTERN, max_length=MAX_SCENE_NAME)
+                                   pattern=SCENE_NAME_PATTERN, max_length=MAX_SCENE_NAME,
+                                   json_schema_extra={"enum": [*bundled_scene_names(), None]})
     settings: JobSettings = Field(default_factory=JobSettings)
 
     @field_validator("scene_name")

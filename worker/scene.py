@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_validator
 
 from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, declared_counts, load_mesh
 
@@ -48,13 +48,15 @@ LOAD_LIMITS = {
     "triangles": MAX_TRIANGLES,  # read from mesh files (declared counts checked before parsing)
 }
 
-Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
+# Numbers are strict: a string or a boolean where one belongs is refused, not coerced (JSON lists
+# still make the tuples).
+Coord = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = tuple[Coord, Coord, Coord]
-Unit = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1.0)]
+Unit = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0.0, le=1.0)]
 Albedo = tuple[Unit, Unit, Unit]
-NonNeg = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1e12)]
+NonNeg = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0.0, le=1e12)]
 Power = tuple[NonNeg, NonNeg, NonNeg]
-Side = Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]  # pixels along one image axis
+Side = Annotated[int, Field(strict=True, ge=1, le=MAX_RESOLUTION)]  # pixels along one image axis
 
 
 class SceneError(ValueError):
@@ -112,11 +114,11 @@ class Camera(_Model):
     position: Vec3
     look_at: Vec3
     up: Vec3 = (0.0, 1.0, 0.0)
-    fov: Annotated[float, Field(gt=0.0, lt=180.0, allow_inf_nan=False)] = 40.0  # vertical, degrees
+    fov: Annotated[float, Field(strict=True, gt=0.0, lt=180.0, allow_inf_nan=False)] = 40.0  # vertical, degrees
     resolution: tuple[Side, Side] = (512, 512)
     aperture_radius: NonNeg = 0.0  # thin lens when > 0
     # Defaults to |look_at - position|.
-    focus_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    focus_distance: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)] | None = None
     near_clip: NonNeg = 0.0  # rays start this far along the view axis (smallppm starts them past its front wall)
 
     @model_validator(mode="after")
@@ -145,7 +147,7 @@ class Mirror(_Model):
 
 class Glass(_Model):
     type: Literal["glass"]
-    ior: Annotated[float, Field(ge=1.0, le=3.0, allow_inf_nan=False)] = 1.5
+    ior: Annotated[float, Field(strict=True, ge=1.0, le=3.0, allow_inf_nan=False)] = 1.5
     albedo: Albedo = (1.0, 1.0, 1.0)  # tint applied at every interaction
 
 
@@ -154,7 +156,7 @@ class Glossy(_Model):
 
     type: Literal["glossy"]
     albedo: Albedo
-    exponent: Annotated[float, Field(ge=1.0, le=100_000.0, allow_inf_nan=False)]
+    exponent: Annotated[float, Field(strict=True, ge=1.0, le=100_000.0, allow_inf_nan=False)]
 
 
 Material = Annotated[Diffuse | Mirror | Glass | Glossy, Field(discriminator="type")]
@@ -170,7 +172,7 @@ class _Shape(_Model):
 class Sphere(_Shape):
     type: Literal["sphere"]
     center: Vec3
-    radius: Annotated[float, Field(gt=0.0, le=MAX_COORD, allow_inf_nan=False)]
+    radius: Annotated[float, Field(strict=True, gt=0.0, le=MAX_COORD, allow_inf_nan=False)]
 
 
 class Quad(_Shape):
@@ -188,7 +190,7 @@ class Mesh(_Shape):
 
     type: Literal["mesh"]
     vertices: list[Vec3] | None = None
-    triangles: list[tuple[int, int, int]] | None = None
+    triangles: list[tuple[StrictInt, StrictInt, StrictInt]] | None = None
     normals: list[Vec3] | None = None
     file: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
 
@@ -229,7 +231,7 @@ class SpotLight(_Model):
     type: Literal["spot"]
     position: Vec3
     direction: Vec3
-    cone_angle: Annotated[float, Field(gt=0.0, le=90.0, allow_inf_nan=False)]  # half-angle, degrees
+    cone_angle: Annotated[float, Field(strict=True, gt=0.0, le=90.0, allow_inf_nan=False)]  # half-angle, degrees
     power: Power  # total flux, uniform in solid angle inside the cone
 
     _direction = field_validator("direction")(_nonzero_direction)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationInfo, field_validator, model_validator
 
 from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
@@ -32,6 +32,7 @@ DEFAULT_ALPHA: dict[str, float] = {"sppm": 0.7, "ppm": 0.7, "vcm": 0.6, "bpt": 0
 
 
 class Settings(BaseModel):
+    # Numbers and flags are strict: a string or a boolean where one belongs is refused, not coerced.
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     # What is rendered, and how.
@@ -47,36 +48,41 @@ class Settings(BaseModel):
     sampler: Sampler = Field(default="uniform", description="photon paths: uniform, or adaptive (Markov chains over "
                                                      "paths that reach a measurement point, replica exchange "
                                                      "with uniform draws; Hachisuka & Jensen 2011)")
-    target_acceptance: float = Field(default=0.234, gt=0.0, lt=1.0,
+    target_acceptance: float = Field(default=0.234, strict=True, gt=0.0, lt=1.0,
                                      description="adaptive sampler: the mutation acceptance its mutation size "
                                                  "is adapted toward")
-    alpha: float | None = Field(default=None, gt=0.0, le=1.0, description="fraction of photons kept per pass (radius "
-                                "rule); vcm: merging radius r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
+    alpha: float | None = Field(default=None, strict=True, gt=0.0, le=1.0,
+                                description="fraction of photons kept per pass (radius rule); vcm: merging radius "
+                                "r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
                                 + ", ".join(f"{m} {a:g}" for m, a in DEFAULT_ALPHA.items()) + ")",
                                 json_schema_extra={"x-default-by": {"method": {**DEFAULT_ALPHA}}})
-    photons_per_pass: int = Field(default=1 << 18, ge=1, le=MAX_PHOTONS_PER_PASS,
+    photons_per_pass: int = Field(default=1 << 18, strict=True, ge=1, le=MAX_PHOTONS_PER_PASS,
                                   description="photon paths per pass (light subpaths for vcm, bpt, lt)")
-    initial_radius: float | None = Field(default=None, ge=1e-7, le=MAX_COORD,
+    initial_radius: float | None = Field(default=None, strict=True, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "
                                                      "pass at the median lit pixel)")
-    hash_entries_per_photon: float = Field(default=1.0, gt=0.0, le=64.0,
+    hash_entries_per_photon: float = Field(default=1.0, strict=True, gt=0.0, le=64.0,
                                            description="stochastic hash table entries per stored photon")
-    seed: int = Field(default=0, ge=0, lt=2 ** 63, description="random seed: the same seed gives the same image")
-    max_bounces: int = Field(default=MAX_BOUNCES, ge=1, le=MAX_BOUNCES,
+    seed: int = Field(default=0, strict=True, ge=0, lt=2 ** 63,
+                      description="random seed: the same seed gives the same image")
+    max_bounces: int = Field(default=MAX_BOUNCES, strict=True, ge=1, le=MAX_BOUNCES,
                              description="safety cap on bounces per path (paths end by Russian roulette; "
                                          "lower it only to study what the cap cuts)")
-    resolution: tuple[int, int] | None = Field(default=None, description="[width, height] (default: the scene's)")
+    resolution: tuple[StrictInt, StrictInt] | None = Field(None, description="[width, height] (default: the scene's)")
     # The error estimate.
-    error_estimation: bool = Field(default=True, description="accumulate the error estimator's per-pixel sums")
-    confidence: float = Field(default=0.9, gt=0.0, lt=1.0,
+    error_estimation: bool = Field(default=True, strict=True,
+                                   description="accumulate the error estimator's per-pixel sums")
+    confidence: float = Field(default=0.9, strict=True, gt=0.0, lt=1.0,
                               description="of the per-pixel error bound; 0.5 bounds the median error")
     bias_constant: Literal["taylor", "dissertation"] = Field(default="taylor", description="constant c of the bias "
                                                              "estimate 0.5 R^2 c lap L")
     # The job's budget and place in the queues.
-    max_passes: int | None = Field(default=None, ge=1, le=10_000_000, description="stop after this many passes")
-    max_seconds: float | None = Field(default=None, gt=0.0, le=7 * 86_400.0, description="stop after this many seconds")
-    error_threshold: float | None = Field(default=None, gt=0.0, le=10.0,
+    max_passes: int | None = Field(default=None, strict=True, ge=1, le=10_000_000,
+                                   description="stop after this many passes")
+    max_seconds: float | None = Field(default=None, strict=True, gt=0.0, le=7 * 86_400.0,
+                                      description="stop after this many seconds")
+    error_threshold: float | None = Field(default=None, strict=True, gt=0.0, le=10.0,
                                           description="stop, as converged, when the average relative error is "
                                                       "at most this")
     priority: Priority = Field(default="normal", description="queue: high, normal or low")

@@ -375,7 +375,7 @@ class Jobs:
                     if not pipe.sismember(inflight, batch.id):
                         return False
                     raw = pipe.hget(key, "status")
-                    status = Status(raw.decode()) if raw else None
+                    status = Status(text(raw)) if raw else None
                     if status not in policy.RENDERING:  # cancelled, failed or gone meanwhile
                         break
                     pipe.multi()
