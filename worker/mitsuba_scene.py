@@ -491,8 +491,7 @@ class Converter:
     # -------------------------------------------------------------- spectra
     def spectrum(self, node: Node, emission: bool) -> tuple[float, float, float]:
         """A <spectrum> as linear sRGB (worker/spectra.py): `value` (one number, or
-        wavelength:value pairs), `filename` (a .spd file), or a plugin (`blackbody`,
-        `uniform`, `irregular`, `regular`)."""
+        wavelength:value pairs), `filename` (a .spd file), or a plugin (`blackbody`, `uniform`)."""
         kind = node.attrs.get("type")
         try:
             if kind is not None:
@@ -521,18 +520,9 @@ class Converter:
             out = spectra.blackbody_to_rgb(p.number("temperature", math.nan) or math.nan)
         elif kind == "uniform":
             out = spectra.uniform_to_rgb(p.number("value", 1.0) or 0.0, emission)
-        elif kind == "irregular":
-            w = _floats(node, p.string("wavelengths", "") or "")
-            v = _floats(node, p.string("values", "") or "", len(w))
-            out = spectra.sampled_to_rgb(*spectra.check_samples(w, v), emission)
-        elif kind == "regular":
-            lo, hi = p.number("wavelength_min", 0.0) or 0.0, p.number("wavelength_max", 0.0) or 0.0
-            v = _floats(node, p.string("values", "") or "")
-            if len(v) < 2 or not lo < hi:
-                raise _error(node, "a regular spectrum needs wavelength_min < wavelength_max and two values or more")
-            out = spectra.sampled_to_rgb(np.linspace(lo, hi, len(v)), np.array(v), emission)
-        else:
-            raise _error(node, f"unknown spectrum plugin {kind!r} (have: blackbody, uniform, irregular, regular)")
+        else:  # Mitsuba's RGB variants cannot evaluate `regular` and `irregular` either
+            raise _error(node, f"unknown spectrum plugin {kind!r} (have: blackbody, uniform; "
+                               "or wavelength:value pairs in `value`)")
         for obj in p.objects:
             raise _error(obj, f"<{obj.tag}> is not supported in a spectrum")
         p.done()
