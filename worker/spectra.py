@@ -9,7 +9,10 @@ A spectrum s(lambda) (piecewise linear between its samples, zero outside them) b
 - emission: under the equal-energy illuminant, XYZ = int s xyz / int y, so a flat radiance
   L is XYZ (L, L, L), not grey in sRGB.
 
-The CIE and D65 tables are colour-science's (CIE 015:2018 data at 1 nm).
+The integrals are Riemann sums over INTEGRATION_STEPS evenly spaced wavelengths from 360 to
+830 nm, as Mitsuba's parser computes them: a spectrum that starts or ends inside that range
+(a step) is then weighted as Mitsuba weights it. The CIE and D65 tables are colour-science's
+(CIE 015:2018 data at 1 nm, linearly interpolated).
 """
 
 from __future__ import annotations
@@ -20,21 +23,25 @@ from functools import lru_cache
 import numpy as np
 
 CIE_MIN, CIE_MAX = 360.0, 830.0  # nm: the matching functions' range used for the integrals
+INTEGRATION_STEPS = 1000
 # Planck's law constants (CODATA 2014, as SI values).
 PLANCK_H, LIGHT_C, BOLTZMANN_K = 6.62607004e-34, 2.99792458e8, 1.38064852e-23
 
 
 @lru_cache(maxsize=1)
 def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(wavelengths, xyz matching functions (n, 3), D65 (n,), sRGB-from-XYZ matrix) at 1 nm."""
+    """(wavelengths, xyz matching functions (n, 3), D65 (n,), sRGB-from-XYZ matrix) at the
+    integration's wavelengths."""
     import colour
 
-    wavelengths = np.arange(CIE_MIN, CIE_MAX + 1.0)
-    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
-    xyz = np.asarray(cmfs[wavelengths], np.float64)
+    table = np.arange(CIE_MIN, CIE_MAX + 1.0)
+    cmfs = np.asarray(colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"][table], np.float64)
     d65 = colour.SDS_ILLUMINANTS["D65"].copy().align(colour.SpectralShape(CIE_MIN, CIE_MAX, 1))
+    wavelengths = np.linspace(CIE_MIN, CIE_MAX, INTEGRATION_STEPS)
+    xyz = np.stack([np.interp(wavelengths, table, cmfs[:, i]) for i in range(3)], axis=1)
+    illuminant = np.interp(wavelengths, table, np.asarray(d65.values, np.float64))
     matrix = np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_XYZ_to_RGB, np.float64)
-    return wavelengths, xyz, np.asarray(d65.values, np.float64), matrix
+    return wavelengths, xyz, illuminant, matrix
 
 
 def sampled_to_rgb(wavelengths: np.ndarray, values: np.ndarray, emission: bool) -> tuple[float, float, float]:
