@@ -145,10 +145,12 @@ def test_blackbody_matches_a_spectral_render(mi) -> None:
 
 @pytest.mark.parametrize("name", ["spectral-box", "instances", "search-paths"])
 def test_image_mean_matches_mitsuba(make_engine, mi, name: str) -> None:
-    """Same file, two renderers, 32 x 32: image means per channel within 2%."""
+    """Same file, two renderers, 32 x 32: image means per channel within 2%. 128 passes: the
+    corpus's objects sit near the floor, where SPPM's finite radius carries light into the
+    contact shadows (a bias that shrinks with the radius, pass by pass)."""
     path = CORPUS / f"{name}.xml"
     peer = np.array(mi.render(mi.load_file(str(path)), spp=256, seed=1), dtype=np.float64)[..., :3]
     engine = make_engine(path, photons_per_pass=1 << 16, seed=1)
-    ours = image(engine, render(engine, 32))
+    ours = image(engine, render(engine, 128))
     assert ours.shape == peer.shape
     np.testing.assert_allclose(ours.mean(axis=(0, 1)), peer.mean(axis=(0, 1)), rtol=0.02)

@@ -193,7 +193,7 @@ def test_serialized_reader_against_mitsuba(mi, tmp_path: Path) -> None:
     v0, t0, n0 = rng.random((30, 3)), rng.integers(0, 30, (40, 3)), rng.normal(size=(30, 3))
     v1, t1 = rng.random((9, 3)), rng.integers(0, 9, (7, 3))
     (tmp_path / "m.serialized").write_bytes(write_serialized([(v0, t0, n0), (v1, t1, None)]))
-    for index, (v, t, n) in enumerate([(v0, t0, n0), (v1, t1, None)]):
+    for index, n in enumerate([n0, None]):
         shape = read_serialized((tmp_path / "m.serialized").read_bytes(), index)
         theirs = mi.traverse(mi.load_dict({"type": "serialized", "filename": str(tmp_path / "m.serialized"),
                                            "shape_index": index}))

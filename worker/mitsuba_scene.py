@@ -10,9 +10,11 @@ XML is read with expat, which reports the line of every element (ElementTree doe
 
 from __future__ import annotations
 
+import gc
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -968,11 +970,21 @@ class Converter:
 
 
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them)."""
-    import trimesh
-
-    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
-    return np.asarray(mesh.vertex_normals, np.float64)
+    """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them):
+    each face adds its unit normal times its angle at the vertex. Zero for a vertex that only
+    degenerate faces touch (the renderer then takes the face normal)."""
+    p = vertices[triangles]
+    edges = [p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]]
+    unit = [e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300) for e in edges]
+    face = np.cross(edges[0], -edges[2])
+    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-300)
+    out = np.zeros_like(vertices, dtype=np.float64)
+    for corner in range(3):  # the angle at a corner is between its outgoing edge and the reversed incoming one
+        cos = np.einsum("ij,ij->i", unit[corner], -unit[corner - 1])
+        weighted = face * np.arccos(np.clip(cos, -1.0, 1.0))[:, None]
+        for axis in range(3):
+            out[:, axis] += np.bincount(triangles[:, corner], weighted[:, axis], minlength=len(vertices))
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
 
 def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
@@ -988,10 +1000,29 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
     return data
 
 
+@contextmanager
+def _collector_paused() -> Iterator[None]:
+    """Pause Python's cyclic garbage collector: a large mesh becomes millions of small lists,
+    and every few hundred of them would start a collection pass over all the others (the
+    objects made here hold no cycles; reference counting frees them)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def convert_and_validate(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
                          budget: LoadBudget | None = None) -> tuple[dict, Scene, list[str]]:
     """`convert_mitsuba`'s JSON, the Scene it validated to (validated once) and the notes."""
-    path = Path(path).resolve()
+    with _collector_paused():
+        return _convert_and_validate(Path(path).resolve(), params, root, budget)
+
+
+def _convert_and_validate(path: Path, params: dict[str, str] | None, root: Path | None,
+                          budget: LoadBudget | None) -> tuple[dict, Scene, list[str]]:
     conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()},
                      budget=budget or LoadBudget())
     top = _read_xml(path, conv.budget)

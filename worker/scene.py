@@ -197,11 +197,12 @@ class Mesh(_Shape):
             raise ValueError("normals need inline vertices, one normal per vertex")
         if self.triangles is not None and len(self.triangles) > MAX_TRIANGLES:
             raise ValueError(f"more than {MAX_TRIANGLES} triangles")
-        if self.vertices is not None and self.triangles is not None:
+        if self.vertices is not None and self.triangles is not None and self.triangles:
             n = len(self.vertices)
-            for i, tri in enumerate(self.triangles):
-                if min(tri) < 0 or max(tri) >= n:
-                    raise ValueError(f"triangles[{i}] indexes a vertex outside 0..{n - 1}")
+            tris = np.asarray(self.triangles)
+            bad = np.flatnonzero((tris.min(axis=1) < 0) | (tris.max(axis=1) >= n))
+            if len(bad):
+                raise ValueError(f"triangles[{bad[0]}] indexes a vertex outside 0..{n - 1}")
         return self
 
 
