@@ -135,6 +135,18 @@ def test_emitter_and_named_refs(mi, tmp_path: Path) -> None:
     assert convert_mitsuba(path)["materials"][shape["material"]]["albedo"] == pytest.approx([0.2, 0.4, 0.6])
 
 
+def test_unreferenced_named_objects_are_noted(mi, tmp_path: Path) -> None:
+    """Mitsuba loads a scene-level area emitter or texture that nothing refers to and renders
+    nothing of it; so do we, with a note."""
+    body = ('<emitter type="area" id="spare"><rgb name="radiance" value="1"/></emitter>'
+            '<texture type="checkerboard" id="tiles"/><shape type="sphere"/>')
+    path = write(tmp_path / "scene.xml", body, sensor=True)
+    notes: list[str] = []
+    ours = convert_mitsuba(path, notes=notes)
+    assert not mi.load_file(str(path)).emitters() and "emission" not in ours["shapes"][0]
+    assert [n.split(" (")[0].split(": ")[-1] for n in notes] == ["id 'spare'", "id 'tiles'"], notes
+
+
 @pytest.mark.parametrize("body, needle, says", [
     ('<texture type="checkerboard" id="t"/><bsdf type="diffuse" id="d"><ref name="reflectance" id="t"/></bsdf>',
      'name="reflectance"', "texture plugin 'checkerboard' is not supported"),

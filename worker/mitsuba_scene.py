@@ -333,6 +333,7 @@ class Converter:
     triangles: int = 0  # so far, every shape's, against MAX_TRIANGLES before the JSON grows past it
     origin: dict[str, Node] = field(default_factory=dict)  # our JSON path -> XML element
     named: dict[str, Node] = field(default_factory=dict)  # id -> element, for <ref id>
+    referenced: set[str] = field(default_factory=set)  # ids some <ref> used
     notes: list[str] = field(default_factory=list)  # "ignored: ..." lines, each said once
     noted: set[tuple[str, str, str]] = field(default_factory=set)
     # Folders searched for a file named while the XML is read (includes), first to last.
@@ -356,6 +357,7 @@ class Converter:
         target = self.named.get(node.attrs.get("id", ""))
         if target is None:
             raise _error(node, f"no object with id {node.attrs.get('id', '')!r} defined before this reference")
+        self.referenced.add(node.attrs["id"])
         return target
 
     def define(self, node: Node) -> None:
@@ -965,6 +967,9 @@ class Converter:
     def result(self, top: Node) -> dict:
         if self.camera is None:
             raise _error(top, "the scene has no sensor")
+        for name, node in self.named.items():  # as Mitsuba: defined, never used, not rendered
+            if node.tag in ("emitter", "texture", "spectrum", "shape") and name not in self.referenced:
+                self.note(node, node, f"id {name!r}", "defined but never referenced")
         return {"description": f"converted from {top.file.name} (Mitsuba 3)", "camera": self.camera,
                 "materials": self.materials, "shapes": self.shapes, "lights": self.lights}
 
