@@ -145,6 +145,10 @@ def test_unreferenced_named_objects_are_noted(mi, tmp_path: Path) -> None:
     ours = convert_mitsuba(path, notes=notes)
     assert not mi.load_file(str(path)).emitters() and "emission" not in ours["shapes"][0]
     assert [n.split(" (")[0].split(": ")[-1] for n in notes] == ["id 'spare'", "id 'tiles'"], notes
+    body = '<shape type="sphere" id="ball"/><shape type="sphere" id="other"/><emitter type="point" id="bulb"/>'
+    notes.clear()
+    convert_mitsuba(write(tmp_path / "scene.xml", body, sensor=True), notes=notes)
+    assert [n.split(": ")[2] for n in notes] == ['<shape type="sphere">', '<emitter type="point">'], notes
 
 
 @pytest.mark.parametrize("body, needle, says", [

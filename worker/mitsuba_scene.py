@@ -360,6 +360,11 @@ class Converter:
         self.referenced.add(node.attrs["id"])
         return target
 
+    def _note_id(self, node: Node) -> None:
+        """An id on a sensor, shape or light names it for Mitsuba's API only: noted."""
+        if "id" in node.attrs:
+            self.note(node, node, "id", "names the object in Mitsuba's API only")
+
     def define(self, node: Node) -> None:
         """Remember an element by its id for later references."""
         name = node.attrs.get("id")
@@ -539,6 +544,7 @@ class Converter:
         kind = node.attrs.get("type")
         if kind not in ("perspective", "thinlens"):
             raise _error(node, f"unknown sensor plugin {kind!r} (have: perspective, thinlens)")
+        self._note_id(node)
         p = Props(node, self)
         m = p.transform()
         width, height = 768, 576
@@ -742,6 +748,7 @@ class Converter:
             m = parent @ m
         if not abs(np.linalg.det(m[:3, :3])) > 1e-300:
             raise _error(p.node_of("to_world"), "the shape's to_world is singular")
+        self._note_id(node)
         builders = {"rectangle": self._rectangle, "cube": self._cube, "sphere": self._sphere, "disk": self._disk,
                     "cylinder": self._cylinder, "obj": self._file_mesh, "ply": self._file_mesh,
                     "serialized": self._file_mesh}
@@ -927,6 +934,7 @@ class Converter:
     # -------------------------------------------------------------- lights
     def light(self, node: Node) -> None:
         kind = node.attrs.get("type")
+        self._note_id(node)
         p = Props(node, self)
         for obj in p.objects:
             raise _error(obj, f"<{obj.tag}> is not supported in an emitter")
