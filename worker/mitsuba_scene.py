@@ -1,9 +1,11 @@
 """Mitsuba 3 XML scenes converted to our scene JSON (the subset our model holds).
 
 The conversion is element by element (docs/scenes.md, "Mitsuba 3 XML"); anything outside the
-subset is a `SceneError` naming the element and its line, never a silent change. Meshes
-are inlined with their `to_world` applied (our meshes have no transform), so the JSON
-is self-contained. Every file the scene names (meshes, includes) must lie inside `root`.
+subset that would change the image is a `SceneError` naming the element and its line, never
+a silent change; what changes nothing here is accepted and reported as a note ("ignored:
+..."). Meshes are inlined with their `to_world` applied (our meshes have no transform), so
+the JSON is self-contained. Files the scene names (meshes, spectra, includes) are found as
+Mitsuba's file resolver finds them (`Converter.start`) and must lie inside `root`.
 
 XML is read with expat, which reports the line of every element (ElementTree does not).
 """
