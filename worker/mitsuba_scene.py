@@ -51,8 +51,6 @@ CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (
 GLOSSY_EXPONENT_MAX = 100_000.0  # the schema's bound on the Phong exponent
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
-# Named objects a <ref id> may point at, defined at scene level with an id.
-NAMED_TAGS = {"bsdf", "emitter", "texture", "shape", "spectrum"}
 # What the model cannot hold, refused by name wherever it appears.
 UNSUPPORTED = {"medium": "participating media are not supported",
                "phase": "participating media (phase functions) are not supported",
@@ -455,7 +453,7 @@ class Converter:
                 self.define(child)  # converted where a shape refers to it
             elif child.tag == "emitter":
                 self.light(child)
-            elif child.tag in ("texture", "spectrum") and "id" in child.attrs:
+            elif child.tag == "texture" and "id" in child.attrs:
                 self.define(child)  # refused where it is used (textures are outside the subset)
             elif child.tag in RENDER_SETTING_TAGS:
                 self.note(child, child, f"<{child.tag}>", "render settings belong to the job")
@@ -978,7 +976,7 @@ class Converter:
         if self.camera is None:
             raise _error(top, "the scene has no sensor")
         for name, node in self.named.items():  # as Mitsuba: defined, never used, not rendered
-            if node.tag in ("emitter", "texture", "spectrum", "shape") and name not in self.referenced:
+            if node.tag in ("emitter", "texture", "shape") and name not in self.referenced:
                 self.note(node, node, f"id {name!r}", "defined but never referenced")
         return {"description": f"converted from {top.file.name} (Mitsuba 3)", "camera": self.camera,
                 "materials": self.materials, "shapes": self.shapes, "lights": self.lights}
