@@ -275,6 +275,14 @@ def test_photonfarm_submit_sends_a_scene_with_its_obj_beside_it(cluster: Cluster
     job_id = re.match(r"job (\S+) ", run.stdout).group(1)
     done = cluster.wait(job_id, finished, timeout=180)
     assert done["status"] == "completed" and done["photons"] == 2 * 4096, done
+    # One with a serialized mesh found through <path>: sent too; what it ignores is printed.
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(MITSUBA / "search-paths.xml"),
+                          "--url", str(cluster.http.base_url), "--max-passes", "2", "--photons-per-pass", "4096",
+                          "--resolution", "16x16"], capture_output=True, text=True, timeout=60, env=cluster.env)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr.startswith("photonfarm: ignored: search-paths.xml line 8: <integrator"), run.stderr
+    done = cluster.wait(re.match(r"job (\S+) ", run.stdout).group(1), finished, timeout=180)
+    assert done["status"] == "completed", done
     # The same scene without its mesh beside it is refused by the service, naming the mesh.
     (folder / "gem.obj").unlink()
     run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(folder / "scene.json"),
