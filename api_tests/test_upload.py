@@ -114,6 +114,24 @@ def test_mitsuba_xml_with_its_ply_renders_to_the_exact_totals(cluster: Cluster, 
     assert image.status_code == 200 and image.content[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_mitsuba_search_paths_and_notes(cluster: Cluster) -> None:
+    """A scene whose files are found through <path> and from a fragment in a subfolder renders
+    from an upload; the answer to the submission lists what the scene holds that was ignored."""
+    names = ["search-paths.xml", "room.xml", "fragments/objects.xml", "fragments/block.xml", "meshes/gem.obj",
+             "shared/blob.serialized", "spectral-box.xml", "spectra/teal.spd"]
+    entries = {name: (MITSUBA / name).read_bytes() for name in names}
+    resp = _upload(cluster, "search-paths.xml", archive=("scene.zip", zip_bytes(entries)))
+    assert resp.status_code == 201, resp.text
+    [note] = resp.json()["notes"]
+    assert note.startswith('ignored: search-paths.xml line 8: <integrator type="path">'), note
+    done = cluster.wait(resp.json()["id"], finished, timeout=180)
+    assert done["status"] == "completed" and done["passes"] == PASSES, done
+    resp = _upload(cluster, "spectral-box.xml", archive=("scene.zip", zip_bytes(entries)))
+    assert resp.status_code == 201, resp.text
+    notes = resp.json()["notes"]
+    assert any("focus_distance" in n for n in notes) and all(n.startswith("ignored: ") for n in notes), notes
+
+
 def _scene_xml(shape: str) -> bytes:
     """ply-mesh.xml with its PLY shape replaced by `shape`."""
     text = (MITSUBA / "ply-mesh.xml").read_text()
@@ -136,6 +154,9 @@ def _bad_uploads() -> dict[str, tuple[dict[str, Any], int, list[str], str]]:
     return {
         "unknown plugin": ({"files": {"s.xml": hair, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
                            "unknown bsdf plugin 'hair'"),
+        "participating medium": ({"files": {"s.xml": _scene_xml('<shape type="sphere"><medium type="homogeneous" '
+                                                                 'name="interior"/></shape>'), "room.xml": room}},
+                                 422, ["body", "scene", "s.xml"], "participating media are not supported"),
         "missing mesh": ({"files": {"s.xml": missing, "room.xml": room}}, 422, ["body", "scene", "s.xml"],
                          "'meshes/none.ply' not found"),
         "broken PLY": ({"scene": "ply-mesh.xml", "files": {"ply-mesh.xml": (MITSUBA / "ply-mesh.xml").read_bytes(),
@@ -248,6 +269,14 @@ def test_photonfarm_submit_sends_a_scene_with_its_obj_beside_it(cluster: Cluster
     job_id = re.match(r"job (\S+) ", run.stdout).group(1)
     done = cluster.wait(job_id, finished, timeout=180)
     assert done["status"] == "completed" and done["photons"] == 2 * 4096, done
+    # One with a serialized mesh found through <path>: sent too; what it ignores is printed.
+    run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(MITSUBA / "search-paths.xml"),
+                          "--url", str(cluster.http.base_url), "--max-passes", "2", "--photons-per-pass", "4096",
+                          "--resolution", "16x16"], capture_output=True, text=True, timeout=60, env=cluster.env)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr.startswith("photonfarm: ignored: search-paths.xml line 8: <integrator"), run.stderr
+    done = cluster.wait(re.match(r"job (\S+) ", run.stdout).group(1), finished, timeout=180)
+    assert done["status"] == "completed", done
     # The same scene without its mesh beside it is refused by the service, naming the mesh.
     (folder / "gem.obj").unlink()
     run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(folder / "scene.json"),

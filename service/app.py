@@ -376,7 +376,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
         log.info(f"job submitted: {scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
-        return job_view(jobs, existing(job_id))
+        return job_view(jobs, existing(job_id)).model_copy(update={"notes": list(loaded.notes)})
 
     @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
               responses=errors(*auth, 413, 422, 429))

@@ -138,7 +138,10 @@ def render(args: argparse.Namespace) -> int:
     from worker.outputs import write_render
     from worker.render_loop import render as render_passes
 
-    scene, base_dir = load_any_scene(_scene_path(args.scene))
+    notes: list[str] = []
+    scene, base_dir = load_any_scene(_scene_path(args.scene), notes=notes)
+    for line in notes:
+        print(f"photonfarm: {line}", file=sys.stderr)
     try:
         settings = Settings(**{name: getattr(args, name) for name in RENDER_FIELDS},
                             max_passes=args.passes, max_seconds=args.seconds)
@@ -186,7 +189,10 @@ def convert(args: argparse.Namespace) -> int:
         if not sep or not name:
             raise ValueError(f"--param wants NAME=VALUE, got {item!r}")
         params[name] = value
-    text = json.dumps(convert_mitsuba(args.scene, params), indent=1)
+    notes: list[str] = []
+    text = json.dumps(convert_mitsuba(args.scene, params, notes=notes), indent=1)
+    for line in notes:
+        print(f"photonfarm: {line}", file=sys.stderr)
     if args.out is None:
         print(text)
     else:

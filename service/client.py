@@ -22,7 +22,7 @@ from worker.outputs import check_writable
 from worker.scene import SceneError, scene_file
 from worker.store.policy import FINAL
 
-UPLOAD_SUFFIXES = (".json", ".xml", ".obj", ".ply")  # what a scene may name
+UPLOAD_SUFFIXES = (".json", ".xml", ".obj", ".ply", ".serialized", ".spd")  # what a scene may name
 
 
 class ClientError(Exception):
@@ -68,7 +68,7 @@ def _names_files(scene: dict[str, Any]) -> bool:
 
 
 def scene_folder_files(scene_file: Path) -> list[tuple[str, Path]]:
-    """The files sent with a scene file: every scene or mesh file (.json, .xml, .obj, .ply) in
+    """The files sent with a scene file: every scene, mesh or spectrum file (UPLOAD_SUFFIXES) in
     its folder and below, by path relative to it, within the service's upload limits. The
     service reads only what the scene names, and only inside this upload."""
     folder = scene_file.resolve().parent
@@ -161,6 +161,8 @@ def submit(args: argparse.Namespace) -> int:
             raise ClientError(str(exc)) from None
     job = _post_job(client, args)
     print(f"job {job['id']} {job['status']}: {args.url.rstrip('/')}{job['links']['self']}")
+    for note in job.get("notes") or []:
+        print(f"photonfarm: {note}", file=sys.stderr)
     if not args.watch:
         return 0
     job = _watch(client, job, args.poll)

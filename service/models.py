@@ -112,6 +112,8 @@ class JobView(BaseModel):
     failure: str | None = Field(description="why the job failed")
     error_estimate: ErrorPoint | None = Field(description="the latest estimate (after the last merge)")
     error_history: list[ErrorPoint] | None = Field(None, description="every estimate so far (single-job view)")
+    notes: list[str] | None = Field(None, description="what the scene holds that was accepted but ignored "
+                                                      "(\"ignored: ...\"), in the answer to the submission")
     links: JobLinks
 
 

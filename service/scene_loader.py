@@ -49,6 +49,7 @@ class LoadedScene:
     scene_json: str
     resolution: tuple[int, int]
     aperture_radius: float
+    notes: tuple[str, ...] = ()  # what the scene holds that was accepted but ignored, one line each
 
 
 @dataclass(frozen=True)
@@ -68,9 +69,10 @@ class LoadUnavailable(Exception):
 def load_now(request: SceneRequest) -> LoadedScene:
     """The load itself, in this process, against one LoadBudget."""
     budget = LoadBudget()
+    notes: list[str] = []
     if request.path is not None:
         assert request.root is not None
-        parsed, base_dir = load_any_scene(request.path, root=request.root, budget=budget)
+        parsed, base_dir = load_any_scene(request.path, root=request.root, budget=budget, notes=notes)
         root = request.root
     elif request.scene_name is not None:
         parsed, base_dir = load_scene_file(bundled_scene_path(request.scene_name), budget)
@@ -78,7 +80,7 @@ def load_now(request: SceneRequest) -> LoadedScene:
     else:
         parsed, base_dir, root = parse_scene(request.scene), SCENES_DIR, SCENES_DIR
     text = inline_json(parsed, base_dir, root, budget)
-    return LoadedScene(text, parsed.camera.resolution, parsed.camera.aperture_radius)
+    return LoadedScene(text, parsed.camera.resolution, parsed.camera.aperture_radius, tuple(notes))
 
 
 def _child(out: Connection, request: SceneRequest) -> None:

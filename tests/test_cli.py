@@ -107,6 +107,26 @@ def test_convert_and_render_a_mitsuba_scene_from_anywhere(tmp_path: Path) -> Non
     assert proc.returncode == 2 and "line 2" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
 
+def test_mitsuba_notes_and_refusals_are_one_line_each(tmp_path: Path) -> None:
+    """What a Mitsuba scene holds that changes nothing is printed as notes, one line each,
+    by convert and by render; what cannot be honoured is one line naming plugin and line."""
+    repo = Path(__file__).resolve().parent.parent
+    scene = repo / "scenes" / "mitsuba" / "spectral-box.xml"
+    proc = subprocess.run([str(PHOTONFARM), "convert", str(scene), "--out", str(tmp_path / "box.json")],
+                          capture_output=True, text=True, timeout=120)
+    notes = proc.stderr.strip().splitlines()
+    assert proc.returncode == 0 and len(notes) == 8, proc.stderr
+    assert all(line.startswith("photonfarm: ignored: spectral-box.xml line ") for line in notes), notes
+    proc = render_cli(str(scene), "--passes", "1", *SMALL, "--out", str(tmp_path / "box.png"))
+    assert proc.returncode == 0 and sum("focus_distance" in line for line in proc.stderr.splitlines()) == 1, proc.stderr
+    fog = tmp_path / "fog.xml"
+    fog.write_text('<scene version="3.0.0">\n  <medium type="homogeneous" id="fog"/>\n</scene>\n')
+    proc = subprocess.run([str(PHOTONFARM), "convert", str(fog)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and proc.stderr.strip() == ('photonfarm: bad scene: fog.xml: line 2: '
+                                                             '<medium type="homogeneous">: participating media are '
+                                                             'not supported'), proc.stderr
+
+
 def test_service_flags_are_checked_before_anything_starts(tmp_path: Path) -> None:
     """A Redis URL of another scheme, or a negative worker count: one line, exit 2 (the URL was
     a traceback from the worker's Redis client; -1 workers started the API with none)."""

@@ -394,7 +394,8 @@ def test_unknown_plugin_names_element_and_line(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("body, needle, says", [
-    ('<shape type="shapegroup"/>', "shapegroup", "unknown shape plugin"),
+    ('<shape type="shapegroup"/>', "shapegroup", "needs an id"),
+    ('<shape type="hair"/>', "hair", "unknown shape plugin"),
     ('<emitter type="envmap"/>', "envmap", "unknown emitter plugin"),
     ('<medium type="homogeneous"/>', "medium", "not supported"),
     ('<shape type="sphere"><float name="roughness" value="1"/></shape>', "roughness", "not supported"),
@@ -405,7 +406,7 @@ def test_unknown_plugin_names_element_and_line(tmp_path: Path) -> None:
     ('<emitter type="spot"><float name="cutoff_angle" value="30"/></emitter>', "spot", "no falloff"),
     ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance"/></bsdf>', "bitmap", "not supported"),
     ('<shape type="sphere"><float name="radius" value="$nope"/></shape>', "$nope", "undefined parameter"),
-    ('<shape type="sphere"><ref id="missing"/></shape>', "missing", "no bsdf with id"),
+    ('<shape type="sphere"><ref id="missing"/></shape>', "missing", "no object with id"),
 ])
 def test_outside_the_subset_is_an_error_with_its_line(tmp_path: Path, body: str, needle: str, says: str) -> None:
     err = convert_error(tmp_path, body)

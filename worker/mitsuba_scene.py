@@ -1,18 +1,22 @@
 """Mitsuba 3 XML scenes converted to our scene JSON (the subset our model holds).
 
 The conversion is element by element (docs/scenes.md, "Mitsuba 3 XML"); anything outside the
-subset is a `SceneError` naming the element and its line, never a silent change. Meshes
-are inlined with their `to_world` applied (our meshes have no transform), so the JSON
-is self-contained. Every file the scene names (meshes, includes) must lie inside `root`.
+subset that would change the image is a `SceneError` naming the element and its line, never
+a silent change; what changes nothing here is accepted and reported as a note ("ignored:
+..."). Meshes are inlined with their `to_world` applied (our meshes have no transform), so
+the JSON is self-contained. Files the scene names (meshes, spectra, includes) are found as
+Mitsuba's file resolver finds them (`Converter.start`) and must lie inside `root`.
 
 XML is read with expat, which reports the line of every element (ElementTree does not).
 """
 
 from __future__ import annotations
 
+import gc
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, overload
@@ -20,7 +24,8 @@ from xml.parsers import expat
 
 import numpy as np
 
-from worker.meshes import MeshError
+from worker import spectra
+from worker.meshes import MeshData, MeshError
 from worker.scene import (
     MAX_INCLUDE_DEPTH,
     MAX_TRIANGLES,
@@ -31,6 +36,7 @@ from worker.scene import (
     parse_scene,
     read_mesh,
 )
+from worker.serialized import header_counts, read_serialized
 
 # Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
 NAMED_IOR = {
@@ -41,9 +47,14 @@ NAMED_IOR = {
     "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
+CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (area within 1e-4)
 GLOSSY_EXPONENT_MAX = 100_000.0  # the schema's bound on the Phong exponent
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
+# What the model cannot hold, refused by name wherever it appears.
+UNSUPPORTED = {"medium": "participating media are not supported",
+               "phase": "participating media (phase functions) are not supported",
+               "volume": "participating media (volume grids) are not supported"}
 PROPERTY_TAGS = {"float", "integer", "boolean", "string", "rgb", "spectrum", "point", "vector", "transform", "ref"}
 
 
@@ -215,10 +226,11 @@ def _apply(m: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------- properties
 class Props:
-    """The properties of one plugin element; each must be used, or it is an error."""
+    """The properties of one plugin element; each must be used (or ignored with a note), or it is an error."""
 
-    def __init__(self, owner: Node) -> None:
+    def __init__(self, owner: Node, conv: Converter) -> None:
         self.owner = owner
+        self.conv = conv
         self.values: dict[str, Node] = {}
         self.objects: list[Node] = []
         for child in owner.children:
@@ -271,21 +283,32 @@ class Props:
         node = self._take(name, {"string"})
         return default if node is None else node.attrs.get("value", "")
 
-    def color(self, name: str, default: float) -> tuple[float, float, float]:
-        """rgb, or a float / uniform spectrum (one value); textures are outside the subset."""
+    def ignore(self, name: str, why: str) -> None:
+        """Accept a property that does not change our image, with a note saying so."""
+        node = self.values.pop(name, None)
+        if node is not None:
+            self.conv.note(self.owner, node, name, why)
+
+    def color(self, name: str, default: float, emission: bool = False) -> tuple[float, float, float]:
+        """rgb, float, or a spectrum (converted to linear sRGB as a reflectance, or as an
+        emission); textures are outside the subset."""
         node = self.values.get(name)
         if node is None:
             for obj in self.objects:
-                if obj.tag == "texture" and obj.attrs.get("name") == name:
-                    raise _error(obj, "textures are not supported (constant colours only)")
+                if obj.attrs.get("name") == name and obj.tag in ("texture", "ref"):
+                    target = self.conv.deref(obj) if obj.tag == "ref" else obj
+                    raise _error(obj, f"texture plugin {target.attrs.get('type', '')!r} is not supported "
+                                      "(constant colours only)")
             return (default,) * 3
         node = self._take(name, {"rgb", "spectrum", "float"})
         assert node is not None, "taken just after it was found"
+        if node.tag == "spectrum":
+            return self.conv.spectrum(node, emission)
         values = _floats(node, node.attrs.get("value", ""))
         if len(values) == 1:
             values *= 3
         if len(values) != 3:
-            raise _error(node, "expected one or three values (spectra only as a single uniform value)")
+            raise _error(node, "expected one or three values")
         return tuple(values)  # type: ignore[return-value]
 
     def vector(self, name: str, tag: str) -> np.ndarray | None:
@@ -319,6 +342,46 @@ class Converter:
     budget: LoadBudget = field(default_factory=LoadBudget)  # of the whole load, includes and meshes too
     triangles: int = 0  # so far, every shape's, against MAX_TRIANGLES before the JSON grows past it
     origin: dict[str, Node] = field(default_factory=dict)  # our JSON path -> XML element
+    named: dict[str, Node] = field(default_factory=dict)  # id -> element, for <ref id>
+    referenced: set[str] = field(default_factory=set)  # ids some <ref> used
+    notes: list[str] = field(default_factory=list)  # "ignored: ..." lines, each said once
+    noted: set[tuple[str, str, str]] = field(default_factory=set)
+    # Folders searched for a file named while the XML is read (includes), first to last.
+    search: list[Path] = field(default_factory=list)
+    # Folders searched for the files plugins name (meshes, spectra): the main file's <path>s,
+    # the last one first, then the main file's folder.
+    file_search: list[Path] = field(default_factory=list)
+
+    # -------------------------------------------------------------- notes and refs
+    def note(self, owner: Node, node: Node, name: str, why: str) -> None:
+        """Record once per kind of element and property that the property is ignored, and why."""
+        key = (owner.tag, owner.attrs.get("type", ""), name)
+        if key not in self.noted:
+            self.noted.add(key)
+            self.notes.append(f"ignored: {node.file.name} {owner.where()}: {name} ({why})")
+
+    def deref(self, node: Node) -> Node:
+        """The element a <ref id> names (defined before it)."""
+        if set(node.attrs) - {"id", "name"}:
+            raise _error(node, "a ref takes an id (and a name)")
+        target = self.named.get(node.attrs.get("id", ""))
+        if target is None:
+            raise _error(node, f"no object with id {node.attrs.get('id', '')!r} defined before this reference")
+        self.referenced.add(node.attrs["id"])
+        return target
+
+    def _note_id(self, node: Node) -> None:
+        """An id on a sensor, shape or light names it for Mitsuba's API only: noted."""
+        if "id" in node.attrs:
+            self.note(node, node, "id", "names the object in Mitsuba's API only")
+
+    def define(self, node: Node) -> None:
+        """Remember an element by its id for later references."""
+        name = node.attrs.get("id")
+        if name is not None:
+            if name in self.named:
+                raise _error(node, f"id {name!r} defined twice")
+            self.named[name] = node
 
     # -------------------------------------------------------------- scene walk
     def substitute(self, top: Node) -> None:
@@ -336,57 +399,153 @@ class Converter:
             node.attrs = {k: re.sub(r"\$(\w+)", repl, v) for k, v in node.attrs.items()}
             pending.extend(node.children)
 
+    def _default(self, node: Node) -> None:
+        if "name" not in node.attrs or "value" not in node.attrs:
+            raise _error(node, "a default needs name and value")
+        self.params.setdefault(node.attrs["name"], node.attrs["value"])
+
+    def _path(self, node: Node) -> Path:
+        """A <path value> folder: relative to the file that holds it, inside the root."""
+        self.substitute(node)
+        if set(node.attrs) != {"value"}:
+            raise _error(node, "a path takes exactly a value")
+        try:
+            folder = (node.file.parent / node.attrs["value"]).resolve()
+        except (OSError, ValueError) as exc:
+            raise _error(node, f"folder cannot be used: {getattr(exc, 'strerror', None) or exc}") from None
+        if not folder.is_relative_to(self.root):
+            raise _error(node, f"{node.attrs['value']!r} leaves the scene's directory")
+        return folder
+
+    def start(self, top: Node) -> None:
+        """Set up Mitsuba's file resolver for the main file `top`: while its XML is read, its
+        folder and then the <path>s read so far (each searched before the earlier ones); for
+        plugins' files, every <path> of the main file, wherever it stands, then its folder
+        (Mitsuba loads those files once the whole scene is read; an included file's <path>s
+        only apply while it is read)."""
+        self.search = [top.file.parent]
+        self.file_search = [top.file.parent]
+        for child in top.children:
+            if child.tag == "default":
+                self._default(child)
+            elif child.tag == "path":
+                self.file_search.insert(0, self._path(child))
+
     def scene(self, node: Node, depth: int = 0) -> None:
         if node.tag != "scene":
             raise _error(node, "the root element must be <scene>")
         version = node.attrs.get("version", "")
         if not re.fullmatch(r"[23]\.\d+(\.\d+)?", version):
             raise _error(node, f"version {version!r}: only Mitsuba 3 (or 2) scenes are read")
+        outer = list(self.search)
+        if depth > 0:  # an included file's folder is searched first while it is read
+            self.search.insert(0, node.file.parent)
         for child in node.children:
             if child.tag == "default":
-                if "name" not in child.attrs or "value" not in child.attrs:
-                    raise _error(child, "a default needs name and value")
-                self.params.setdefault(child.attrs["name"], child.attrs["value"])
+                self._default(child)
                 continue
             self.substitute(child)
-            if child.tag == "include":
+            if child.tag == "path":
+                self.search.insert(0, self._path(child))
+            elif child.tag == "include":
                 self.include(child, depth)
             elif child.tag == "sensor":
                 self.sensor(child)
             elif child.tag == "bsdf":
                 self.bsdf(child)
+            elif child.tag == "shape" and child.attrs.get("type") == "shapegroup":
+                if "id" not in child.attrs:
+                    raise _error(child, "a shapegroup needs an id (instances refer to it)")
+                self.define(child)
             elif child.tag == "shape":
                 self.shape(child)
+            elif child.tag == "emitter" and child.attrs.get("type") == "area" and "id" in child.attrs:
+                self.define(child)  # converted where a shape refers to it
             elif child.tag == "emitter":
                 self.light(child)
+            elif child.tag == "texture" and "id" in child.attrs:
+                self.define(child)  # refused where it is used (textures are outside the subset)
             elif child.tag in RENDER_SETTING_TAGS:
-                continue
+                self.note(child, child, f"<{child.tag}>", "render settings belong to the job")
+            elif child.tag in UNSUPPORTED:
+                raise _error(child, UNSUPPORTED[child.tag])
             else:
                 raise _error(child, f"<{child.tag}> is not supported at scene level")
+        if depth > 0:
+            self.search = outer
 
-    def resolve(self, node: Node, name: str) -> Path:
-        """A file named by the scene, relative to the XML file that names it, inside root."""
+    def _find(self, node: Node, name: str, folders: list[Path]) -> Path:
+        """The first of folder/name (for each folder in order) that is a file inside root."""
         shown = name if len(name) <= 80 else f"{name[:80]}..."
+        left = False
         try:
-            path = (node.file.parent / name).resolve()
-            if not path.is_relative_to(self.root):
-                raise _error(node, f"{shown!r} leaves the scene's directory")
-            found = path.is_file()
+            for folder in folders:
+                path = (folder / name).resolve()
+                if not path.is_relative_to(self.root):
+                    left = True
+                elif path.is_file():
+                    return path
         except (OSError, ValueError) as exc:  # a name the file system refuses (too long in bytes, NUL)
             raise _error(node, f"file {shown!r} cannot be opened: {getattr(exc, 'strerror', None) or exc}") from None
-        if not found:
-            raise _error(node, f"file {shown!r} not found")
-        return path
+        if left:
+            raise _error(node, f"{shown!r} leaves the scene's directory")
+        raise _error(node, f"file {shown!r} not found")
+
+    def resolve(self, node: Node, name: str) -> Path:
+        """A file a plugin names (a mesh, a spectrum), found as Mitsuba finds it (`file_search`);
+        failing that, beside the XML file that names it (our own extension: Mitsuba would not
+        load such a scene, so no scene it loads reads another file here)."""
+        return self._find(node, name, [*self.file_search, node.file.parent])
 
     def include(self, node: Node, depth: int) -> None:
         if depth >= MAX_INCLUDE_DEPTH:
             raise _error(node, f"includes nested deeper than {MAX_INCLUDE_DEPTH}")
         if set(node.attrs) != {"filename"}:
             raise _error(node, "an include takes exactly a filename")
-        path = self.resolve(node, node.attrs["filename"])
+        path = self._find(node, node.attrs["filename"], self.search)
         if path.suffix.lower() != ".xml":
             raise _error(node, "only XML files can be included")
         self.scene(_read_xml(path, self.budget, node.file.name, node.where()), depth + 1)
+
+    # -------------------------------------------------------------- spectra
+    def spectrum(self, node: Node, emission: bool) -> tuple[float, float, float]:
+        """A <spectrum> as linear sRGB (worker/spectra.py): `value` (one number, or
+        wavelength:value pairs), `filename` (a .spd file), or a plugin (`blackbody`, `uniform`)."""
+        kind = node.attrs.get("type")
+        try:
+            if kind is not None:
+                return self._spectrum_plugin(node, kind, emission)
+            if "filename" in node.attrs:
+                path = self.resolve(node, node.attrs["filename"])
+                data = self.budget.read(path, "scene files", node.file.name, node.where())
+                w, v = spectra.parse_spd(data.decode("utf-8", errors="replace"))
+                return spectra.sampled_to_rgb(w, v, emission)
+            text = node.attrs.get("value", "")
+            if ":" not in text:
+                return spectra.uniform_to_rgb(_floats(node, text, 1)[0], emission)
+            pairs = [item.split(":") for item in re.split(r"\s*,\s*", text.strip()) if item]
+            if not all(len(pair) == 2 for pair in pairs):
+                raise ValueError("expected wavelength:value pairs separated by commas")
+            w, v = spectra.check_samples([float(a) for a, _ in pairs], [float(b) for _, b in pairs])
+            return spectra.sampled_to_rgb(w, v, emission)
+        except ValueError as exc:
+            raise _error(node, str(exc)) from None
+
+    def _spectrum_plugin(self, node: Node, kind: str, emission: bool) -> tuple[float, float, float]:
+        p = Props(node, self)
+        if kind == "blackbody":
+            if not emission:
+                raise _error(node, "a blackbody spectrum is an emission (in an emitter)")
+            out = spectra.blackbody_to_rgb(p.number("temperature", math.nan) or math.nan)
+        elif kind == "uniform":
+            out = spectra.uniform_to_rgb(p.number("value", 1.0) or 0.0, emission)
+        else:  # Mitsuba's RGB variants cannot evaluate `regular` and `irregular` either
+            raise _error(node, f"unknown spectrum plugin {kind!r} (have: blackbody, uniform; "
+                               "or wavelength:value pairs in `value`)")
+        for obj in p.objects:
+            raise _error(obj, f"<{obj.tag}> is not supported in a spectrum")
+        p.done()
+        return out
 
     # -------------------------------------------------------------- sensor
     def sensor(self, node: Node) -> None:
@@ -395,13 +554,18 @@ class Converter:
         kind = node.attrs.get("type")
         if kind not in ("perspective", "thinlens"):
             raise _error(node, f"unknown sensor plugin {kind!r} (have: perspective, thinlens)")
-        p = Props(node)
+        self._note_id(node)
+        p = Props(node, self)
         m = p.transform()
         width, height = 768, 576
         for obj in p.objects:
             if obj.tag == "film":
                 width, height = self.film(obj)
-            elif obj.tag not in RENDER_SETTING_TAGS:
+            elif obj.tag in RENDER_SETTING_TAGS:
+                self.note(obj, obj, f"<{obj.tag}>", "render settings belong to the job")
+            elif obj.tag in UNSUPPORTED:
+                raise _error(obj, UNSUPPORTED[obj.tag])
+            else:
                 raise _error(obj, f"<{obj.tag}> is not supported in a sensor")
         # Field of view: `fov` along `fov_axis`, or a `focal_length` on 36 x 24 mm film (the
         # diagonal's; Mitsuba's default is 50 mm), turned into our vertical angle.
@@ -430,9 +594,14 @@ class Converter:
             raise _error(p.node_of("fov_axis"), f"fov_axis {axis!r} (have: {', '.join(scale)})")
         fov_y = math.degrees(2 * math.atan(tan * scale[axis]))
         near = p.number("near_clip", 0.01)
-        p.number("far_clip")  # not applied: everything in front of the camera is visible (docs/scenes.md)
+        p.ignore("far_clip", "not applied: everything in front of the camera is seen")
+        for name in ("shutter_open", "shutter_close"):
+            p.ignore(name, "nothing in the scene moves")
+        p.ignore("srf", "spectral response: our images are linear sRGB")
         cam: dict[str, Any] = {"fov": fov_y, "resolution": [width, height], "near_clip": near}
-        if kind == "thinlens":
+        if kind == "perspective":
+            p.ignore("focus_distance", "a pinhole camera has every depth in focus")
+        else:
             aperture, focus = p.number("aperture_radius"), p.number("focus_distance")
             if aperture is None or focus is None:
                 raise _error(node, "a thinlens sensor needs aperture_radius and focus_distance")
@@ -451,15 +620,16 @@ class Converter:
     def film(self, node: Node) -> tuple[int, int]:
         if node.attrs.get("type") != "hdrfilm":
             raise _error(node, "only hdrfilm is supported")
-        p = Props(node)
+        p = Props(node, self)
         size = p.integer("width", 768), p.integer("height", 576)
-        for name in ("pixel_format", "component_format", "file_format"):
-            p.string(name)  # output encoding: our jobs choose their own
-        for name in ("banner", "high_quality_edges"):
-            p.boolean(name, False)
+        for name in ("pixel_format", "component_format", "file_format", "banner"):
+            p.ignore(name, "output encoding: the job chooses its own")
+        for name in ("high_quality_edges", "sample_border", "compensate"):
+            p.ignore(name, "reconstruction detail: our pixels are box-filtered")
         for obj in p.objects:
             if obj.tag != "rfilter":
                 raise _error(obj, f"<{obj.tag}> is not supported in a film")
+            self.note(obj, obj, "<rfilter>", "our pixels are box-filtered")
         p.done()
         return size
 
@@ -467,20 +637,25 @@ class Converter:
     def bsdf(self, node: Node) -> str:
         """Convert a <bsdf> (top-level with an id, or nested in a shape); returns our name."""
         name = node.attrs.get("id") or f"{node.file.stem}-line{node.line}"
+        if self.origin.get(f"materials.{name}") is node:  # a shapegroup's, met again through another instance
+            return name
         if name in self.materials:
             raise _error(node, f"bsdf id {name!r} defined twice")
         self.materials[name] = self.material(node)
         self.origin[f"materials.{name}"] = node
+        self.define(node)
         return name
 
     def material(self, node: Node) -> dict:
         kind = node.attrs.get("type")
-        p = Props(node)
+        p = Props(node, self)
         if kind == "twosided":  # our opaque surfaces reflect on both sides already
-            inner = [o for o in p.objects if o.tag == "bsdf"]
-            if len(inner) != 1 or len(p.objects) != 1:
+            inner = [self.deref(o) if o.tag == "ref" else o for o in p.objects]
+            if len(inner) != 1 or inner[0].tag != "bsdf":
                 raise _error(node, "twosided takes exactly one nested bsdf (different sides are not supported)")
             p.done()
+            if p.objects[0].tag == "ref":
+                return dict(self.materials[inner[0].attrs["id"]])
             return self.material(inner[0])
         convert: dict[str, Callable[[Props], dict]] = {
             "diffuse": self._diffuse, "conductor": self._conductor, "roughconductor": self._roughconductor,
@@ -489,6 +664,10 @@ class Converter:
         if kind not in convert:
             raise _error(node, f"unknown bsdf plugin {kind!r} (have: {', '.join(['twosided', *convert])})")
         for obj in p.objects:
+            target = self.deref(obj) if obj.tag == "ref" else obj
+            if target.tag == "texture":
+                raise _error(obj, f"texture plugin {target.attrs.get('type', '')!r} is not supported "
+                                  "(constant colours only)")
             raise _error(obj, f"<{obj.tag}> is not supported in a {kind} bsdf")
         out = convert[kind](p)
         p.done()
@@ -567,34 +746,45 @@ class Converter:
         return {"type": "glass", "ior": ior, "albedo": reflect}
 
     # -------------------------------------------------------------- shapes
-    def shape(self, node: Node) -> None:
+    def shape(self, node: Node, parent: np.ndarray | None = None) -> None:
+        """Convert a <shape>; `parent` is the to_world of the instance it is flattened through."""
         kind = node.attrs.get("type")
-        p = Props(node)
+        if kind == "instance":
+            self.instance(node, parent)
+            return
+        if kind == "shapegroup":
+            raise _error(node, "a shapegroup belongs at scene level, with an id")
+        p = Props(node, self)
         m = p.transform()
+        if parent is not None:
+            m = parent @ m
         if not abs(np.linalg.det(m[:3, :3])) > 1e-300:
             raise _error(p.node_of("to_world"), "the shape's to_world is singular")
+        self._note_id(node)
         builders = {"rectangle": self._rectangle, "cube": self._cube, "sphere": self._sphere, "disk": self._disk,
-                    "obj": self._file_mesh, "ply": self._file_mesh}
+                    "cylinder": self._cylinder, "obj": self._file_mesh, "ply": self._file_mesh,
+                    "serialized": self._file_mesh}
         if kind not in builders:
-            raise _error(node, f"unknown shape plugin {kind!r} (have: {', '.join(builders)})")
-        # Its bsdf (nested, referenced, or Mitsuba's default) and its area emitter.
+            raise _error(node, f"unknown shape plugin {kind!r} (have: {', '.join(builders)}, instance, shapegroup)")
+        # Its bsdf (nested, referenced, or Mitsuba's default) and its area emitter (nested or referenced).
         material, emission = None, None
         for obj in p.objects:
-            if obj.tag == "bsdf":
+            target = self.deref(obj) if obj.tag == "ref" else obj
+            if target.tag in UNSUPPORTED:
+                raise _error(obj, UNSUPPORTED[target.tag])
+            if target.tag == "bsdf":
                 if material is not None:
                     raise _error(obj, "a shape has one bsdf")
-                material = self.bsdf(obj)
-            elif obj.tag == "ref":
-                if material is not None:
-                    raise _error(obj, "a shape has one bsdf")
-                material = obj.attrs.get("id", "")
-                if material not in self.materials:
-                    raise _error(obj, f"no bsdf with id {material!r} defined before this reference")
-            elif obj.tag == "emitter":
-                if obj.attrs.get("type") != "area":
+                material = target.attrs["id"] if obj.tag == "ref" else self.bsdf(obj)
+            elif target.tag == "emitter":
+                if target.attrs.get("type") != "area":
                     raise _error(obj, "a shape's emitter must be an area emitter")
-                ep = Props(obj)
-                emission = list(ep.color("radiance", 1.0))
+                if emission is not None:
+                    raise _error(obj, "a shape has one area emitter")
+                ep = Props(target, self)
+                emission = list(ep.color("radiance", 1.0, emission=True))
+                for inner in ep.objects:
+                    raise _error(inner, f"<{inner.tag}> is not supported in an area emitter")
                 ep.done()
             else:
                 raise _error(obj, f"<{obj.tag}> is not supported in a shape")
@@ -613,6 +803,22 @@ class Converter:
             shape["emission"] = emission
         self.origin[f"shapes.{len(self.shapes)}"] = node
         self.shapes.append(shape)
+
+    def instance(self, node: Node, parent: np.ndarray | None) -> None:
+        """An instance, flattened: each shape of its shapegroup through the instance's to_world."""
+        p = Props(node, self)
+        m = p.transform() if parent is None else parent @ p.transform()
+        refs = [o for o in p.objects if o.tag == "ref"]
+        if len(refs) != 1 or len(p.objects) != 1:
+            raise _error(node, "an instance takes exactly one <ref> to a shapegroup")
+        group = self.deref(refs[0])
+        if group.tag != "shape" or group.attrs.get("type") != "shapegroup":
+            raise _error(refs[0], f"{refs[0].attrs.get('id')!r} is not a shapegroup")
+        p.done()
+        for child in group.children:
+            if child.tag != "shape" or child.attrs.get("type") in ("instance", "shapegroup"):
+                raise _error(child, "a shapegroup holds shapes (no instances or groups)")
+            self.shape(child, m)
 
     @staticmethod
     def _mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None, flip: bool) -> dict:
@@ -671,11 +877,17 @@ class Converter:
             raise _error(p.owner, "a mesh needs a filename")
         path = self.resolve(p.node_of("filename"), filename)
         face_normals = p.boolean("face_normals", False)
-        if p.owner.attrs["type"] == "obj":
+        kind = p.owner.attrs["type"]
+        if kind == "obj":
             p.boolean("flip_tex_coords", True)  # texture coordinates: not used
         named = p.node_of("filename")
         try:
-            mesh = read_mesh(path, self.budget, named.file.name, named.where())
+            if kind == "serialized":
+                index = p.integer("shape_index", 0)
+                mesh, flat = self._serialized(path, index, named)
+                face_normals = face_normals or flat
+            else:
+                mesh = read_mesh(path, self.budget, named.file.name, named.where())
         except OSError as exc:
             raise _error(named, f"cannot read {filename}: {exc.strerror or exc}") from None
         except MeshError as exc:
@@ -689,17 +901,60 @@ class Converter:
             tris = tris[:, ::-1]
         return self._mesh(_apply(m, mesh.vertices), tris, normals, flip)
 
+    def _serialized(self, path: Path, index: int, named: Node) -> tuple[MeshData, bool]:
+        """Shape `index` of a serialized file and whether it asks for face normals, read
+        within the budget (its header's counts checked before the mesh is decompressed)."""
+        field, at = named.file.name, named.where()
+        data = self.budget.read(path, "mesh files", field, at)
+        vertices, triangles = header_counts(data, index)
+        self.budget.check("mesh vertices", vertices, field, at)
+        self.budget.check("triangles", triangles, field, at)
+        shape = read_serialized(data, index)
+        self.budget.take("mesh vertices", vertices, field, at)
+        self.budget.take("triangles", triangles, field, at)
+        return shape.mesh, shape.face_normals
+
+    def _cylinder(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        """Mitsuba's cylinder as a mesh: the open tube of `radius` from p0 to p1 (default a unit
+        radius from the origin to +z), CYLINDER_SEGMENTS quads with radial smooth normals."""
+        p0 = p.vector("p0", "point")
+        p1 = p.vector("p1", "point")
+        p0 = np.zeros(3) if p0 is None else p0
+        p1 = np.array([0.0, 0.0, 1.0]) if p1 is None else p1
+        radius = p.number("radius", 1.0) or 0.0
+        axis = p1 - p0
+        if not (np.linalg.norm(axis) > 0 and radius > 0):
+            raise _error(p.owner, "a cylinder needs p0 != p1 and a positive radius")
+        w = axis / np.linalg.norm(axis)
+        u = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        local = np.eye(4)
+        local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * u, radius * np.cross(w, u), axis, p0
+        full = m @ local
+        phi = 2 * math.pi * np.arange(CYLINDER_SEGMENTS) / CYLINDER_SEGMENTS
+        ring = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+        points = np.concatenate([np.c_[ring, np.zeros(len(ring))], np.c_[ring, np.ones(len(ring))]])
+        radial = np.c_[ring, np.zeros(len(ring))]
+        k, n = np.arange(CYLINDER_SEGMENTS), CYLINDER_SEGMENTS
+        nxt = (k + 1) % n
+        tris = np.concatenate([np.stack([k, nxt, n + nxt], 1), np.stack([k, n + nxt, n + k], 1)])
+        if np.linalg.det(full[:3, :3]) < 0:
+            tris = tris[:, ::-1]
+        normals = np.concatenate([radial, radial]) @ np.linalg.inv(full[:3, :3])
+        return self._mesh(_apply(full, points), tris, normals, flip)
+
     # -------------------------------------------------------------- lights
     def light(self, node: Node) -> None:
         kind = node.attrs.get("type")
-        p = Props(node)
+        self._note_id(node)
+        p = Props(node, self)
         for obj in p.objects:
             raise _error(obj, f"<{obj.tag}> is not supported in an emitter")
         if kind == "point":
             m = p.transform()
             pos = p.vector("position", "point")
             position = _apply(m, (pos if pos is not None else np.zeros(3))[None])[0]
-            power = 4 * math.pi * np.array(p.color("intensity", 1.0))
+            power = 4 * math.pi * np.array(p.color("intensity", 1.0, emission=True))
             light = {"type": "point", "position": position.tolist(), "power": power.tolist()}
         elif kind == "spot":
             m = p.transform()
@@ -711,7 +966,7 @@ class Converter:
             if not 0 < cutoff <= 90:
                 raise _error(p.node_of("cutoff_angle"), "cutoff_angle must lie in (0, 90]")
             solid_angle = 2 * math.pi * (1 - math.cos(math.radians(cutoff)))
-            power = solid_angle * np.array(p.color("intensity", 1.0))
+            power = solid_angle * np.array(p.color("intensity", 1.0, emission=True))
             light = {"type": "spot", "position": m[:3, 3].tolist(), "direction": m[:3, 2].tolist(),
                      "cone_angle": cutoff, "power": power.tolist()}
         elif kind == "directional":
@@ -719,7 +974,7 @@ class Converter:
             d = p.vector("direction", "vector")
             direction = m[:3, :3] @ (d if d is not None else np.array([0.0, 0.0, 1.0]))
             light = {"type": "directional", "direction": direction.tolist(),
-                     "irradiance": list(p.color("irradiance", 1.0))}
+                     "irradiance": list(p.color("irradiance", 1.0, emission=True))}
         elif kind == "area":
             raise _error(node, "an area emitter belongs inside a shape")
         else:
@@ -732,34 +987,71 @@ class Converter:
     def result(self, top: Node) -> dict:
         if self.camera is None:
             raise _error(top, "the scene has no sensor")
+        for name, node in self.named.items():  # as Mitsuba: defined, never used, not rendered
+            if node.tag in ("emitter", "texture", "shape") and name not in self.referenced:
+                self.note(node, node, f"id {name!r}", "defined but never referenced")
         return {"description": f"converted from {top.file.name} (Mitsuba 3)", "camera": self.camera,
                 "materials": self.materials, "shapes": self.shapes, "lights": self.lights}
 
 
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them)."""
-    import trimesh
-
-    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
-    return np.asarray(mesh.vertex_normals, np.float64)
+    """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them):
+    each face adds its unit normal times its angle at the vertex. Zero for a vertex that only
+    degenerate faces touch (the renderer then takes the face normal)."""
+    p = vertices[triangles]
+    edges = [p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]]
+    unit = [e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300) for e in edges]
+    face = np.cross(edges[0], -edges[2])
+    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-300)
+    out = np.zeros_like(vertices, dtype=np.float64)
+    for corner in range(3):  # the angle at a corner is between its outgoing edge and the reversed incoming one
+        cos = np.einsum("ij,ij->i", unit[corner], -unit[corner - 1])
+        weighted = face * np.arccos(np.clip(cos, -1.0, 1.0))[:, None]
+        for axis in range(3):
+            out[:, axis] += np.bincount(triangles[:, corner], weighted[:, axis], minlength=len(vertices))
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
 
 def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
-                    budget: LoadBudget | None = None) -> dict:
+                    budget: LoadBudget | None = None, notes: list[str] | None = None) -> dict:
     """Our scene JSON from a Mitsuba 3 XML file; `params` override its <default>s. Meshes
-    are inlined (transformed). Files it names must lie inside `root` (default: its folder)
-    and are read within `budget` (a new one if none). The result is validated: errors name
-    the XML element and line that produced the value."""
-    return convert_and_validate(path, params, root, budget)[0]
+    are inlined (transformed). Files it names are found as Mitsuba's resolver finds them and
+    must lie inside `root` (default: its folder); they are read within `budget` (a new one if
+    none). The result is validated: errors name the XML element and line that produced the
+    value. What was accepted but ignored is appended to `notes`, one line each."""
+    data, _, found = convert_and_validate(path, params, root, budget)
+    if notes is not None:
+        notes.extend(found)
+    return data
+
+
+@contextmanager
+def _collector_paused() -> Iterator[None]:
+    """Pause Python's cyclic garbage collector: a large mesh becomes millions of small lists,
+    and every few hundred of them would start a collection pass over all the others (the
+    objects made here hold no cycles; reference counting frees them)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def convert_and_validate(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
-                         budget: LoadBudget | None = None) -> tuple[dict, Scene]:
-    """`convert_mitsuba`'s JSON and the Scene it validated to (validated once)."""
-    path = Path(path).resolve()
+                         budget: LoadBudget | None = None) -> tuple[dict, Scene, list[str]]:
+    """`convert_mitsuba`'s JSON, the Scene it validated to (validated once) and the notes."""
+    with _collector_paused():
+        return _convert_and_validate(Path(path).resolve(), params, root, budget)
+
+
+def _convert_and_validate(path: Path, params: dict[str, str] | None, root: Path | None,
+                          budget: LoadBudget | None) -> tuple[dict, Scene, list[str]]:
     conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()},
                      budget=budget or LoadBudget())
     top = _read_xml(path, conv.budget)
+    conv.start(top)
     conv.scene(top)
     data = conv.result(top)
     try:
@@ -771,4 +1063,4 @@ def convert_and_validate(path: Path | str, params: dict[str, str] | None = None,
             if node is not None:
                 raise SceneError(node.file.name, f"{node.where()}: {exc.field}: {exc.message}") from None
         raise
-    return data, scene
+    return data, scene, conv.notes

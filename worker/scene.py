@@ -202,11 +202,12 @@ class Mesh(_Shape):
             raise ValueError("normals need inline vertices, one normal per vertex")
         if self.triangles is not None and len(self.triangles) > MAX_TRIANGLES:
             raise ValueError(f"more than {MAX_TRIANGLES} triangles")
-        if self.vertices is not None and self.triangles is not None:
+        if self.vertices is not None and self.triangles is not None and self.triangles:
             n = len(self.vertices)
-            for i, tri in enumerate(self.triangles):
-                if min(tri) < 0 or max(tri) >= n:
-                    raise ValueError(f"triangles[{i}] indexes a vertex outside 0..{n - 1}")
+            tris = np.asarray(self.triangles)
+            bad = np.flatnonzero((tris.min(axis=1) < 0) | (tris.max(axis=1) >= n))
+            if len(bad):
+                raise ValueError(f"triangles[{bad[0]}] indexes a vertex outside 0..{n - 1}")
         return self
 
 
@@ -451,21 +452,25 @@ def bundled_scene_names() -> list[str]:
     return sorted(p.stem for p in SCENES_DIR.glob("*.json") if re.match(SCENE_NAME_PATTERN, p.stem))
 
 
-def load_any_scene(path: Path | str, params: dict[str, str] | None = None,
-                   root: Path | None = None, budget: LoadBudget | None = None) -> tuple[Scene, Path]:
+def load_any_scene(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
+                   budget: LoadBudget | None = None, notes: list[str] | None = None) -> tuple[Scene, Path]:
     """A scene from our JSON or a Mitsuba 3 XML file (by suffix), and its directory.
 
     The scene comes back self-contained: every mesh file it names is read now, confined
     to `root` (default: the scene file's folder; the service passes its upload), and
     inlined, so it renders wherever it is sent. `params` override the XML's <default>s.
-    Everything is read within one `budget` (a new one if none)."""
+    Everything is read within one `budget` (a new one if none). What a Mitsuba scene holds
+    that was accepted but ignored is appended to `notes` ("ignored: ...", one line each)."""
     path = Path(path)
     base_dir = path.resolve().parent
     budget = budget or LoadBudget()
     if path.suffix.lower() == ".xml":
         from worker.mitsuba_scene import convert_and_validate  # it builds on this module
 
-        return convert_and_validate(path, params, root, budget)[1], base_dir
+        _, scene, found = convert_and_validate(path, params, root, budget)
+        if notes is not None:
+            notes.extend(found)
+        return scene, base_dir
     if params:
         raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
     scene, base_dir = load_scene_file(path, budget)
