@@ -141,3 +141,13 @@ def assert_folded_once(store: Jobs, job_id: str, made: list[Delta]) -> None:
     for name in state.sums:
         expected = sum(d[name] for d in sent)
         np.testing.assert_allclose(getattr(state, name), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+# A Mitsuba 3 scene document around `body`, and a small perspective sensor for one.
+def xml(body: str, version: str = "3.0.0") -> str:
+    return f'<?xml version="1.0"?>\n<scene version="{version}">\n{body}\n</scene>\n'
+
+
+SENSOR = """<sensor type="perspective"><float name="fov" value="40"/>
+<transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+<film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film></sensor>"""

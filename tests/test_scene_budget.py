@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_scene_import import SENSOR, xml
+from tests.helpers import SENSOR, xml
 from worker.scene import SCENES_DIR, SceneError, inline_meshes, load_any_scene
 
 ROOT = Path(__file__).resolve().parent.parent

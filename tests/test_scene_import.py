@@ -18,6 +18,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.conftest import image, render
+from tests.helpers import SENSOR, xml
 from worker.error_estimate import LUMINANCE
 from worker.meshes import MeshError, load_mesh
 from worker.mitsuba_scene import Node, beckmann_alpha, convert_mitsuba, look_at, phong_exponent, to_world_matrix
@@ -41,15 +42,6 @@ def mi():
     mitsuba.set_variant("scalar_rgb")
     mitsuba.set_log_level(mitsuba.LogLevel.Warn)
     return mitsuba
-
-
-def xml(body: str, version: str = "3.0.0") -> str:
-    return f'<?xml version="1.0"?>\n<scene version="{version}">\n{body}\n</scene>\n'
-
-
-SENSOR = """<sensor type="perspective"><float name="fov" value="40"/>
-<transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
-<film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film></sensor>"""
 
 
 def convert(tmp_path: Path, body: str, params: dict | None = None, name: str = "scene.xml") -> dict:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from service.scene_loader import LoadUnavailable, SceneLoader, SceneRequest, load_now
-from tests.test_scene_import import SENSOR, xml
+from tests.helpers import SENSOR, xml
 from worker.scene import SCENES_DIR, SceneError, SceneLimitError, inline_json, inline_meshes, load_any_scene
 
 
