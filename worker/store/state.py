@@ -456,11 +456,9 @@ class TiledState:
         return written
 
     def _rewriting(self, node: int) -> bool:
-        """The node is rewriting its append-only file. Redis (6.2, the embedded one) then logs
-        each write to the old file, keeps it in memory and pipes it to the rewriting child,
-        and at the end, in its main thread, writes what the child lacks to the new file and
-        fsyncs it, so writes to it are several times slower. False where the node does not
-        say (INFO refused)."""
+        """The node is rewriting its append-only file, when writes to it are slower (the
+        server writes and fsyncs the rewrite's tail in its main thread). False where the
+        node does not say (INFO refused)."""
         try:
             return bool(self.nodes[node].info("persistence").get("aof_rewrite_in_progress"))
         except redis.ResponseError:

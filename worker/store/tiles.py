@@ -34,7 +34,7 @@ is off by at most the unit roundoff (2^-24 = 6e-8 in float32, 2^-11 + 2^-23 = 4.
 float16) of the sum of its batches' magnitudes, however many batches are folded (no drift:
 the folder adds them in float64), and the same batch always sends the same bytes. What
 would drift is float32 *storage* of the running sums, whose error grows with the number of
-additions (api_tests/test_state_precision.py shows both). float16's 4.9e-4 is far below a
+additions (tests/test_state_precision.py shows both). float16's 4.9e-4 is far below a
 batch's own Monte Carlo noise in an image or a radius; it is not below the difference of
 the error estimator's moments (the variance X2 - X1^2 / i of per-pass samples that vary by
 a few percent cancels to 1e-3 of X2), so those sums, and any mean a variance subtracts, go
