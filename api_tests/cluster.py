@@ -59,7 +59,7 @@ class Cluster:
     def redis_client(self) -> redis.Redis:
         return redis.Redis.from_url(self.redis.url)
 
-    def _log(self, name: str):  # noqa: ANN202
+    def _log(self, name: str):
         return open(self.data_dir / f"{name}.log", "ab")
 
     def start_worker(self, prefix: list[str] | None = None, cwd: Path | None = None) -> subprocess.Popen:

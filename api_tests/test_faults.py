@@ -22,7 +22,7 @@ PASSES = 40
 
 
 @pytest.fixture(params=[0, 3], ids=["one-redis", "3-shards"])
-def faulty(tmp_path, request) -> Cluster:  # noqa: ANN001 - a fresh cluster per fault
+def faulty(tmp_path, request) -> Cluster:  # a fresh cluster per fault
     """One Redis, or the job state over 3 more (tiles of 2048 pixels: 5 tiles a job)."""
     c = Cluster(tmp_path, workers=2, shards=request.param, env={"PHOTONFARM_TILE_PIXELS": "2048"})
     yield c
@@ -107,7 +107,7 @@ def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: st
 
 
 @EVERY_METHOD
-def test_redis_down_while_workers_render(tmp_path, method: str) -> None:  # noqa: ANN001
+def test_redis_down_while_workers_render(tmp_path, method: str) -> None:
     """Redis gone for longer than a pass while both workers hold a batch: their renewals
     fail, and RQ, filing each batch's failure on the dead Redis, quits its work loop. The
     worker processes start a new loop once Redis is back, and the job still finishes with
@@ -147,7 +147,7 @@ def _between_passes(c: Cluster, job_id: str, timeout: float = 60.0) -> Batch:
 
 
 @EVERY_METHOD
-def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path, method: str) -> None:  # noqa: ANN001
+def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path, method: str) -> None:
     """The job's state node stalls (SIGSTOP: as a slow link or a long write would) for
     several leases while the worker renders a batch and then pushes it. The worker's
     heartbeat keeps the batch's lease through the push, so the reaper issues it to no one

@@ -175,7 +175,7 @@ def test_embedded_redis_wants_its_password_and_runs_no_code(secured: Cluster, tm
     marker, other = tmp_path / "pickle-ran", tmp_path / "json-ran"
 
     class Payload:
-        def __reduce__(self):  # noqa: ANN204 - what an attacker would put in the queue
+        def __reduce__(self):  # what an attacker would put in the queue
             return (os.mkdir, (str(marker),))
 
     queue = QUEUE_NAMES[0]

@@ -27,7 +27,7 @@ class Serve:
     def __init__(self, data: Path) -> None:
         self.data, self.port = data, free_port()
         env = {**os.environ, "PHOTONFARM_LEASE_SECONDS": "4", "PYTHONUNBUFFERED": "1"}
-        log = open(data.parent / "serve.log", "ab")  # noqa: SIM115 - the process keeps it
+        log = open(data.parent / "serve.log", "ab")  # the process keeps it
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port),
                                       "--workers", "2", "--data-dir", str(data)], env=env, stdout=log,
                                      stderr=subprocess.STDOUT, start_new_session=True)

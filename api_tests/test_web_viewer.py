@@ -33,7 +33,7 @@ WIDE = {"width": 1400, "height": 1000}
 
 
 @pytest.fixture(scope="module")
-def page(cluster) -> Iterator:  # noqa: ANN001
+def page(cluster) -> Iterator:
     from playwright.sync_api import sync_playwright
 
     SHOTS.mkdir(parents=True, exist_ok=True)
@@ -47,11 +47,11 @@ def page(cluster) -> Iterator:  # noqa: ANN001
         browser.close()
 
 
-def _shot(page, name: str) -> None:  # noqa: ANN001
+def _shot(page, name: str) -> None:
     page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
 
 
-def _submit(page, scene: str, **fields: str) -> str:  # noqa: ANN001
+def _submit(page, scene: str, **fields: str) -> str:
     page.check("input[name=source][value=bundled]")
     page.select_option("#scene", scene)
     for selector, value in {"#set-error_threshold": "", "#set-max_seconds": "120", "#set-max_passes": "",
@@ -60,24 +60,24 @@ def _submit(page, scene: str, **fields: str) -> str:  # noqa: ANN001
     return _click_render(page)
 
 
-def _click_render(page) -> str:  # noqa: ANN001
+def _click_render(page) -> str:
     before = page.text_content("#job-id")
     page.click("#submit")
     page.wait_for_function(f"document.querySelector('#job-id').textContent !== {before!r}")
     return page.text_content("#job-id")
 
 
-def _status(page, status: str, timeout: float = 120_000) -> None:  # noqa: ANN001
+def _status(page, status: str, timeout: float = 120_000) -> None:
     page.wait_for_function(f"document.querySelector('#status').textContent === {status!r}", timeout=timeout)
 
 
-def _full_id(cluster, prefix: str) -> str:  # noqa: ANN001
+def _full_id(cluster, prefix: str) -> str:
     ids = [j["id"] for j in cluster.http.get("/v1/jobs", params={"limit": 500}).json() if j["id"].startswith(prefix)]
     assert len(ids) == 1, ids
     return ids[0]
 
 
-def test_start_state_has_no_broken_images_or_empty_frames(page) -> None:  # noqa: ANN001
+def test_start_state_has_no_broken_images_or_empty_frames(page) -> None:
     assert page.is_visible("#placeholder") and not page.is_visible("#job-panel")
     # Nothing visible that shows no picture: no image without pixels, no blank canvas or chart.
     blank = page.evaluate("""() => [...document.querySelectorAll('img, canvas, svg')]
@@ -91,13 +91,13 @@ def test_start_state_has_no_broken_images_or_empty_frames(page) -> None:  # noqa
     _shot(page, "start")
 
 
-def test_page_lists_the_bundled_scenes(page) -> None:  # noqa: ANN001
+def test_page_lists_the_bundled_scenes(page) -> None:
     assert page.title() == "photonfarm"
     options = page.eval_on_selector_all("#scene option", "els => els.map(e => e.value)")
     assert {"cornell-caustics", "smallppm", "furnace"} <= set(options)
 
 
-def test_the_form_has_every_job_setting_and_sends_them(page, cluster) -> None:  # noqa: ANN001
+def test_the_form_has_every_job_setting_and_sends_them(page, cluster) -> None:
     ids = page.eval_on_selector_all("#settings [id^=set-]", "els => els.map(e => e.id.slice(4))")
     assert ids == list(JobSettings.model_fields), ids
     chosen = {"method": "ppm", "gather": "stochastic", "direct": "nee", "sampler": "adaptive", "priority": "high",
@@ -126,7 +126,7 @@ def test_the_form_has_every_job_setting_and_sends_them(page, cluster) -> None:  
             page.fill(f"#set-{name}", "" if default is None else str(default))
 
 
-def test_job_from_the_page_converges_with_a_live_image_and_chart(page) -> None:  # noqa: ANN001
+def test_job_from_the_page_converges_with_a_live_image_and_chart(page) -> None:
     _submit(page, "cornell-caustics", **{"#set-error_threshold": "0.1", "#set-resolution": "96x96"})
     page.wait_for_function("Number(document.querySelector('#image').dataset.passes || 0) >= 1", timeout=60_000)
     shown = page.get_attribute("#image", "data-passes")
@@ -154,7 +154,7 @@ def test_job_from_the_page_converges_with_a_live_image_and_chart(page) -> None: 
     assert download.value.suggested_filename.endswith(".exr")
 
 
-def test_chart_axes_have_ticks_labels_and_a_labelled_threshold(page) -> None:  # noqa: ANN001
+def test_chart_axes_have_ticks_labels_and_a_labelled_threshold(page) -> None:
     """On the converged job above (threshold 10%)."""
     for chart, label in (("#chart-time", "seconds"), ("#chart-passes", "passes")):
         xs = [float(t) for t in page.eval_on_selector_all(f"{chart} text.xtick", "els => els.map(e => e.textContent)")]
@@ -173,7 +173,7 @@ def test_chart_axes_have_ticks_labels_and_a_labelled_threshold(page) -> None:  #
         assert abs(float(page.get_attribute(f"{chart} line.threshold", "y1")) - tick) < 1e-6
 
 
-def _canvas_pixels(page) -> np.ndarray:  # noqa: ANN001
+def _canvas_pixels(page) -> np.ndarray:
     data = page.evaluate("""() => { const c = document.querySelector('#image');
         return Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data); }""")
     return np.asarray(data, np.float64).reshape(-1, 4)[:, :3]
@@ -187,7 +187,7 @@ def _srgb_encode(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def test_exposure_scales_the_linear_radiance_of_the_shown_png(page) -> None:  # noqa: ANN001
+def test_exposure_scales_the_linear_radiance_of_the_shown_png(page) -> None:
     base = _canvas_pixels(page)
     page.fill("#exposure", "1")  # +1 EV: twice the radiance
     page.wait_for_function("document.querySelector('#image').dataset.exposure === '1'")
@@ -202,7 +202,7 @@ def test_exposure_scales_the_linear_radiance_of_the_shown_png(page) -> None:  # 
     assert np.array_equal(_canvas_pixels(page), base)
 
 
-def test_zoom_1to1_and_the_pixel_under_the_cursor(page, cluster, tmp_path: Path) -> None:  # noqa: ANN001
+def test_zoom_1to1_and_the_pixel_under_the_cursor(page, cluster, tmp_path: Path) -> None:
     job = page.evaluate("state.job")
     page.select_option("#zoom", "1")
     page.locator("#image").scroll_into_view_if_needed()
@@ -232,7 +232,7 @@ def test_zoom_1to1_and_the_pixel_under_the_cursor(page, cluster, tmp_path: Path)
     page.select_option("#zoom", "fit")
 
 
-def test_the_pixel_endpoint_names_a_bad_coordinate(page, cluster) -> None:  # noqa: ANN001
+def test_the_pixel_endpoint_names_a_bad_coordinate(page, cluster) -> None:
     job = page.evaluate("state.job")
     link = f"/v1/jobs/{job['id']}/pixel"
     for query, field in (({"x": job["width"], "y": 0}, "x"), ({"x": 0, "y": job["height"]}, "y"),
@@ -245,7 +245,7 @@ def test_the_pixel_endpoint_names_a_bad_coordinate(page, cluster) -> None:  # no
     assert last["passes"] == now["image_passes"] == now["passes"] and len(last["rgb"]) == 3
 
 
-def test_eta_is_the_clients(page) -> None:  # noqa: ANN001
+def test_eta_is_the_clients(page) -> None:
     """The page's ETA against service/client.py's on the same job views."""
     history = [{"passes": i, "photons": 1000 * i, "seconds": 0.5 * i, "error": 0.4 * (0.5 * i) ** -0.5}
                for i in range(1, 11)]
@@ -264,7 +264,7 @@ def test_eta_is_the_clients(page) -> None:  # noqa: ANN001
     assert math.isclose(page.evaluate("job => etaSeconds(job)", jobs[0]), 0.4 ** 2 / 0.05 ** 2 - 5.0, rel_tol=1e-9)
 
 
-def test_workers_eta_and_cancel_from_the_page(page, cluster) -> None:  # noqa: ANN001
+def test_workers_eta_and_cancel_from_the_page(page, cluster) -> None:
     api_workers = cluster.http.get("/v1/workers").json()
     page.wait_for_function(f"document.querySelectorAll('#workers tbody tr').length === {len(api_workers)}")
     hosts = page.eval_on_selector_all("#workers td.host", "els => els.map(e => e.textContent)")
@@ -291,7 +291,7 @@ def test_workers_eta_and_cancel_from_the_page(page, cluster) -> None:  # noqa: A
     assert page.is_disabled("#cancel") and page.text_content("#eta") == "none: cancelled"
 
 
-def test_delete_a_finished_job(page, cluster) -> None:  # noqa: ANN001
+def test_delete_a_finished_job(page, cluster) -> None:
     """The job cancelled above: Delete answers 204, the job leaves the list and the page
     returns to its start state."""
     short = page.text_content("#job-id")
@@ -304,7 +304,7 @@ def test_delete_a_finished_job(page, cluster) -> None:  # noqa: ANN001
                            f".some(r => r.dataset.id === '{job_id}')")
 
 
-def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
+def test_the_job_list_pages(page, cluster) -> None:
     for _ in range(4):  # small jobs, so that there are more than one page of five
         cluster.submit(scene_name="furnace", settings={"max_passes": 1, "photons_per_pass": 1024, "resolution": [8, 8]})
     everything = [j["id"] for j in cluster.http.get("/v1/jobs", params={"limit": 500}).json()]
@@ -324,7 +324,7 @@ def test_the_job_list_pages(page, cluster) -> None:  # noqa: ANN001
     page.select_option("#page-size", "10")
 
 
-def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> None:  # noqa: ANN001
+def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> None:
     archive = zip_bytes({name: (MITSUBA / name).read_bytes()
                          for name in ("ply-mesh.xml", "room.xml", "meshes/icosphere.ply")})
     page.set_input_files("#upload-files",
@@ -361,7 +361,7 @@ def test_upload_a_mitsuba_scene_from_the_page(page, cluster, tmp_path: Path) -> 
     page.check("input[name=source][value=bundled]")
 
 
-def test_layout_holds_at_800px(page) -> None:  # noqa: ANN001
+def test_layout_holds_at_800px(page) -> None:
     page.set_viewport_size({"width": 800, "height": 1000})
     page.click("#jobs tr[data-id]")  # a job with an image
     page.wait_for_function("!document.querySelector('#image').hidden"
@@ -381,7 +381,7 @@ def test_layout_holds_at_800px(page) -> None:  # noqa: ANN001
     page.set_viewport_size(WIDE)
 
 
-def test_the_browser_revalidates_an_unchanged_image(page, cluster) -> None:  # noqa: ANN001
+def test_the_browser_revalidates_an_unchanged_image(page, cluster) -> None:
     """The image comes with an ETag and no-cache: the page's second fetch of an unchanged image
     carries If-None-Match (the browser's cache adds it; viewer.js needs no code of its own)."""
     job = cluster.submit(scene_name="cornell-box", settings={"resolution": [16, 16], "photons_per_pass": 1024,

@@ -12,10 +12,10 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENCL_NO_CACHE", "1")  # PoCL caches itself; pyopencl's cache double-compiles
 
-import numpy as np  # noqa: E402 (PYOPENCL_NO_CACHE must be set before pyopencl is imported)
-import pyopencl as cl  # noqa: E402 (PYOPENCL_NO_CACHE must be set before pyopencl is imported)
+import numpy as np
+import pyopencl as cl
 
-from kernels.contract import SumLayout, build_options  # noqa: E402 (PYOPENCL_NO_CACHE must be set first)
+from kernels.contract import SumLayout, build_options
 
 KERNEL_DIR = Path(__file__).resolve().parent
 WORK_GROUP = 64  # work items a work group (Program.launch)

@@ -191,7 +191,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                 body += chunk
                 if len(body) > MAX_BODY_BYTES:
                     return JSONResponse({"detail": f"body larger than {MAX_BODY_BYTES} bytes"}, 413)
-            request._body = body  # noqa: SLF001 (the stream is consumed: the route reads the body from here)
+            request._body = body  # the stream is consumed: the route reads the body from here
         try:
             return await call_next(request)
         except (redis.ConnectionError, redis.TimeoutError):
@@ -469,13 +469,13 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @app.get("/v1/jobs/{job_id}/image", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}, "headers": VALIDATOR_HEADERS},
                         304: NOT_MODIFIED, **errors(*auth, 404, 422)})
-    def image(request: Request, job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
+    def image(request: Request, job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # API name
         return validated(request, existing(job_id), "image", format, image_body)
 
     @app.get("/v1/jobs/{job_id}/error", dependencies=secured,
              responses={200: {"content": {"image/png": {}, "image/x-exr": {}}, "headers": VALIDATOR_HEADERS},
                         304: NOT_MODIFIED, **errors(*auth, 404, 409, 422)})
-    def error_map(request: Request, job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # noqa: A002 (API name)
+    def error_map(request: Request, job_id: str, format: Literal["png", "exr"] = Query("png")) -> Response:  # API name
         """PNG: relative error, colour-coded on a log scale (blue 0.1%, green 1%, yellow 10%,
         red 100%). EXR: the bias, noise and bound channels (luminance) and the relative error."""
         return validated(request, existing(job_id), "error", format, error_body)

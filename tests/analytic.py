@@ -51,7 +51,7 @@ def camera_rays(eng: Engine, sub: int) -> tuple[np.ndarray, np.ndarray]:
     return o, fwd[None, None, :] + sx[None, :, None] * right + sy[:, None, None] * up
 
 
-def _plane_hits(eng: Engine, sub: int):  # noqa: ANN202
+def _plane_hits(eng: Engine, sub: int):
     """Where sub x sub positions per pixel of `eng`'s camera meet the plane y = 0: (x, z) arrays
     of shape (h * sub, w * sub), and the function that averages such an array per pixel."""
     w, h = eng.arrays.width, eng.arrays.height

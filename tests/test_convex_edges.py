@@ -126,13 +126,13 @@ def _sheet_with_hole(cells: int, hole: tuple[int, int]) -> np.ndarray:
 
 def _segment_triangle_distance_2d(p0: np.ndarray, p1: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Exact distances in the plane between segments (S, 2) and triangles (T, 3, 2): (T, S)."""
-    def point_segment(x, a, b):  # noqa: ANN001, ANN202
+    def point_segment(x, a, b):
         ab = b - a
         t = np.clip(np.sum((x - a) * ab, -1) / np.maximum(np.sum(ab * ab, -1), 1e-30), 0.0, 1.0)
         return np.linalg.norm(x - (a + t[..., None] * ab), axis=-1)
 
-    def inside(x, tr):  # noqa: ANN001, ANN202
-        def side(a, b):  # noqa: ANN001, ANN202
+    def inside(x, tr):
+        def side(a, b):
             return (b[..., 0] - a[..., 0]) * (x[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (x[..., 0] - a[..., 0])
         s = [side(tr[..., k, :], tr[..., (k + 1) % 3, :]) for k in range(3)]
         return ((s[0] >= 0) & (s[1] >= 0) & (s[2] >= 0)) | ((s[0] <= 0) & (s[1] <= 0) & (s[2] <= 0))

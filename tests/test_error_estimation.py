@@ -30,7 +30,7 @@ def test_kernel_constants_are_the_disc_moments_of_K() -> None:
     assert math.isclose(integrate.quad(lambda t: 2 * math.pi * t ** 3 * K(t), 0, 1)[0], K2, rel_tol=1e-12)
 
 
-def _grid_photons(f, x_range: tuple[float, float], half_width: float, h: float):  # noqa: ANN001, ANN202
+def _grid_photons(f, x_range: tuple[float, float], half_width: float, h: float):
     """Photons on a regular grid over the plane y = 0 with flux f(x) h^2: gathering them is a
     noise-free quadrature of the kernel estimate."""
     gx = np.arange(*x_range, h) + h / 2
@@ -41,7 +41,7 @@ def _grid_photons(f, x_range: tuple[float, float], half_width: float, h: float):
     return pos, flux, np.tile([0.0, 1.0, 0.0], (len(pos), 1))
 
 
-def _probe(make_engine, xs: np.ndarray):  # noqa: ANN001, ANN202
+def _probe(make_engine, xs: np.ndarray):
     eng = make_engine("furnace", resolution=(len(xs), 1), photons_per_pass=1, gather="exact")
     points = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
     return eng, points, np.tile([0.0, 1.0, 0.0], (len(xs), 1))
@@ -101,7 +101,7 @@ def test_point_plane_laplacian_converges_to_the_analytic_one(make_engine) -> Non
     assert l2 < 0.25, errors  # what is left is the bias of smoothing at R = 0.4
 
 
-def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[int], resolution=None,  # noqa: ANN001
+def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[int], resolution=None,
               photons: int = 1 << 15, seed: int = 31) -> dict:
     eng = make_engine(scene, resolution=resolution, photons_per_pass=photons, seed=seed, gather=gather)
     truth = truth_of(eng)
@@ -118,7 +118,7 @@ def _coverage(make_engine, scene: str, truth_of, gather: str, checkpoints: list[
     return out
 
 
-def _cornell_reference(eng) -> np.ndarray:  # noqa: ANN001
+def _cornell_reference(eng) -> np.ndarray:
     return read_image(REFERENCE).reshape(-1, 3) @ LUMINANCE
 
 

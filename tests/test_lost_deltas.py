@@ -53,7 +53,7 @@ def _lose_deltas_of(servers: list[EmbeddedRedis], sample: tuple, pending: int,
 
 
 def test_deltas_a_restart_lost_are_rendered_again_and_fold_once(servers: list[EmbeddedRedis],
-                                                                deltas: tuple) -> None:  # noqa: F811
+                                                                deltas: tuple) -> None:
     store, job_id, made, lost = _lose_deltas_of(servers, deltas, pending=2)
     assert store.fold(job_id) is None  # the round finds them missing and writes nothing
     assert store.r.smembers(keys.lost(job_id)) == {b.id.encode() for b in lost}
@@ -72,7 +72,7 @@ def test_deltas_a_restart_lost_are_rendered_again_and_fold_once(servers: list[Em
     assert_folded_once(store, job_id, made)  # the state is the sum of the deltas: each once on every tile
 
 
-def test_a_jobs_end_waits_for_its_lost_batches(servers: list[EmbeddedRedis], deltas: tuple,  # noqa: F811
+def test_a_jobs_end_waits_for_its_lost_batches(servers: list[EmbeddedRedis], deltas: tuple,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.2)  # no API: the worker ends the job
     store, job_id, made, lost = _lose_deltas_of(servers, deltas, pending=1, max_passes=8)
@@ -88,7 +88,7 @@ def test_a_jobs_end_waits_for_its_lost_batches(servers: list[EmbeddedRedis], del
 
 
 @pytest.mark.parametrize("issued_again", [True, False], ids=["found-before", "found-by-its-last-round"])
-def test_a_cancelled_job_takes_its_lost_batches_back(servers: list[EmbeddedRedis], deltas: tuple,  # noqa: F811
+def test_a_cancelled_job_takes_its_lost_batches_back(servers: list[EmbeddedRedis], deltas: tuple,
                                                      issued_again: bool) -> None:
     store, job_id, made, lost = _lose_deltas_of(servers, deltas, pending=2)
     if issued_again:

@@ -76,7 +76,7 @@ def test_spot_light_per_pixel_against_the_analytic_radiance(make_engine, tmp_pat
     assert abs(est.mean() / truth.mean() - 1.0) < 0.01, (est.mean(), truth.mean())
 
 
-def _ceiling_lamp_scene(tmp_path, half: float, height: float, radiance: float, albedo: float):  # noqa: ANN202
+def _ceiling_lamp_scene(tmp_path, half: float, height: float, radiance: float, albedo: float):
     """A floor under a lamp as large as itself (2 half x 2 half, facing down, black) at
     `height`; the camera between them looks down at the middle of the floor."""
     scene = {

@@ -12,8 +12,8 @@ from worker.settings import DEFAULT_ALPHA, DEFAULTS, Settings
 
 
 def test_cli_and_api_defaults_are_the_models_own() -> None:
-    render = build_parser()._subparsers._group_actions[0].choices["render"]  # noqa: SLF001
-    flags = {a.dest: a for a in render._actions}  # noqa: SLF001
+    render = build_parser()._subparsers._group_actions[0].choices["render"]
+    flags = {a.dest: a for a in render._actions}
     for name in RENDER_FIELDS:
         assert flags[name].default == Settings.model_fields[name].default, name
         assert flags[name].help.startswith(Settings.model_fields[name].description), name
@@ -62,6 +62,6 @@ def test_alpha_defaults_by_method() -> None:
         assert JobRequest(scene_name="furnace", settings={"method": method}).settings.alpha == alpha
         assert Settings(method=method, alpha=0.55).alpha == 0.55
     assert DEFAULT_ALPHA["vcm"] < 2.0 / 3.0  # chapter 9: the merging radius's bias leaves the MIS weights
-    render = build_parser()._subparsers._group_actions[0].choices["render"]  # noqa: SLF001
-    alpha_help = next(a.help for a in render._actions if a.dest == "alpha")  # noqa: SLF001
+    render = build_parser()._subparsers._group_actions[0].choices["render"]
+    alpha_help = next(a.help for a in render._actions if a.dest == "alpha")
     assert all(f"{method} {alpha:g}" in alpha_help for method, alpha in DEFAULT_ALPHA.items())

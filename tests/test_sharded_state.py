@@ -86,10 +86,10 @@ def _push_then_die(urls: list[str], job_id: str, deltas_file: str, nodes_before_
     pushed = []
     real = TiledState._each_node
 
-    def each_node(self, tiling, queue):  # noqa: ANN001, ANN202
+    def each_node(self, tiling, queue):
         node_of = {k: tiling.node(k) for k in range(tiling.count)}
 
-        def counted(pipe, k):  # noqa: ANN001, ANN202
+        def counted(pipe, k):
             if node_of[k] not in pushed:
                 if len(pushed) == nodes_before_kill:
                     os.kill(os.getpid(), signal.SIGKILL)
@@ -131,11 +131,11 @@ def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpo
         real_checkpoint, real_write = state_module.TiledState.checkpoint, state_module.TiledState._on_versions
         one_at_a_time, checkpointing = threading.Lock(), threading.Event()
 
-        def checkpoint_then_die(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        def checkpoint_then_die(self, *args, **kwargs):
             checkpointing.set()
             return real_checkpoint(self, *args, **kwargs)
 
-        def write(self, *args):  # noqa: ANN001, ANN002, ANN202
+        def write(self, *args):
             if not checkpointing.is_set():  # the inputs
                 return real_write(self, *args)
             with one_at_a_time:  # the first node's transaction alone, then the end
@@ -147,7 +147,7 @@ def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpo
     else:
         real, spans = state_module.encode_inputs, []
 
-        def encode_inputs(*args):  # noqa: ANN002, ANN202
+        def encode_inputs(*args):
             if args[-1] not in spans:
                 spans.append(args[-1])
                 if len(spans) == tiles_before_kill + 1:
@@ -278,7 +278,7 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
     seen: list[tuple[int, int, float]] = []  # during the write: the record's image passes, a read's passes and sum
     real = state_module.encode_state
 
-    def encode_state(arrays, names, span):  # noqa: ANN001, ANN202
+    def encode_state(arrays, names, span):
         record = store.get(job_id)
         state = store.state(record)
         seen.append((record.image_passes, state.passes, float(sum(a.sum() for a in state.arrays().values()))))
@@ -318,7 +318,7 @@ def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list
     seen: list[tuple[int, int, int]] = []  # as the write starts: the record's image passes, a read's, the inputs'
     real_write = state_module.TiledState.write_inputs
 
-    def observed(self, *args):  # noqa: ANN001, ANN202
+    def observed(self, *args):
         record = store.get(job_id)
         seen.append((record.image_passes, store.state(record).passes, store.batch_inputs(record).passes))
         return real_write(self, *args)
@@ -335,7 +335,7 @@ def test_a_round_shows_its_image_before_it_writes_the_batch_inputs(servers: list
     tiling = store.tiling(record)
     node, meta = store.tiles.nodes[tiling.node(1)], keys.tile(job_id, 1, "meta")
 
-    def contended(self, *args):  # noqa: ANN001, ANN202
+    def contended(self, *args):
         node.hincrby(meta, "version", 1)
         return real_write(self, *args)
 

@@ -35,7 +35,7 @@ def test_a_cancel_between_a_merges_read_and_write_is_kept(redis_url: str) -> Non
     class CancelledMidMerge(Jobs):
         fired = False
 
-        def _read(self, pipe, job):  # noqa: ANN001, ANN202 - the acceptance's read, before its write
+        def _read(self, pipe, job):  # the acceptance's read, before its write
             record = super()._read(pipe, job)
             if not CancelledMidMerge.fired:
                 CancelledMidMerge.fired = True
@@ -97,7 +97,7 @@ def test_a_cancel_as_a_worker_takes_a_batch_keeps_the_slot_until_the_batch_ends(
     class CancelledAtTake(Leases):
         fired = False
 
-        def take(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - the cancel, then the take
+        def take(self, *args, **kwargs):  # the cancel, then the take
             if not CancelledAtTake.fired:
                 CancelledAtTake.fired = True
                 assert Jobs(conn).cancel(job_id) == Status.CANCELLED  # nothing was rendering yet

@@ -118,7 +118,7 @@ def load_mesh(path: Path, data: bytes | None = None) -> MeshData:
         parts = _parse(suffix, path.read_bytes() if data is None else data)
     except MeshError:
         raise
-    except Exception as exc:  # noqa: BLE001 - any parser failure is a malformed file
+    except Exception as exc:  # any parser failure is a malformed file
         raise MeshError(f"malformed {path.suffix.lower()[1:].upper()}: {exc}") from None
     parts = [p for p in parts if len(p.get("faces", ())) > 0]
     if not parts:

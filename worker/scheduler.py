@@ -139,7 +139,7 @@ def fold_active(jobs: Jobs) -> int:
             folded += jobs.end_if_decided(job_id) or jobs.fold_if_due(job_id) is not None
         except redis.RedisError:
             raise
-        except Exception:  # noqa: BLE001 - one job's failing round must not stop the others'
+        except Exception:  # one job's failing round must not stop the others'
             log.exception("fold round failed", extra={"job": job_id})
     return folded
 
@@ -173,7 +173,7 @@ class Reaper:
             except redis.RedisError as exc:
                 log.warning("folder: redis unavailable: %s", exc)
                 self._stop.wait(FOLD_POLL_SECONDS)
-            except Exception:  # noqa: BLE001 - the thread lives on: the next round may succeed
+            except Exception:  # the thread lives on: the next round may succeed
                 log.exception("folder: a pass over the jobs failed")
                 self._stop.wait(FOLD_POLL_SECONDS)
 
@@ -188,7 +188,7 @@ class Reaper:
                     last_prune = time.monotonic()
             except redis.RedisError as exc:
                 log.warning("reaper: redis unavailable: %s", exc)
-            except Exception:  # noqa: BLE001 - the thread lives on: the next look may succeed
+            except Exception:  # the thread lives on: the next look may succeed
                 log.exception("reaper: a look failed")
 
     def start(self) -> Reaper:

@@ -85,7 +85,7 @@ def run_batch(job_id: str, first: int, n: int) -> str:
         jobs.drop(batch)
         log.info("batch aborted: the job stopped wanting it", extra=context)
         return "aborted"
-    except Exception as exc:  # noqa: BLE001 - counted, then RQ records the traceback
+    except Exception as exc:  # counted, then RQ records the traceback
         log.exception("batch failed", extra=context)
         if jobs.record_failure(batch, f"batch {batch.id} failed: {exc!r}"):
             jobs.drop(batch)
