@@ -11,6 +11,7 @@ wall-clock limit); a request past those is refused at once.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 import threading
@@ -83,6 +84,12 @@ def load_now(request: SceneRequest) -> LoadedScene:
     return LoadedScene(text, parsed.camera.resolution, parsed.camera.aperture_radius, tuple(notes))
 
 
+@functools.lru_cache(maxsize=64)
+def _bundled(name: str) -> LoadedScene:
+    """A bundled scene, loaded in this process (an unknown name raises SceneError, not cached)."""
+    return load_now(SceneRequest(scene_name=name))
+
+
 def _child(out: Connection, request: SceneRequest) -> None:
     """Runs in the child: sends ("ok", LoadedScene) or ("error", kind, field, message)."""
     os.nice(LOAD_NICENESS)
@@ -117,7 +124,11 @@ class SceneLoader:
 
     def load(self, request: SceneRequest) -> LoadedScene:
         """The loaded scene; SceneError (SceneLimitError past the budget) as the child raised
-        it; LoadUnavailable if no slot came free or the load did not finish in time."""
+        it; LoadUnavailable if no slot came free or the load did not finish in time. A bundled
+        scene is ours, small and unchanging: it is loaded once in this process and kept, so a
+        burst of submits by name never waits for a loader."""
+        if request.scene_name is not None and request.scene is None and request.path is None:
+            return _bundled(request.scene_name)
         if not self.admitted.acquire(blocking=False):
             raise LoadUnavailable("every scene loader is busy and others wait for one: retry shortly")
         try:

@@ -15,7 +15,15 @@ import pytest
 
 from service.scene_loader import LoadUnavailable, SceneLoader, SceneRequest, load_now
 from tests.helpers import SENSOR, xml
-from worker.scene import SCENES_DIR, SceneError, SceneLimitError, inline_json, inline_meshes, load_any_scene
+from worker.scene import (
+    SCENES_DIR,
+    SceneError,
+    SceneLimitError,
+    bundled_scene_path,
+    inline_json,
+    inline_meshes,
+    load_any_scene,
+)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +65,8 @@ def test_a_load_past_the_time_limit_is_killed_and_the_loader_serves_on(loader: S
 
 
 def test_loads_past_the_slots_and_the_queue_are_refused_at_once(tmp_path: Path) -> None:
-    """One slot, no queue: while a load blocks (on a FIFO), the next is refused, not queued."""
+    """One slot, no queue: while a load blocks (on a FIFO), the next is refused, not queued;
+    a bundled scene, loaded in the API's process once, is answered all the same."""
     fifo = tmp_path / "scene.json"
     os.mkfifo(fifo)
     busy = SceneLoader(processes=1, seconds=5, queue=0)
@@ -65,10 +74,12 @@ def test_loads_past_the_slots_and_the_queue_are_refused_at_once(tmp_path: Path) 
                                                             SceneRequest(path=fifo, root=tmp_path)))
     blocked.start()
     time.sleep(1.0)  # the blocked load takes its slot as it starts
+    posted = json.loads(bundled_scene_path("cornell-box").read_text())
     with pytest.raises(LoadUnavailable, match="others wait for one"):  # refused, not timed out waiting
-        busy.load(SceneRequest(scene_name="cornell-box"))
-    blocked.join()
+        busy.load(SceneRequest(scene=posted))
     assert busy.load(SceneRequest(scene_name="cornell-box")) == load_now(SceneRequest(scene_name="cornell-box"))
+    blocked.join()
+    assert busy.load(SceneRequest(scene=posted)) == load_now(SceneRequest(scene=posted))
 
 
 @pytest.mark.parametrize("name", ["cornell-box.json", "mitsuba/ply-mesh.xml", "mitsuba/obj-mesh.xml"])
