@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from api_tests.cluster import Cluster, finished, merged_passes
+from service.upload import MAX_UPLOAD_BYTES
 from worker.image_io import read_image
 
 CHROMIUM = shutil.which("chromium")  # Debian's chromium; Playwright downloads no browser
@@ -43,4 +44,15 @@ def zip_bytes(entries: dict[str, bytes]) -> bytes:
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
         for name, data in entries.items():
             z.writestr(name, data)
+    return buf.getvalue()
+
+
+def zip_bomb() -> bytes:
+    """A small zip (about 130 KB) of one member of zeros that unpacks past the upload limit."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
+        with z.open("zeros.ply", "w", force_zip64=True) as out:
+            block = bytes(1 << 20)
+            for _ in range(MAX_UPLOAD_BYTES // len(block) + 1):
+                out.write(block)
     return buf.getvalue()

@@ -21,7 +21,7 @@ import httpx
 import pytest
 
 from api_tests.cluster import Cluster, finished
-from api_tests.helpers import zip_bytes
+from api_tests.helpers import zip_bomb, zip_bytes
 from service.upload import MAX_UPLOAD_BYTES, MAX_UPLOAD_FILES
 from worker.scene import SCENES_DIR
 
@@ -226,14 +226,9 @@ def test_a_malformed_form_is_422_naming_the_body(cluster: Cluster) -> None:
 
 def test_an_archive_that_unpacks_past_the_limit_is_refused_413(cluster: Cluster) -> None:
     """A zip bomb: a small archive (about 130 KB) of zeros that unpacks past the byte limit."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
-        with z.open("zeros.ply", "w", force_zip64=True) as out:
-            block = bytes(1 << 20)
-            for _ in range(MAX_UPLOAD_BYTES // len(block) + 1):
-                out.write(block)
-    assert len(buf.getvalue()) < MAX_UPLOAD_BYTES // 100
-    resp = _upload(cluster, "s.xml", archive=("bomb.zip", buf.getvalue()))
+    bomb = zip_bomb()
+    assert len(bomb) < MAX_UPLOAD_BYTES // 100
+    resp = _upload(cluster, "s.xml", archive=("bomb.zip", bomb))
     assert resp.status_code == 413 and f"larger than {MAX_UPLOAD_BYTES} bytes" in resp.json()["detail"], resp.text
     _still_serving(cluster)
 

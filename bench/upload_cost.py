@@ -37,8 +37,8 @@ import numpy as np
 import psutil
 
 from api_tests.cluster import Cluster
+from api_tests.helpers import zip_bomb
 from bench.common import write_json
-from service.upload import MAX_UPLOAD_BYTES
 from worker.scene import SCENES_DIR
 
 MITSUBA = SCENES_DIR / "mitsuba"
@@ -111,16 +111,6 @@ def huge_ply_declaration() -> bytes:
 
 def obj_past_the_triangle_limit() -> bytes:
     return _mesh_scene("m.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 3\n" * 2_000_000)
-
-
-def zip_bomb() -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
-        with z.open("zeros.ply", "w", force_zip64=True) as out:
-            block = bytes(1 << 20)
-            for _ in range(MAX_UPLOAD_BYTES // len(block) + 1):
-                out.write(block)
-    return buf.getvalue()
 
 
 def comment_obj() -> bytes:
