@@ -6,11 +6,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from api_tests.cluster import Cluster, finished
+from service.app import METRICS_SECONDS
 from tests.analytic import FURNACE_L
 from worker.image_io import read_image
 from worker.scheduler import QUEUE_NAMES
@@ -62,6 +64,7 @@ def test_queue_depth_counts_waiting_batches(tmp_path: Path) -> None:
             assert _metric(text, "photonfarm_queue_depth", f'{{queue="{name}"}}') == (name == "photonfarm-normal"), name
         c.start_worker()
         assert c.wait(job["id"], finished)["status"] == "completed"
+        time.sleep(1.1 * METRICS_SECONDS)  # past the scrape cached before the job ended
         assert _metric(c.http.get("/metrics").text, "photonfarm_queue_depth", '{queue="photonfarm-normal"}') == 0
     finally:
         c.close()
