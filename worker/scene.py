@@ -2,7 +2,7 @@
 
 The model holds no more than the bundled scenes need: a pinhole or thin-lens camera,
 spheres, quads and triangle meshes (any of which may emit and is then an area light),
-four materials and three kinds of delta light. Every validation failure is reported
+nine materials and three kinds of delta light. Every validation failure is reported
 as a `SceneError` whose `field` is the dotted path of the offending value, so the CLI
 and the HTTP API can name it.
 """
@@ -145,10 +145,32 @@ class Mirror(_Model):
     albedo: Albedo = (1.0, 1.0, 1.0)
 
 
+Ior = Annotated[float, Field(strict=True, ge=1.0, le=3.0, allow_inf_nan=False)]  # interior / exterior
+# Microfacet roughness (the distribution's alpha): below 0.001 a lobe is a mirror in all but
+# the float32 arithmetic of its pdf.
+Roughness = Annotated[float, Field(strict=True, ge=0.001, le=1.0, allow_inf_nan=False)]
+Distribution = Literal["beckmann", "ggx"]
+EtaPart = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=False)]
+KPart = Annotated[float, Field(strict=True, ge=0.0, le=100.0, allow_inf_nan=False)]
+
+
 class Glass(_Model):
+    """Smooth dielectric: Fresnel reflection tinted by `albedo`, refraction by `transmittance`."""
+
     type: Literal["glass"]
-    ior: Annotated[float, Field(strict=True, ge=1.0, le=3.0, allow_inf_nan=False)] = 1.5
-    albedo: Albedo = (1.0, 1.0, 1.0)  # tint applied at every interaction
+    ior: Ior = 1.5
+    albedo: Albedo = (1.0, 1.0, 1.0)  # tint of reflection (and of refraction unless `transmittance`)
+    transmittance: Albedo | None = None
+
+
+class ThinGlass(_Model):
+    """A thin dielectric sheet (a window pane): the interreflections inside it summed, rays pass
+    straight through."""
+
+    type: Literal["thin_glass"]
+    ior: Ior = 1.5
+    albedo: Albedo = (1.0, 1.0, 1.0)
+    transmittance: Albedo = (1.0, 1.0, 1.0)
 
 
 class Glossy(_Model):
@@ -159,7 +181,54 @@ class Glossy(_Model):
     exponent: Annotated[float, Field(strict=True, ge=1.0, le=100_000.0, allow_inf_nan=False)]
 
 
-Material = Annotated[Diffuse | Mirror | Glass | Glossy, Field(discriminator="type")]
+class _Metal(_Model):
+    """A conductor's complex index of refraction eta + i k per rgb channel (relative to the
+    exterior); without them the surface reflects `specular` at every angle (no Fresnel term)."""
+
+    specular: Albedo = (1.0, 1.0, 1.0)
+    eta: tuple[EtaPart, EtaPart, EtaPart] | None = None
+    k: tuple[KPart, KPart, KPart] | None = None
+
+    @model_validator(mode="after")
+    def _check_pair(self) -> _Metal:
+        if (self.eta is None) != (self.k is None):
+            raise ValueError("give both eta and k, or neither")
+        return self
+
+
+class Conductor(_Metal):
+    type: Literal["conductor"]
+
+
+class RoughConductor(_Metal):
+    type: Literal["rough_conductor"]
+    alpha: Roughness = 0.1
+    distribution: Distribution = "beckmann"
+
+
+class Plastic(_Model):
+    """A diffuse base (`albedo`) under a smooth dielectric coat of index `ior`; `nonlinear`
+    accounts for the colour shift of light scattered inside the coat."""
+
+    type: Literal["plastic"]
+    albedo: Albedo = (0.5, 0.5, 0.5)
+    specular: Albedo = (1.0, 1.0, 1.0)
+    ior: Ior = 1.49
+    nonlinear: bool = False
+
+
+class RoughPlastic(Plastic):
+    """Plastic with a rough coat: a microfacet lobe of roughness `alpha` over the diffuse base."""
+
+    type: Literal["rough_plastic"]  # type: ignore[assignment]
+    alpha: Roughness = 0.1
+    distribution: Distribution = "beckmann"
+
+
+Material = Annotated[
+    Diffuse | Mirror | Glass | ThinGlass | Glossy | Conductor | RoughConductor | Plastic | RoughPlastic,
+    Field(discriminator="type"),
+]
 
 # ----------------------------------------------------------------------------- shapes
 
@@ -404,7 +473,8 @@ def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> li
 
 
 _UNION_TAGS = {
-    "materials": {"diffuse", "mirror", "glass", "glossy"},
+    "materials": {"diffuse", "mirror", "glass", "thin_glass", "glossy", "conductor", "rough_conductor", "plastic",
+                  "rough_plastic"},
     "shapes": {"sphere", "quad", "mesh"},
     "lights": {"point", "spot", "directional"},
 }
