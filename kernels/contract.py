@@ -19,8 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Materials (surface record type) and emitter kinds: see kernels/materials.cl, photon_pass.cl.
-MATERIALS = {"diffuse": 0, "mirror": 1, "glass": 2, "glossy": 3}
+# Materials (surface record type), their flags and the record's size: kernels/materials.cl.
+# `mirror` is a conductor without a Fresnel term (MF_NO_FRESNEL); TABLE_SIZE: the cosines a
+# rough plastic's coat transmittance is tabulated at, evenly over [0, 1] (as Mitsuba 3's).
+MATERIALS = {"diffuse": 0, "glossy": 1, "conductor": 2, "rough_conductor": 3, "glass": 4, "thin_glass": 5,
+             "plastic": 6, "rough_plastic": 7}
+MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4}
+SURF_ROWS = 4
+TABLE_SIZE = 64
+# Emitter kinds: kernels/lights.cl.
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
 # Random-number domains: independent streams for eye paths, photon paths and the light
 # samples at the measurement points (kernels/rng.cl).
@@ -28,7 +35,7 @@ RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3, "light_path": 4, "camera_path": 
 
 # Adaptive photon tracing (kernels/photon_chains.cl): the dimensions of the primary sample
 # space (a path's first PSS_DIM random numbers in the order it asks for them: emitter 1,
-# emission 4, then per bounce 0-2 for the direction or the glass branch and 1 for Russian
+# emission 4, then per bounce 0-3 for the part, the direction or the glass branch and 1 for Russian
 # roulette, so 32 cover about 9 bounces; the rest come from a stream seeded by a hash of the
 # vector, kernels/rng.cl), and how many photons of a chain state are kept to be re-counted
 # without tracing it again (a state with more is traced again at every splat).
@@ -145,6 +152,9 @@ def build_options(layout: SumLayout) -> list[str]:
     borrowed = {f"SUM_{name}": 0 for name in PHOTON_RECORD_NAMES if name.upper() not in map(str.upper, layout.names)}
     defines: dict[str, object] = {
         **{f"MAT_{name.upper()}": code for name, code in MATERIALS.items()},
+        **{f"MF_{name.upper()}": f"{bit}u" for name, bit in MATERIAL_FLAGS.items()},
+        "SURF_ROWS": SURF_ROWS,
+        "TABLE_SIZE": TABLE_SIZE,
         **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
         **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},
         "K1": repr(K1),

@@ -1,15 +1,19 @@
 // Eye pass: one measurement point per pixel and pass (SPPM, dissertation ch. 7).
 //
-// A jittered sub-pixel sample (and lens sample) is followed through mirror, glass and
-// glossy bounces to the first diffuse hit, which becomes this pass's measurement point
-// with weight = path throughput * f_r and the share of its gather disc that lies on its
-// own surface (disc_coverage). Emission seen along the way is accumulated
+// A jittered sub-pixel sample (and lens sample) is followed through the surfaces it meets;
+// at each the path takes one part of the BSDF (bsdf.cl): the diffuse part makes this pass's
+// measurement point, with weight = path throughput * g(wo) / pi (over the part's
+// probability) and the share of its gather disc that lies on its own surface
+// (disc_coverage); any other part is sampled on. Emission seen along the way is accumulated
 // separately into the batch's per-pixel sums (SUM_LD; digest 5.1: directly visible
 // emission is averaged over passes). In PPM mode the host always passes pass index 0, so
-// every pass sees the same points. With `nee`, direct light at the point is estimated
-// too (lights.cl) and added to SUM_LD, from its own random stream keyed by the real pass
-// index (so PPM's fixed points still get a new light sample every pass); SUM_LD2, where
-// the layout has it, adds the square of the pass's Ld luminance for the error estimate.
+// every pass sees the same points. Direct light is estimated by light samples (lights.cl)
+// and added to SUM_LD, from its own random stream keyed by the real pass index (so PPM's
+// fixed points still get a new light sample every pass): at every glossy vertex before the
+// point (photons are stored on diffuse parts only), MIS-weighted against the path's own
+// next bounce (as pbrt-v4's SPPM), so that a glossy surface sees point and spot lights,
+// which no bounce can hit; and with `nee` at the point, through the diffuse part. SUM_LD2,
+// where the layout has it, adds the square of the pass's Ld luminance for the error estimate.
 
 // Surfaces match when their normals lie within 45 degrees (NORMAL_MATCH_COS, contract.py). A
 // smooth surface of curvature radius rho turns its normal by r / rho across a disc of radius
@@ -342,34 +346,48 @@ __kernel void eye_pass(
     float3 direct = (float3)(0.0f);
     float4 pos = (float4)(0.0f), nrm = (float4)(0.0f), wgt = (float4)(0.0f);
     uint4 cut = (uint4)(CUT_NONE, CUT_NONE, 0u, 0u);
+    Rng light_rng = rng_make(seed, light_pass, (uint)pixel, DOMAIN_NEE);
+    float power = n_emitters > 0 ? total_power(emitters) : 0.0f;
+    float last_pdf = 0.0f;  // the last bounce's BSDF pdf where its light was also sampled (0: none)
     for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (kernels/contract.py)
         Hit h = intersect(&g, origin, d);
         if (h.surf == SURF_NONE) break;
         float3 p = origin + h.t * d;
         travelled += h.t;
-        float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
-        if (dot(d, h.ng) < 0.0f) direct += thr * sb.xyz;  // emitters shine from their front side
-        int type = as_int(sa.w);
-        if (type == MAT_DIFFUSE) {
-            float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+        Material m = load_material(surfaces, h.surf);
+        float3 le = surface_emission(surfaces, h.surf);
+        if (dot(d, h.ng) < 0.0f) {  // emitters shine from their front side
+            float w = last_pdf > 0.0f && any(le > 0.0f) ? emission_weight(le, power, last_pdf, h.t, -dot(d, h.ng)) : 1.0f;
+            direct += thr * le * w;
+        }
+        // The part the path takes: the diffuse part ends it at a measurement point.
+        float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+        float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
+        float co = -dot(d, ns);
+        float p_diffuse = part_choice(&m, fmax(co, 0.0f), PART_ALL).x;
+        if (p_diffuse > 0.0f && (p_diffuse >= 1.0f || rng_float(&rng) < p_diffuse)) {
+            float3 gw = diffuse_out(&m, co) / p_diffuse;
             pos = (float4)(p, 1.0f);
             float2 cover = disc_coverage(&g, p, n, h.tri, radius[gid], true, &rng, &cut);
             nrm = (float4)(n, cover.y);
-            wgt = (float4)(thr * sa.xyz / PI_F, cover.x);
-            if (nee) {
-                Rng light_rng = rng_make(seed, light_pass, (uint)pixel, DOMAIN_NEE);
-                float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
-                direct += thr * direct_light(&g, surf_b, emitters, emitter_cdf, n_emitters, p, n, ns, sa.xyz,
-                                             &light_rng);
-            }
+            wgt = (float4)(thr * gw / PI_F, cover.x);
+            if (nee) direct += thr * direct_light(&g, surfaces, emitters, emitter_cdf, n_emitters, p, n, ns, gw, &m,
+                                                  &light_rng);
             break;
         }
-        float3 nd, w;
-        if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, &rng, &nd, &w)) break;
-        if (h.smooth && shading_bounce(d, nd, h.ng, h.ns, false) == 0.0f) break;
-        thr *= w;
-        d = nd;
-        origin = p + (dot(nd, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(&g, p);
+        // The other parts: their direct light where they are not delta, then the bounce.
+        int mask = PART_GLOSSY | PART_DELTA;
+        float keep = 1.0f - p_diffuse;
+        if (material_parts(&m) & PART_GLOSSY)  // photons are stored on diffuse parts only: this light is the light sample's alone
+            direct += thr / keep * light_sample_parts(&g, emitters, emitter_cdf, n_emitters, &m, p, h.ng, h.ns, -d, mask,
+                                                      &light_rng);
+        BsdfSample b;
+        if (!bsdf_sample(&m, h.ng, h.ns, d, mask, &rng, &b)) break;
+        if (h.smooth && shading_bounce(d, b.dir, h.ng, h.ns, false) == 0.0f) break;
+        last_pdf = b.delta ? 0.0f : b.pdf_fwd;
+        thr *= b.weight / keep;
+        d = b.dir;
+        origin = p + (dot(b.dir, h.ng) > 0.0f ? h.ng : -h.ng) * ray_eps(&g, p);
     }
     mp_pos[gid] = pos;
     mp_nrm[gid] = nrm;

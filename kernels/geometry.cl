@@ -123,7 +123,7 @@ inline void triangle_corners(const SceneGeom* g, int tri, float3 a[3]) {
     __global const float4* tri_nrm, __global const int4* tri_adj, \
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes, \
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres, float eps_floor, \
-    __global const float4* surf_a, __global const float4* surf_b, \
+    __global const float4* surfaces, \
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
 #define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, tri_adj, node_lo, node_hi, spheres, sphere_surf, n_nodes, \
                     n_spheres, eps_floor}

@@ -143,41 +143,67 @@ inline bool shadowed(const SceneGeom* g, float3 o, const DirectSample* s) {
 // Le there: pick / A = (P_k / P) / A = pi sum(Le) / P (Lambertian emitters).
 inline float hit_emitter_pdf_area(float3 le, float power) { return PI_F * (le.x + le.y + le.z) / power; }
 
-// The light sample: MIS-weighted f cos li / (pick direct_pdf) from one emitter chosen by
-// power, or 0 if the emitter is occluded, behind x, or faces away. n: geometric normal on
-// the eye's side; ns: shading normal on that side.
+// The light sample for the diffuse part f_d = g h(wi) / pi of material m (bsdf.cl; `gw` is g
+// with the caller's weights): MIS-weighted f cos li / (pick direct_pdf) from one emitter
+// chosen by power, or 0 if the emitter is occluded, behind x, or faces away. n: geometric
+// normal on the eye's side; ns: shading normal on that side.
 inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
-                           int n_emitters, float3 x, float3 n, float3 ns, float3 albedo, Rng* rng) {
+                           int n_emitters, float3 x, float3 n, float3 ns, float3 gw, const Material* m, Rng* rng) {
     DirectSample s;
     if (!sample_direct(g, emitters, cdf, n_emitters, x, rng, &s)) return (float3)(0.0f);
     float cos_s = dot(s.wi, ns);
     if (cos_s <= 0.0f || dot(s.wi, n) <= 0.0f || shadowed(g, x + n * ray_eps(g, x), &s)) return (float3)(0.0f);
     float pdf = s.pick * s.direct_pdf;
     float mis = s.delta ? 1.0f : power_heuristic(pdf, cos_s / PI_F);
-    return albedo / PI_F * s.li * (cos_s * mis / pdf);
+    return gw * coat_in(m, cos_s) / PI_F * s.li * (cos_s * mis / pdf);
 }
 
 // The BSDF sample: a cosine-weighted ray from x that collects the emission it hits,
 // weighted by the power heuristic against sample_light (the only light it can find).
-inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* surf_b, float total_power,
-                                   float3 x, float3 n, float3 ns, float3 albedo, Rng* rng) {
+inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* surfaces, float total_power,
+                                   float3 x, float3 n, float3 ns, float3 gw, const Material* m, Rng* rng) {
     float3 wi = sample_cosine(ns, rng_float(rng), rng_float(rng));
     if (dot(wi, n) <= 0.0f) return (float3)(0.0f);
     Hit h = intersect(g, x + n * ray_eps(g, x), wi);
     if (h.surf == SURF_NONE || dot(wi, h.ng) >= 0.0f) return (float3)(0.0f);  // emitters shine to their front
-    float3 le = surf_b[h.surf].xyz;
+    float3 le = surface_emission(surfaces, h.surf);
     float sum_le = le.x + le.y + le.z;
     if (sum_le <= 0.0f) return (float3)(0.0f);
     float p_light = hit_emitter_pdf_area(le, total_power) * h.t * h.t / -dot(wi, h.ng);
-    float p_bsdf = dot(wi, ns) / PI_F;
-    return albedo * le * power_heuristic(p_bsdf, p_light);  // f cos / p_bsdf = albedo
+    float cos_s = dot(wi, ns);
+    return gw * coat_in(m, cos_s) * le * power_heuristic(cos_s / PI_F, p_light);  // f cos / p_bsdf = g h
 }
 
-// Direct light at x by both samples (0 in a scene without emitters).
-inline float3 direct_light(const SceneGeom* g, __global const float4* surf_b, __global const float4* emitters,
-                           __global const float* cdf, int n_emitters, float3 x, float3 n, float3 ns, float3 albedo,
-                           Rng* rng) {
+// Direct light at x through the diffuse part, by both samples (0 in a scene without emitters).
+inline float3 direct_light(const SceneGeom* g, __global const float4* surfaces, __global const float4* emitters,
+                           __global const float* cdf, int n_emitters, float3 x, float3 n, float3 ns, float3 gw,
+                           const Material* m, Rng* rng) {
     if (n_emitters == 0) return (float3)(0.0f);
-    return sample_light(g, emitters, cdf, n_emitters, x, n, ns, albedo, rng)
-         + sample_bsdf_emission(g, surf_b, total_power(emitters), x, n, ns, albedo, rng);
+    return sample_light(g, emitters, cdf, n_emitters, x, n, ns, gw, m, rng)
+         + sample_bsdf_emission(g, surfaces, total_power(emitters), x, n, ns, gw, m, rng);
+}
+
+// Direct light at x through the parts `mask` of m by one light sample, MIS-weighted (power
+// heuristic) against the path's own BSDF sample, whose emission hit the caller weights by
+// emission_weight. ng: the geometric normal as the shape defines it.
+inline float3 light_sample_parts(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
+                                 int n_emitters, const Material* m, float3 x, float3 ng, float3 ns, float3 wo,
+                                 int mask, Rng* rng) {
+    DirectSample s;
+    if (n_emitters == 0 || !sample_direct(g, emitters, cdf, n_emitters, x, rng, &s)) return (float3)(0.0f);
+    BsdfEval e = bsdf_eval(m, ng, ns, wo, s.wi, mask);
+    if (e.pdf_fwd <= 0.0f) return (float3)(0.0f);
+    float3 side = dot(s.wi, ng) > 0.0f ? ng : -ng;
+    if (shadowed(g, x + side * ray_eps(g, x), &s)) return (float3)(0.0f);
+    float pdf = s.pick * s.direct_pdf;
+    float mis = s.delta ? 1.0f : power_heuristic(pdf, e.pdf_fwd);
+    return e.f * s.li * (fabs(dot(s.wi, ns)) * mis / pdf);
+}
+
+// The MIS weight of emission le that a BSDF-sampled direction of pdf `pdf_bsdf` (solid angle)
+// found at distance t, arriving at cos_l to the emitter (power heuristic against
+// light_sample_parts).
+inline float emission_weight(float3 le, float total, float pdf_bsdf, float t, float cos_l) {
+    float p_light = hit_emitter_pdf_area(le, total) * t * t / cos_l;
+    return power_heuristic(pdf_bsdf, p_light);
 }

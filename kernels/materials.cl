@@ -1,11 +1,18 @@
-// Materials: one surface record per shape, and how a path leaves a surface.
+// Materials: the surface records, and the pieces every BSDF is built from (frames, Fresnel
+// terms, microfacet distributions). The BSDFs themselves: bsdf.cl.
 //
-// surf_a = (albedo rgb, type as int bits), surf_b = (emission rgb, parameter), where the
-// parameter is the IOR for glass and the Phong exponent for glossy. Diffuse surfaces end
-// eye paths (measurement points) and store photons; mirror, glass and glossy surfaces are
-// scattered through by both eye and photon paths (digest 5.2: SPPM follows glossy lobes
-// with a sampled bounce, so glossy cost does not depend on the exponent).
-// The type codes MAT_* come from kernels/contract.py as build options.
+// A surface is SURF_ROWS float4 rows (worker/scene_arrays.py, surface_records):
+//   row 0: base colour (diffuse: albedo; plastics: the diffuse base; conductors: specular
+//          reflectance; dielectrics: reflection tint; glossy: albedo), w: type MAT_* (int bits)
+//   row 1: emission rgb (radiance from the front side), w: roughness alpha (rough_*), Phong
+//          exponent (glossy)
+//   row 2: conductors: eta rgb; dielectrics: (ior, 0, 0); plastics: (ior, internal diffuse
+//          reflectance R_int, specular sampling weight); w: MF_* flags (int bits)
+//   row 3: conductors: k rgb; dielectrics: transmission tint; plastics: specular
+//          reflectance; w: rough_plastic's row of its transmittance table (int bits)
+// ior is interior / exterior. Tables follow the records in the same buffer: TABLE_SIZE
+// floats over cos in [0, 1], 4 to a row.
+// The type codes MAT_* and flags MF_* come from kernels/contract.py as build options.
 
 #define PI_F 3.14159265358979f
 
@@ -43,59 +50,99 @@ inline float3 sample_cone(float3 axis, float cos_max, float u1, float u2) {
 
 inline float3 reflect_dir(float3 d, float3 n) { return d - 2.0f * dot(d, n) * n; }
 
-// Unpolarised Fresnel reflectance of a dielectric interface.
-inline float fresnel_dielectric(float cos_i, float cos_t, float eta) {
-    // eta = n_incident / n_transmitted
-    float rs = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
-    float rp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+typedef struct {
+    int type;
+    uint flags;     // MF_*
+    float3 base;    // row 0
+    float rough;    // alpha or Phong exponent
+    float3 eta;     // row 2
+    float3 second;  // row 3
+    __global const float* table;  // rough_plastic's coat transmittance table (TABLE_SIZE floats)
+} Material;
+
+inline Material load_material(__global const float4* surfaces, int surf) {
+    __global const float4* r = surfaces + SURF_ROWS * surf;
+    float4 r0 = r[0], r2 = r[2], r3 = r[3];
+    Material m = {as_int(r0.w), as_uint(r2.w), r0.xyz, r[1].w, r2.xyz, r3.xyz,
+                  (__global const float*)(surfaces + as_int(r3.w))};
+    return m;
+}
+
+inline float3 surface_emission(__global const float4* surfaces, int surf) { return surfaces[SURF_ROWS * surf + 1].xyz; }
+
+// Fresnel reflectance of an unpolarised wave meeting a dielectric interface from the side
+// where the relative index (far side / this side) is eta, at cos_i > 0; `cos_t` gets the
+// refracted cosine (0 under total internal reflection, where the reflectance is 1).
+inline float fresnel_dielectric(float cos_i, float eta, float* cos_t) {
+    float sin2_t = (1.0f - cos_i * cos_i) / (eta * eta);
+    if (sin2_t >= 1.0f) {
+        *cos_t = 0.0f;
+        return 1.0f;
+    }
+    float ct = sqrt(1.0f - sin2_t);
+    *cos_t = ct;
+    float rs = (cos_i - eta * ct) / (cos_i + eta * ct);
+    float rp = (eta * cos_i - ct) / (eta * cos_i + ct);
     return 0.5f * (rs * rs + rp * rp);
 }
 
-// Continue a path through a mirror, glass or glossy surface hit along `d`.
-// Writes the new direction and the throughput factor f*cos/pdf; false if the path ends.
-// Refraction carries no (eta_i/eta_t)^2 radiance factor: eye paths start and end in air
-// in every scene here, where the factors of entering and leaving cancel. Lobes turn about
-// the shading normal ns; the geometric ng says which side the path comes from.
-inline bool scatter_specular(int type, float param, float3 albedo, float3 d, float3 ng, float3 ns, Rng* rng,
-                             float3* new_d, float3* weight) {
-    float3 n = dot(d, ng) < 0.0f ? ns : -ns;  // faces the incoming path
-    if (type == MAT_MIRROR) {
-        *new_d = reflect_dir(d, n);
-        *weight = albedo;
-        return true;
-    }
-    if (type == MAT_GLASS) {
-        bool entering = dot(d, ng) < 0.0f;
-        float eta = entering ? 1.0f / param : param;
-        float cos_i = -dot(d, n);
-        float sin2_t = eta * eta * fmax(0.0f, 1.0f - cos_i * cos_i);
-        *weight = albedo;
-        if (sin2_t >= 1.0f) {  // total internal reflection
-            *new_d = reflect_dir(d, n);
-            return true;
-        }
-        float cos_t = sqrt(1.0f - sin2_t);
-        // Russian roulette between the two branches with the Fresnel probability:
-        // the branch weight F/F = (1-F)/(1-F) = 1.
-        if (rng_float(rng) < fresnel_dielectric(cos_i, cos_t, eta)) {
-            *new_d = reflect_dir(d, n);
-        } else {
-            *new_d = normalize(eta * d + (eta * cos_i - cos_t) * n);
-        }
-        return true;
-    }
-    // Modified Phong: f = rho (e+2)/(2 pi) cos^e(a), lobe pdf (e+1)/(2 pi) cos^e(a),
-    // so f cos(theta)/pdf = rho (e+2)/(e+1) cos(theta).
-    float e = param;
-    float cos_a = pow(rng_float(rng), 1.0f / (e + 1.0f));
-    float sin_a = sqrt(fmax(0.0f, 1.0f - cos_a * cos_a));
-    float phi = 2.0f * PI_F * rng_float(rng);
-    float3 w = from_local(reflect_dir(d, n), sin_a * cos(phi), sin_a * sin(phi), cos_a);
-    float cos_theta = dot(w, n);
-    if (cos_theta <= 0.0f) return false;  // sampled below the surface: absorbed
-    *new_d = w;
-    *weight = albedo * ((e + 2.0f) / (e + 1.0f) * cos_theta);
-    return true;
+// Fresnel reflectance of a conductor of complex index eta + i k at cos_i > 0, unpolarised
+// (the exact expression for s and p waves, e.g. pbrt-v3 sec. 8.2.1).
+inline float3 fresnel_conductor(float cos_i, float3 eta, float3 k) {
+    float c2 = cos_i * cos_i, s2 = 1.0f - c2;
+    float3 e2 = eta * eta, k2 = k * k;
+    float3 t0 = e2 - k2 - (float3)(s2);
+    float3 a2b2 = sqrt(t0 * t0 + 4.0f * e2 * k2);
+    float3 a = sqrt(fmax(0.5f * (a2b2 + t0), 0.0f));
+    float3 t1 = a2b2 + (float3)(c2), t2 = 2.0f * cos_i * a;
+    float3 rs = (t1 - t2) / (t1 + t2);
+    float3 t3 = c2 * a2b2 + (float3)(s2 * s2), t4 = t2 * s2;
+    float3 rp = rs * (t3 - t4) / (t3 + t4);
+    return 0.5f * (rs + rp);
+}
+
+// A conductor's reflectance at cos_i: its specular tint, times the Fresnel term unless
+// MF_NO_FRESNEL (a perfect reflector).
+inline float3 conductor_reflectance(const Material* m, float cos_i) {
+    return (m->flags & MF_NO_FRESNEL) ? m->base : m->base * fresnel_conductor(cos_i, m->eta, m->second);
+}
+
+// Isotropic microfacet distributions of roughness alpha (Walter et al. 2007): the normal
+// density D(h) at cos_h, Beckmann D = exp(-tan^2/a^2) / (pi a^2 cos^4), GGX
+// D = a^2 / (pi cos^4 (a^2 + tan^2)^2); Smith's masking G1 of direction v (cos_v to the
+// macro normal, cos_vh to h): GGX 2 / (1 + sqrt(1 + a^2 tan^2)), Beckmann by Walter's rational
+// fit in b = 1 / (a tan) (1 for b >= 1.6); 0 where v sees the back of h.
+inline float mf_d(float cos_h, float alpha, bool beckmann) {
+    if (cos_h <= 0.0f) return 0.0f;
+    float c2 = cos_h * cos_h, t2 = (1.0f - c2) / c2, a2 = alpha * alpha;
+    if (beckmann) return exp(-t2 / a2) / (PI_F * a2 * c2 * c2);
+    float r = a2 + t2;
+    return a2 / (PI_F * c2 * c2 * r * r);
+}
+
+inline float mf_g1(float cos_v, float cos_vh, float alpha, bool beckmann) {
+    if (cos_vh * cos_v <= 0.0f) return 0.0f;
+    float c2 = cos_v * cos_v, t2 = fmax(1.0f - c2, 0.0f) / c2;
+    if (t2 == 0.0f) return 1.0f;
+    if (!beckmann) return 2.0f / (1.0f + sqrt(1.0f + alpha * alpha * t2));
+    float b = 1.0f / (alpha * sqrt(t2));
+    return b >= 1.6f ? 1.0f : (3.535f * b + 2.181f * b * b) / (1.0f + 2.276f * b + 2.577f * b * b);
+}
+
+// A microfacet normal about n with density D(h) cos_h (the pdf mf_d(cos_h) cos_h).
+inline float3 mf_sample(float3 n, float alpha, bool beckmann, float u1, float u2) {
+    float a2 = alpha * alpha;
+    float t2 = beckmann ? -a2 * log(1.0f - u1) : a2 * u1 / (1.0f - u1);
+    float c = 1.0f / sqrt(1.0f + t2), s = sqrt(fmax(0.0f, 1.0f - c * c)), phi = 2.0f * PI_F * u2;
+    return from_local(n, s * cos(phi), s * sin(phi), c);
+}
+
+// rough_plastic's coat transmittance at cos (its table, linear between TABLE_SIZE cosines
+// evenly spaced over [0, 1]).
+inline float coat_transmittance(const Material* m, float cos_v) {
+    float x = clamp(cos_v, 0.0f, 1.0f) * (float)(TABLE_SIZE - 1);
+    int i = min((int)x, TABLE_SIZE - 2);
+    return mix(m->table[i], m->table[i + 1], x - (float)i);
 }
 
 // Shading normals (smooth meshes) bend lobes, but sides stay geometric (Veach 1997, sec. 5.3).

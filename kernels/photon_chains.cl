@@ -69,8 +69,7 @@ inline void keep(ChainState* s, const Rng* proposal) {
 
 typedef struct {
     const SceneGeom* g;
-    __global const float4* surf_a;
-    __global const float4* surf_b;
+    __global const float4* surfaces;
     __global const float4* emitters;
     __global const float* emitter_cdf;
     int n_emitters, max_bounces, skip_first_hit;
@@ -85,7 +84,7 @@ inline void probe(const Tracer* t, ChainState* s, Rng path, ulong record, int mo
     s->sink.probe = mode;
     s->stored = 0;
     Rng rng = path;
-    trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
+    trace_photon(t->g, t->surfaces, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
                  t->skip_first_hit, record, 0, &s->sink);
 }
 
@@ -120,7 +119,7 @@ inline void splat_state(const Tracer* t, ChainState* s, ulong record, int in_pla
     PhotonSink writer = s->sink;
     writer.probe = SINK_STORE;
     Rng rng = rng_sample(SAMPLE_REPLAY, s->u, 0, 0.0f, s->tail, PSS_DIM);
-    trace_photon(t->g, t->surf_a, t->surf_b, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
+    trace_photon(t->g, t->surfaces, t->emitters, t->emitter_cdf, t->n_emitters, &rng, t->max_bounces,
                  t->skip_first_hit, record, 0, &writer);
 }
 
@@ -143,7 +142,7 @@ __kernel void photon_chains(
     uint chain = (uint)get_global_id(0);
     if (chain >= n_chains || n_emitters == 0) return;
     SceneGeom g = SCENE_GEOM;
-    Tracer tracer = {&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, max_bounces, skip_first_hit};
+    Tracer tracer = {&g, surfaces, emitters, emitter_cdf, n_emitters, max_bounces, skip_first_hit};
     Rng rng = rng_make(seed, pass, chain, DOMAIN_CHAIN);
     uint per = iterations / n_chains, iters = per + (chain < iterations % n_chains ? 1u : 0u);
     ulong record0 = (ulong)chain * (ulong)(per + 1u);  // + the iteration: the photons' record

@@ -1,6 +1,7 @@
 // Photon pass: emission proportional to light power, Russian roulette on albedo, a
-// photon stored at every diffuse hit (dissertation 5.3.4; slides 3.2), except the first
-// hit from the light when direct light comes from next-event estimation (`nee`, lights.cl).
+// photon stored at every hit on a surface with a diffuse part (dissertation 5.3.4; slides
+// 3.2; bsdf.cl), except the first hit from the light when direct light comes from
+// next-event estimation (`nee`, lights.cl). The path goes on by sampling the whole BSDF.
 //
 // Emitter records: see lights.cl. Every path counts as one emitted photon, also
 // when it misses everything: the estimate is normalised by emitted photons (digest 11.1).
@@ -93,7 +94,7 @@ inline void sink_photon(PhotonSink* s, float3 p, float3 flux, uint2 dirs, ulong 
 // One photon path from `rng` (a counter stream, or a primary sample vector: rng.cl).
 // Keys: with `random_key`, (random 28 bits << 36) | (path << 12) | bounce, as the
 // stochastic hash needs; else (path << 12) | bounce, path up to 52 bits.
-inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __global const float4* surf_b,
+inline void trace_photon(const SceneGeom* g, __global const float4* surfaces,
                          __global const float4* emitters, __global const float* emitter_cdf, int n_emitters,
                          Rng* rng, int max_bounces, int skip_first_hit, ulong path, int random_key,
                          PhotonSink* sink) {
@@ -126,23 +127,20 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surf_a, __gl
         Hit h = intersect(g, o, d);
         if (h.surf == SURF_NONE) return;
         float3 p = o + h.t * d;
-        float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
-        int type = as_int(sa.w);
-        float3 w, nd;
-        if (type == MAT_DIFFUSE) {
-            if (bounce > 0 || !skip_first_hit) {
-                float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
-                ulong key = (path << 12) | (ulong)bounce;
-                if (random_key) key |= (ulong)(rng_u32(rng) >> 4) << 36;
-                float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
-                sink_photon(sink, p, stored, (uint2)(pack_dir(-d), pack_dir(n)), key);
-            }
-            float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;  // the lobe turns about the shading normal
-            nd = sample_cosine(ns, rng_float(rng), rng_float(rng));
-            w = sa.xyz;  // f cos / pdf = (rho/pi) cos / (cos/pi)
-        } else if (!scatter_specular(type, sb.w, sa.xyz, d, h.ng, h.ns, rng, &nd, &w)) {
-            return;
+        Material m = load_material(surfaces, h.surf);
+        if ((material_parts(&m) & PART_DIFFUSE) && (bounce > 0 || !skip_first_hit)) {
+            // Stored with the share h(wi) the diffuse part takes of it (bsdf.cl).
+            float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;
+            float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
+            ulong key = (path << 12) | (ulong)bounce;
+            if (random_key) key |= (ulong)(rng_u32(rng) >> 4) << 36;
+            float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
+            if (m.type != MAT_DIFFUSE) stored *= coat_in(&m, -dot(d, ns));
+            sink_photon(sink, p, stored, (uint2)(pack_dir(-d), pack_dir(n)), key);
         }
+        BsdfSample b;
+        if (!bsdf_sample(&m, h.ng, h.ns, d, PART_ALL, rng, &b)) return;
+        float3 w = b.weight, nd = b.dir;
         if (h.smooth) w *= shading_bounce(d, nd, h.ng, h.ns, true);
         // Russian roulette on the throughput factor keeps the expected flux unchanged.
         float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));
@@ -171,6 +169,6 @@ __kernel void photon_pass(
     sink.store = (PhotonStore){ph_pos, ph_flux, ph_dirs, ph_key, ph_count, capacity};
     sink.probe = SINK_STORE;
     sink.salted = 0;
-    trace_photon(&g, surf_a, surf_b, emitters, emitter_cdf, n_emitters, &rng, max_bounces, skip_first_hit,
+    trace_photon(&g, surfaces, emitters, emitter_cdf, n_emitters, &rng, max_bounces, skip_first_hit,
                  (ulong)path, 1, &sink);
 }

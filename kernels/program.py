@@ -20,7 +20,7 @@ from kernels.contract import SumLayout, build_options
 KERNEL_DIR = Path(__file__).resolve().parent
 WORK_GROUP = 64  # work items a work group (Program.launch)
 # Order matters: later files use what earlier ones define.
-SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "lights.cl", "eye_pass.cl", "spatial_hash.cl",
+SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "bsdf.cl", "lights.cl", "eye_pass.cl", "spatial_hash.cl",
            "visibility.cl", "photon_pass.cl", "photon_chains.cl")
 PREAMBLE = ("#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n"
             "#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n")
@@ -32,7 +32,7 @@ KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_co
 # (materials, lights, spatial_hash.cl's grid build for its light vertices) with its own.
 PROGRAMS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "photon_mapping": (SOURCES, KERNEL_NAMES),
-    "hybrid": (SOURCES + ("vcm_bsdf.cl", "vcm_lights.cl", "vcm_camera.cl", "vcm_subpath.cl", "vcm_light_pass.cl",
+    "hybrid": (SOURCES + ("vcm_lights.cl", "vcm_camera.cl", "vcm_subpath.cl", "vcm_light_pass.cl",
                           "vcm_grid.cl", "vcm_camera_pass.cl", "vcm_finish.cl"),
                ("vcm_light_pass", "vcm_camera_pass", "vcm_finish", "grid_count", "grid_scan", "grid_scatter",
                 "grid_sort", "vcm_grid_positions")),

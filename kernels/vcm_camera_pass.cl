@@ -23,14 +23,10 @@ typedef struct {
     float3 p, wo;       // position; direction back along the camera path
     float3 ng, side;    // geometric normal as the shape defines it, and on the path's side
     float3 ns;          // shading normal
-    int type;
-    float param;
-    float3 albedo;
+    Material m;
 } CameraVertex;
 
-inline BsdfEval camera_bsdf(const CameraVertex* x, float3 wi) {
-    return bsdf_eval(x->type, x->param, x->albedo, x->ng, x->ns, x->wo, wi);
-}
+inline BsdfEval camera_bsdf(const CameraVertex* x, float3 wi) { return bsdf_eval(&x->m, x->ng, x->ns, x->wo, wi, PART_ALL); }
 
 // One light sample, weighted 1 / (w_light + 1 + w_cam): w_light = p_bsdf / (pick p_direct)
 // (0 for delta lights), w_cam = p_emit cos_x / (p_direct cos_l) (eta_vm + dVCM + dVC p_rev).
@@ -50,7 +46,7 @@ inline float3 next_event(const SceneGeom* g, __global const float4* emitters, __
 // Connections to every stored vertex y of one light path, each weighted 1 / (w_light + 1 +
 // w_cam): w_light = p_x->y (eta_vm + dVCM_y + dVC_y p_rev,y), w_cam = p_y->x (eta_vm + dVCM +
 // dVC p_rev,x), the pdfs of sampling the other vertex, converted to area by cos / d^2.
-inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf_a, __global const float4* surf_b,
+inline float3 connect_light_path(const SceneGeom* g, __global const float4* surfaces,
                                  const CameraVertex* x, const SubPath* s, MisEtas eta, int last,
                                  __global const float4* lv_pos, __global const float4* lv_thr,
                                  __global const float4* lv_wo, __global const float4* lv_ng,
@@ -63,8 +59,8 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
         float3 dir = to / dist;
         BsdfEval ex = camera_bsdf(x, dir);
         if (ex.pdf_fwd <= 0.0f) continue;
-        float4 ya = surf_a[y.surf];
-        BsdfEval ey = bsdf_eval(as_int(ya.w), surf_b[y.surf].w, ya.xyz, y.ng, y.ns, y.wo, -dir);
+        Material my = load_material(surfaces, y.surf);
+        BsdfEval ey = bsdf_eval(&my, y.ng, y.ns, y.wo, -dir, PART_ALL);
         if (ey.pdf_fwd <= 0.0f) continue;
         float3 y_side = dot(y.ng, dir) < 0.0f ? y.ng : -y.ng;  // y's normal on x's side
         if (blocked_between(g, x->p + x->side * ray_eps(g, x->p), y.pos + y_side * ray_eps(g, y.pos))) continue;
@@ -155,26 +151,31 @@ __kernel void vcm_camera_pass(
         hit_any = 1;
         float3 p = s.o + h.t * s.d;
         subpath_arrive(&s, &h, depth == 0 ? h.t + skipped : h.t);
-        float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
-        CameraVertex x = {p, -s.d, h.ng, dot(s.d, h.ng) < 0.0f ? h.ng : -h.ng, h.ns, as_int(sa.w), sb.w, sa.xyz};
+        CameraVertex x = {p, -s.d, h.ng, dot(s.d, h.ng) < 0.0f ? h.ng : -h.ng, h.ns, load_material(surfaces, h.surf)};
+        float3 le = surface_emission(surfaces, h.surf);
 
         // 1. Emission seen.
-        if (dot(s.d, h.ng) < 0.0f && any(sb.xyz > 0.0f)) {
+        if (dot(s.d, h.ng) < 0.0f && any(le > 0.0f)) {
             float w = 1.0f;
             if (depth > 0 && connect) {
-                float p_a = hit_emitter_pdf_area(sb.xyz, power);
+                float p_a = hit_emitter_pdf_area(le, power);
                 w = 1.0f / (1.0f + p_a * s.dVCM + p_a * fabs(dot(s.d, h.ng)) / PI_F * s.dVC);
             }
-            radiance += s.thr * sb.xyz * w;
+            radiance += s.thr * le * w;
         }
-        if (!is_delta(x.type)) {
-            if (!connect && !merge) break;
+        int parts = PART_ALL;  // the parts the bounce may take
+        if (!is_delta(&x.m)) {
+            // Light tracing alone covers every non-delta part: the camera path goes on through a delta one only.
+            if (!connect && !merge) {
+                parts = PART_DELTA;
+                if (!(material_parts(&x.m) & PART_DELTA)) break;
+            }
             // 2. Next-event estimation.
             if (connect && n_emitters > 0 && !(skip & SKIP_NEE))
                 radiance += s.thr * next_event(&g, emitters, emitter_cdf, n_emitters, &x, &s, eta, &rng);
             // 3. Connections to the vertices of one light path.
             if (connect && n_light_paths > 0 && !(skip & SKIP_CONNECT))
-                radiance += s.thr * connect_light_path(&g, surf_a, surf_b, &x, &s, eta,
+                radiance += s.thr * connect_light_path(&g, surfaces, &x, &s, eta,
                                                        path_last[(uint)gid % n_light_paths], lv_pos, lv_thr,
                                                        lv_wo, lv_ng, lv_ns, lv_prev);
             // 4. Merging with the light vertices within r.
@@ -196,7 +197,7 @@ __kernel void vcm_camera_pass(
             }
         }
         // 5. Bounce, Russian roulette, and the quantities' update.
-        if (!subpath_bounce(&g, &s, &h, p, sa, sb, false, eta, &rng)) break;
+        if (!subpath_bounce(&g, &s, &h, p, &x.m, parts, false, eta, &rng)) break;
     }
     cam_out[gid] = (float4)(radiance, merged_change);
     cam_hit[gid] = hit_any;

@@ -74,9 +74,8 @@ __kernel void vcm_light_pass(
         float3 p = s.o + h.t * s.d;
         // 2. The quantities in the area measure at the hit.
         subpath_arrive(&s, &h, bounce > 0 || !em.infinite ? h.t : 0.0f);
-        float4 sa = surf_a[h.surf], sb = surf_b[h.surf];
-        int type = as_int(sa.w);
-        if (!is_delta(type)) {
+        Material m = load_material(surfaces, h.surf);
+        if (!is_delta(&m)) {
             float3 arriving = h.smooth ? s.thr * shading_arrival(s.d, h.ng, h.ns) : s.thr;
             // 3. Store the vertex.
             if (store) {
@@ -95,7 +94,7 @@ __kernel void vcm_light_pass(
             // 4. Light tracing: connect to the camera.
             Projection pr;
             if (!(skip & SKIP_SPLAT) && project(&cam, p, &pr)) {
-                BsdfEval e = bsdf_eval(type, sb.w, sa.xyz, h.ng, h.ns, -s.d, pr.to_camera);
+                BsdfEval e = bsdf_eval(&m, h.ng, h.ns, -s.d, pr.to_camera, PART_ALL);
                 float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
                 if (e.pdf_fwd > 0.0f
                     && !occluded(&g, p + side * ray_eps(&g, p), pr.to_camera, pr.visible)) {
@@ -109,7 +108,7 @@ __kernel void vcm_light_pass(
             }
         }
         // 5. Bounce, Russian roulette, and the quantities' update.
-        if (!subpath_bounce(&g, &s, &h, p, sa, sb, true, eta, &rng)) break;
+        if (!subpath_bounce(&g, &s, &h, p, &m, PART_ALL, true, eta, &rng)) break;
     }
     if (store) path_last[path] = prev;
 }

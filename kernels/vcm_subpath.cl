@@ -34,12 +34,13 @@ inline void subpath_arrive(SubPath* s, const Hit* h, float dist) {
     s->dVM /= cos_in;
 }
 
-// Sample the bounce at hit point p and continue; false if the path ends. `light`: the
-// adjoint shading-normal factor of light paths (materials.cl, shading_bounce).
-inline bool subpath_bounce(const SceneGeom* g, SubPath* s, const Hit* h, float3 p, float4 sa, float4 sb, bool light,
-                           MisEtas eta, Rng* rng) {
+// Sample the bounce at hit point p through the BSDF parts `parts` (bsdf.cl) and continue;
+// false if the path ends. `light`: the adjoint shading-normal factor of light paths
+// (materials.cl, shading_bounce).
+inline bool subpath_bounce(const SceneGeom* g, SubPath* s, const Hit* h, float3 p, const Material* m, int parts,
+                           bool light, MisEtas eta, Rng* rng) {
     BsdfSample b;
-    if (!bsdf_sample(as_int(sa.w), sb.w, sa.xyz, h->ng, h->ns, s->d, rng, &b)) return false;
+    if (!bsdf_sample(m, h->ng, h->ns, s->d, parts, rng, &b)) return false;
     float3 w = b.weight;
     if (h->smooth) w *= shading_bounce(s->d, b.dir, h->ng, h->ns, light);
     float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));

@@ -8,23 +8,20 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels.contract import EMITTERS, MATERIALS
+from kernels.contract import EMITTERS
 from worker.adjacency import triangle_neighbours
 from worker.bvh import build_bvh
 from worker.scene import (
     SCENES_DIR,
     DirectionalLight,
-    Glass,
-    Glossy,
-    Mirror,
     PointLight,
     Scene,
     Sphere,
     SpotLight,
     shape_geometry,
 )
+from worker.surfaces import int_bits, surface_records
 
-MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS, MAT_GLOSSY = (MATERIALS[k] for k in ("diffuse", "mirror", "glass", "glossy"))
 EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL = (
     EMITTERS[k] for k in ("triangle", "sphere", "point", "spot", "directional"))
 
@@ -42,8 +39,7 @@ class SceneArrays:
     node_hi: np.ndarray
     spheres: np.ndarray  # (S, 4) float32 centre + radius
     sphere_surf: np.ndarray  # (S,) int32
-    surf_a: np.ndarray  # (shapes, 4) float32: albedo, type bits
-    surf_b: np.ndarray  # (shapes, 4) float32: emission, ior or exponent
+    surfaces: np.ndarray  # (SURF_ROWS * shapes + table rows, 4) float32 (worker/surfaces.py)
     emitters: np.ndarray  # (4 * E, 4) float32 rows, see kernels/photon_pass.cl
     emitter_cdf: np.ndarray  # (E,) float32, last entry exactly 1
     camera: np.ndarray  # (4, 4) float32, see CameraDesc in kernels/eye_pass.cl
@@ -57,36 +53,11 @@ class SceneArrays:
         return self.width * self.height
 
 
-def _bits(values: np.ndarray | list[int]) -> np.ndarray:
-    return np.asarray(values, np.int32).view(np.float32)
-
-
-def _material_record(material: object) -> tuple[int, float]:
-    if isinstance(material, Mirror):
-        return MAT_MIRROR, 0.0
-    if isinstance(material, Glass):
-        return MAT_GLASS, material.ior
-    if isinstance(material, Glossy):
-        return MAT_GLOSSY, material.exponent
-    return MAT_DIFFUSE, 0.0
-
-
 def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | None = None,
                   root: Path = SCENES_DIR) -> SceneArrays:
     width, height = resolution or scene.camera.resolution
     geometry = shape_geometry(scene, base_dir, root)
     per_shape = [None if g is None else g.triangles for g in geometry]
-
-    # Surfaces: one record per shape (material + emission).
-    surf_a = np.zeros((len(scene.shapes), 4), np.float32)
-    surf_b = np.zeros((len(scene.shapes), 4), np.float32)
-    for i, shape in enumerate(scene.shapes):
-        material = scene.materials[shape.material]
-        mtype, param = _material_record(material)
-        surf_a[i, :3] = material.albedo
-        surf_a[i, 3] = _bits([mtype])[0]
-        surf_b[i, :3] = shape.emission or (0.0, 0.0, 0.0)
-        surf_b[i, 3] = param
 
     tri_list = [t for t in per_shape if t is not None]
     tris = np.concatenate(tri_list) if tri_list else np.zeros((0, 3, 3))
@@ -98,7 +69,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     tri_e1 = np.zeros((len(tris), 4), np.float32)
     tri_e2 = np.zeros((len(tris), 4), np.float32)
     tri_v0[:, :3] = tris[:, 0]
-    tri_v0[:, 3] = _bits(tri_surf)
+    tri_v0[:, 3] = int_bits(tri_surf)
     tri_e1[:, :3] = tris[:, 1] - tris[:, 0]
     tri_e2[:, :3] = tris[:, 2] - tris[:, 0]
 
@@ -155,7 +126,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     def add(kind: int, r0: tuple, r1: tuple, r2: tuple, power: np.ndarray) -> None:
         rec = np.zeros((4, 4), np.float32)
         rec[0, :3], rec[1], rec[2] = r0, r1, r2
-        rec[0, 3] = _bits([kind])[0]
+        rec[0, 3] = int_bits([kind])[0]
         rec[3, :3] = power
         rows.append(rec)
         powers.append(power)
@@ -228,7 +199,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         width=width, height=height, tri_v0=tri_v0, tri_e1=tri_e1, tri_e2=tri_e2, tri_nrm=tri_nrm,
         tri_adj=tri_adj,
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
-        surf_a=surf_a, surf_b=surf_b, emitters=emitters, emitter_cdf=cdf,
+        surfaces=surface_records(scene), emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,
         scene_diagonal=float(np.linalg.norm(hi - lo)), eps_floor=eps_floor, radiance_scale=radiance_scale,
     )

@@ -1,0 +1,216 @@
+// BSDFs of every material (materials.cl): value, pdfs and sampling, shared by the photon
+// passes, the eye pass and the hybrid integrator, so that the pdfs VCM's weights use are
+// those its paths were sampled with.
+//
+// Directions: wo points back along the path that reached the surface, wi the other way;
+// both leave the surface. f excludes the cosine; pdfs are per solid angle. Reflection
+// lobes turn about the shading normal on wo's geometric side (n); both directions must
+// lie on one geometric side for reflection, on opposite sides for transmission.
+//
+// A BSDF is a sum of parts (PART_*), and a path takes one part, chosen with probability
+// part_choice(wo):
+//   PART_DIFFUSE  the separable base f_d = g(wo) h(wi) / pi: diffuse g = rho, h = 1;
+//                 plastic g = rho (1 - F(wo)) / (eta^2 (1 - R_int)), h = 1 - F(wi), with
+//                 R_int the internal diffuse reflectance of the coat (rho R_int in place of
+//                 R_int when `nonlinear`); rough_plastic the same with the coat's
+//                 transmittance T in place of 1 - F (Mitsuba 3's plastic and roughplastic).
+//                 SPPM measures it by photon density: a photon stored on the surface
+//                 carries h(wi), the measurement point g(wo) (photon_pass.cl, eye_pass.cl).
+//   PART_GLOSSY   a non-delta lobe: the modified Phong lobe (glossy), the microfacet
+//                 lobes f = R D G / (4 cos_o cos_i) of rough_conductor (R its Fresnel term)
+//                 and rough_plastic's coat (R = specular F(wo.h)), sampled by D(h) cos_h
+//                 with pdf D cos_h / (4 wo.h) (Walter et al. 2007).
+//   PART_DELTA    mirror reflection (conductor, plastic's coat) and a smooth dielectric's
+//                 reflection and refraction (glass, thin_glass).
+// Plastics choose between coat and base as Mitsuba 3 does: P_coat proportional to
+// w F(wo) (rough: w (1 - T(wo))), P_base to (1 - w)(1 - F(wo)) (rough: (1 - w) T(wo)), w the
+// specular sampling weight. A caller may restrict the parts (`mask`): probabilities are
+// then renormalised over the parts it allows.
+
+#define PART_DIFFUSE 1
+#define PART_GLOSSY 2
+#define PART_DELTA 4
+#define PART_ALL 7
+
+typedef struct {
+    float3 f;       // BSDF value over the allowed non-delta parts, no cosine (0: not scattered)
+    float pdf_fwd;  // pdf of sampling wi given wo
+    float pdf_rev;  // pdf of sampling wo given wi
+} BsdfEval;
+
+typedef struct {
+    float3 dir;     // the new direction (leaving the surface)
+    float3 weight;  // f cos / pdf, the choice of part included
+    float pdf_fwd, pdf_rev;
+    bool delta;     // a delta part: pdfs undefined, weights use the delta rules
+} BsdfSample;
+
+// The parts a material has.
+inline int material_parts(const Material* m) {
+    switch (m->type) {
+        case MAT_DIFFUSE: return PART_DIFFUSE;
+        case MAT_GLOSSY:
+        case MAT_ROUGH_CONDUCTOR: return PART_GLOSSY;
+        case MAT_PLASTIC: return PART_DIFFUSE | PART_DELTA;
+        case MAT_ROUGH_PLASTIC: return PART_DIFFUSE | PART_GLOSSY;
+        default: return PART_DELTA;
+    }
+}
+
+inline bool is_delta(const Material* m) { return material_parts(m) == PART_DELTA; }
+
+// The coat's share of what arrives at cos (1 - F for plastic, T for rough_plastic): h above.
+inline float coat_in(const Material* m, float c) {
+    if (m->type == MAT_DIFFUSE) return 1.0f;
+    if (m->type == MAT_ROUGH_PLASTIC) return coat_transmittance(m, c);
+    float ct;
+    return 1.0f - fresnel_dielectric(clamp(c, 0.0f, 1.0f), m->eta.x, &ct);
+}
+
+// g(wo) of the diffuse part (above), at cos_o about n.
+inline float3 diffuse_out(const Material* m, float co) {
+    if (m->type == MAT_DIFFUSE) return m->base;
+    float3 inner = (m->flags & MF_NONLINEAR) ? m->base * m->eta.y : (float3)(m->eta.y);
+    return m->base / (1.0f - inner) * (coat_in(m, co) / (m->eta.x * m->eta.x));
+}
+
+// The probability of each part for a path arriving from cos_o, over the parts in `mask`
+// (diffuse, glossy, delta); all 0 if the mask allows none the material has.
+inline float3 part_on(int parts) {
+    return (float3)((parts & PART_DIFFUSE) ? 1.0f : 0.0f, (parts & PART_GLOSSY) ? 1.0f : 0.0f,
+                    (parts & PART_DELTA) ? 1.0f : 0.0f);
+}
+
+inline float3 part_choice(const Material* m, float co, int mask) {
+    float3 p = (float3)(1.0f);
+    if (m->type == MAT_PLASTIC || m->type == MAT_ROUGH_PLASTIC) {
+        float base = coat_in(m, co), w = m->eta.z;
+        p = (float3)(base * (1.0f - w), (1.0f - base) * w, (1.0f - base) * w);
+    }
+    p *= part_on(material_parts(m) & mask);
+    float sum = p.x + p.y + p.z;
+    return sum > 0.0f ? p / sum : (float3)(0.0f);
+}
+
+// The glossy part's value and its pdf of wi given wo (n about which both have positive
+// cosines co, ci).
+inline float3 glossy_eval(const Material* m, float3 n, float3 wo, float3 wi, float co, float ci, float* pdf) {
+    *pdf = 0.0f;
+    if (m->type == MAT_GLOSSY) {  // modified Phong about the mirror direction
+        float ca = dot(wi, reflect_dir(-wo, n));
+        if (ca <= 0.0f) return (float3)(0.0f);
+        float lobe = pow(ca, m->rough) / (2.0f * PI_F);
+        *pdf = (m->rough + 1.0f) * lobe;
+        return m->base * ((m->rough + 2.0f) * lobe);
+    }
+    float3 hv = normalize(wo + wi);
+    float ch = dot(hv, n), oh = dot(wo, hv);
+    bool beckmann = (m->flags & MF_BECKMANN) != 0;
+    float d = mf_d(ch, m->rough, beckmann);
+    if (d <= 0.0f || oh <= 0.0f) return (float3)(0.0f);
+    *pdf = d * ch / (4.0f * oh);
+    float gm = mf_g1(co, oh, m->rough, beckmann) * mf_g1(ci, oh, m->rough, beckmann);
+    float3 r;
+    if (m->type == MAT_ROUGH_CONDUCTOR) {
+        r = conductor_reflectance(m, oh);
+    } else {
+        float ct;
+        r = m->second * fresnel_dielectric(oh, m->eta.x, &ct);
+    }
+    return r * (d * gm / (4.0f * co * ci));
+}
+
+inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, float3 wi, int mask) {
+    BsdfEval e = {(float3)(0.0f), 0.0f, 0.0f};
+    int parts = material_parts(m) & mask & (PART_DIFFUSE | PART_GLOSSY);
+    float go = dot(wo, ng), gi = dot(wi, ng);
+    if (go * gi <= 0.0f || parts == 0) return e;  // reflection only, both on one side of the true surface
+    float3 n = go > 0.0f ? ns : -ns;
+    float co = dot(wo, n), ci = dot(wi, n);
+    if (co <= 0.0f || ci <= 0.0f) return e;
+    float3 fwd = part_choice(m, co, mask), rev = part_choice(m, ci, mask);
+    if (parts & PART_DIFFUSE) {
+        e.f = diffuse_out(m, co) * (coat_in(m, ci) / PI_F);
+        e.pdf_fwd = fwd.x * ci / PI_F;
+        e.pdf_rev = rev.x * co / PI_F;
+    }
+    if (parts & PART_GLOSSY) {
+        float pdf;
+        e.f += glossy_eval(m, n, wo, wi, co, ci, &pdf);  // both lobes have pdf(wo | wi) = pdf(wi | wo)
+        e.pdf_fwd += fwd.y * pdf;
+        e.pdf_rev += rev.y * pdf;
+    }
+    return e;
+}
+
+// A delta part's bounce of a path arriving along d at a surface whose normal n faces it.
+inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float co, Rng* rng, float3* nd,
+                         float3* weight) {
+    if (m->type == MAT_CONDUCTOR) {
+        *nd = reflect_dir(d, n);
+        *weight = conductor_reflectance(m, co);
+        return true;
+    }
+    float ct;
+    if (m->type == MAT_PLASTIC) {
+        *nd = reflect_dir(d, n);
+        *weight = m->second * fresnel_dielectric(co, m->eta.x, &ct);
+        return true;
+    }
+    bool entering = dot(d, ng) < 0.0f;
+    float eta = m->type == MAT_THIN_GLASS || entering ? m->eta.x : 1.0f / m->eta.x;
+    float r = fresnel_dielectric(co, eta, &ct);
+    if (m->type == MAT_THIN_GLASS && r < 1.0f) r += (1.0f - r) * (1.0f - r) * r / (1.0f - r * r);
+    // Russian roulette between reflection and refraction with the reflectance: the branch
+    // weight R/R = T/T = 1 but for the tints.
+    if (r >= 1.0f || rng_float(rng) < r) {
+        *nd = reflect_dir(d, n);
+        *weight = m->base;
+    } else {
+        *nd = m->type == MAT_THIN_GLASS ? d : normalize(d / eta + (co / eta - ct) * n);
+        *weight = m->second;
+    }
+    return true;
+}
+
+// A bounce of a path arriving along d (propagation direction), taking a part among those
+// in `mask`; false if the path ends (absorbed, or sampled through the surface).
+inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int mask, Rng* rng, BsdfSample* s) {
+    float3 wo = -d, n = dot(wo, ng) > 0.0f ? ns : -ns;
+    float co = dot(wo, n);
+    float3 p = part_choice(m, fmax(co, 0.0f), mask);
+    // Choose the part (a random number only where there is a choice).
+    int part = p.x > 0.0f ? PART_DIFFUSE : p.y > 0.0f ? PART_GLOSSY : PART_DELTA;
+    if (p.x + p.y + p.z == 0.0f) return false;
+    if (p.x < 1.0f && p.y < 1.0f && p.z < 1.0f) {
+        float u = rng_float(rng);
+        part = u < p.x ? PART_DIFFUSE : u < p.x + p.y ? PART_GLOSSY : PART_DELTA;
+    }
+    s->delta = part == PART_DELTA;
+    s->pdf_fwd = s->pdf_rev = 1.0f;
+    if (s->delta) {
+        if (!delta_sample(m, d, n, ng, co, rng, &s->dir, &s->weight)) return false;
+        s->weight /= p.z;
+        return true;
+    }
+    if (part == PART_DIFFUSE) {
+        s->dir = sample_cosine(n, rng_float(rng), rng_float(rng));
+    } else if (m->type == MAT_GLOSSY) {
+        float e = m->rough;
+        float cos_a = pow(rng_float(rng), 1.0f / (e + 1.0f));
+        float sin_a = sqrt(fmax(0.0f, 1.0f - cos_a * cos_a));
+        float phi = 2.0f * PI_F * rng_float(rng);
+        s->dir = from_local(reflect_dir(d, n), sin_a * cos(phi), sin_a * sin(phi), cos_a);
+    } else {
+        float3 hv = mf_sample(n, m->rough, (m->flags & MF_BECKMANN) != 0, rng_float(rng), rng_float(rng));
+        s->dir = reflect_dir(d, hv);
+    }
+    BsdfEval e = bsdf_eval(m, ng, ns, wo, s->dir, mask);
+    if (e.pdf_fwd <= 0.0f) return false;
+    float ci = fabs(dot(s->dir, ns));
+    // Diffuse alone: f cos / pdf = rho exactly (the closed form keeps its rounding off the path).
+    s->weight = m->type == MAT_DIFFUSE ? m->base : e.f * (ci / e.pdf_fwd);
+    s->pdf_fwd = e.pdf_fwd;
+    s->pdf_rev = e.pdf_rev;
+    return true;
+}
