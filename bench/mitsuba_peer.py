@@ -2,9 +2,9 @@
 path tracer (`path`) or particle tracer (`ptracer`).
 
 The conversion is exact but for one material: Mitsuba 3 has no modified Phong, so `glossy`
-becomes a Beckmann rough conductor with the matching roughness (worker/mitsuba_scene.py,
-`beckmann_alpha`, the inverse of the import's mapping) and no Fresnel falloff: close, not identical, so on the
-`glossy` scene the peer converges to a slightly different image. Units match ours:
+becomes a Beckmann rough conductor with the matching roughness (`beckmann_alpha`) and no
+Fresnel falloff: close, not identical, so on the `glossy` scene the peer converges to a
+slightly different image. Units match ours:
 emission is radiance, point and spot `power` is flux (intensity = power / solid angle),
 directional `irradiance` is irradiance. Pixels are box-filtered, as SPPM averages them.
 """
@@ -19,7 +19,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from worker.mitsuba_scene import beckmann_alpha
 from worker.scene import (
     DirectionalLight,
     Glass,
@@ -52,6 +51,16 @@ def mitsuba() -> Any:
 
 def _rgb(value: tuple[float, float, float] | np.ndarray) -> dict[str, Any]:
     return {"type": "rgb", "value": [float(v) for v in value]}
+
+
+def beckmann_alpha(exponent: float) -> float:
+    """The Beckmann roughness alpha whose lobe matches our Phong exponent n: alpha = sqrt(2 / (4 n + 2)).
+
+    Walter et al. 2007 match Beckmann's alpha to the exponent m = 2 / alpha^2 - 2 of a Phong
+    lobe about the half vector. Our lobe is about the mirror direction, which turns twice as
+    fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so n = m / 4.
+    """
+    return math.sqrt(2.0 / (4.0 * exponent + 2.0))
 
 
 def _bsdf(material: Any) -> dict[str, Any]:
