@@ -4,7 +4,8 @@ path tracer (`path`) or particle tracer (`ptracer`).
 The conversion is exact but for one material: Mitsuba 3 has no modified Phong, so `glossy`
 becomes a Beckmann rough conductor with the matching roughness (`beckmann_alpha`) and no
 Fresnel falloff: close, not identical, so on the `glossy` scene the peer converges to a
-slightly different image. Units match ours:
+slightly different image. Every other material is the Mitsuba plugin that the importer
+(worker/mitsuba_scene.py) reads into it, with the same parameters. Units match ours:
 emission is radiance, point and spot `power` is flux (intensity = power / solid angle),
 directional `irradiance` is irradiance. Pixels are box-filtered, as SPPM averages them.
 """
@@ -20,16 +21,22 @@ from typing import Any, Literal
 import numpy as np
 
 from worker.scene import (
+    Conductor,
+    Diffuse,
     DirectionalLight,
     Glass,
     Glossy,
     Mesh,
     Mirror,
+    Plastic,
     PointLight,
     Quad,
+    RoughConductor,
+    RoughPlastic,
     Scene,
     Sphere,
     SpotLight,
+    ThinGlass,
     shape_triangles,
 )
 
@@ -63,20 +70,54 @@ def beckmann_alpha(exponent: float) -> float:
     return math.sqrt(2.0 / (4.0 * exponent + 2.0))
 
 
+def _metal(material: Conductor | RoughConductor) -> dict[str, Any]:
+    """A conductor's Mitsuba properties: eta and k, or material "none" (Mitsuba's eta = 0,
+    k = 1: Fresnel reflectance 1) where ours has none."""
+    out: dict[str, Any] = {"specular_reflectance": _rgb(material.specular)}
+    if material.eta is None or material.k is None:
+        return {**out, "material": "none"}
+    return {**out, "eta": _rgb(material.eta), "k": _rgb(material.k)}
+
+
+def _coat(material: Plastic) -> dict[str, Any]:
+    return {"diffuse_reflectance": _rgb(material.albedo), "specular_reflectance": _rgb(material.specular),
+            "int_ior": material.ior, "ext_ior": 1.0, "nonlinear": material.nonlinear}
+
+
+def _opaque(material: Any) -> dict[str, Any]:
+    """The Mitsuba bsdf of one of our opaque materials (one-sided, as Mitsuba's are)."""
+    if isinstance(material, Mirror):
+        return {"type": "conductor", "material": "none", "specular_reflectance": _rgb(material.albedo)}
+    if isinstance(material, Glossy):
+        return {"type": "roughconductor", "material": "none", "distribution": "beckmann",
+                "alpha": beckmann_alpha(material.exponent), "specular_reflectance": _rgb(material.albedo)}
+    if isinstance(material, Conductor):
+        return {"type": "conductor", **_metal(material)}
+    if isinstance(material, RoughConductor):
+        return {"type": "roughconductor", "alpha": material.alpha, "distribution": material.distribution,
+                **_metal(material)}
+    if isinstance(material, RoughPlastic):
+        return {"type": "roughplastic", "alpha": material.alpha, "distribution": material.distribution,
+                **_coat(material)}
+    if isinstance(material, Plastic):
+        return {"type": "plastic", **_coat(material)}
+    assert isinstance(material, Diffuse), material
+    return {"type": "diffuse", "reflectance": _rgb(material.albedo)}
+
+
 def _bsdf(material: Any) -> dict[str, Any]:
     """Our opaque surfaces reflect on both sides (the furnace is seen from inside); Mitsuba's
-    are one-sided unless wrapped in `twosided`. Glass is two-sided by nature."""
+    are one-sided unless wrapped in `twosided`. Glass and thin glass are two-sided by nature
+    (Mitsuba refuses them in `twosided`)."""
     if isinstance(material, Glass):
+        transmittance = material.albedo if material.transmittance is None else material.transmittance
         return {"type": "dielectric", "int_ior": material.ior, "ext_ior": 1.0,
-                "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(material.albedo)}
-    if isinstance(material, Mirror):
-        inner = {"type": "conductor", "material": "none", "specular_reflectance": _rgb(material.albedo)}
-    elif isinstance(material, Glossy):
-        inner = {"type": "roughconductor", "material": "none", "distribution": "beckmann",
-                 "alpha": beckmann_alpha(material.exponent), "specular_reflectance": _rgb(material.albedo)}
-    else:
-        inner = {"type": "diffuse", "reflectance": _rgb(material.albedo)}
-    return {"type": "twosided", "bsdf": inner}
+                "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(transmittance)}
+    if isinstance(material, ThinGlass):
+        return {"type": "thindielectric", "int_ior": material.ior, "ext_ior": 1.0,
+                "specular_reflectance": _rgb(material.albedo),
+                "specular_transmittance": _rgb(material.transmittance)}
+    return {"type": "twosided", "bsdf": _opaque(material)}
 
 
 def _frame(axis: np.ndarray) -> np.ndarray:
