@@ -2,9 +2,10 @@
 path tracer (`path`) or particle tracer (`ptracer`).
 
 The conversion is exact but for one material: Mitsuba 3 has no modified Phong, so `glossy`
-becomes a Beckmann rough conductor with the matching roughness (worker/mitsuba_scene.py,
-`beckmann_alpha`, the inverse of the import's mapping) and no Fresnel falloff: close, not identical, so on the
-`glossy` scene the peer converges to a slightly different image. Units match ours:
+becomes a Beckmann rough conductor with the matching roughness (`beckmann_alpha`) and no
+Fresnel falloff: close, not identical, so on the `glossy` scene the peer converges to a
+slightly different image. Every other material is the Mitsuba plugin that the importer
+(worker/mitsuba_scene.py) reads into it, with the same parameters. Units match ours:
 emission is radiance, point and spot `power` is flux (intensity = power / solid angle),
 directional `irradiance` is irradiance. Pixels are box-filtered, as SPPM averages them.
 """
@@ -19,18 +20,23 @@ from typing import Any, Literal
 
 import numpy as np
 
-from worker.mitsuba_scene import beckmann_alpha
 from worker.scene import (
+    Conductor,
+    Diffuse,
     DirectionalLight,
     Glass,
     Glossy,
     Mesh,
     Mirror,
+    Plastic,
     PointLight,
     Quad,
+    RoughConductor,
+    RoughPlastic,
     Scene,
     Sphere,
     SpotLight,
+    ThinGlass,
     shape_triangles,
 )
 
@@ -54,20 +60,64 @@ def _rgb(value: tuple[float, float, float] | np.ndarray) -> dict[str, Any]:
     return {"type": "rgb", "value": [float(v) for v in value]}
 
 
+def beckmann_alpha(exponent: float) -> float:
+    """The Beckmann roughness alpha whose lobe matches our Phong exponent n: alpha = sqrt(2 / (4 n + 2)).
+
+    Walter et al. 2007 match Beckmann's alpha to the exponent m = 2 / alpha^2 - 2 of a Phong
+    lobe about the half vector. Our lobe is about the mirror direction, which turns twice as
+    fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so n = m / 4.
+    """
+    return math.sqrt(2.0 / (4.0 * exponent + 2.0))
+
+
+def _metal(material: Conductor | RoughConductor) -> dict[str, Any]:
+    """A conductor's Mitsuba properties: eta and k, or material "none" (Mitsuba's eta = 0,
+    k = 1: Fresnel reflectance 1) where ours has none."""
+    out: dict[str, Any] = {"specular_reflectance": _rgb(material.specular)}
+    if material.eta is None or material.k is None:
+        return {**out, "material": "none"}
+    return {**out, "eta": _rgb(material.eta), "k": _rgb(material.k)}
+
+
+def _coat(material: Plastic) -> dict[str, Any]:
+    return {"diffuse_reflectance": _rgb(material.albedo), "specular_reflectance": _rgb(material.specular),
+            "int_ior": material.ior, "ext_ior": 1.0, "nonlinear": material.nonlinear}
+
+
+def _opaque(material: Any) -> dict[str, Any]:
+    """The Mitsuba bsdf of one of our opaque materials (one-sided, as Mitsuba's are)."""
+    if isinstance(material, Mirror):
+        return {"type": "conductor", "material": "none", "specular_reflectance": _rgb(material.albedo)}
+    if isinstance(material, Glossy):
+        return {"type": "roughconductor", "material": "none", "distribution": "beckmann",
+                "alpha": beckmann_alpha(material.exponent), "specular_reflectance": _rgb(material.albedo)}
+    if isinstance(material, Conductor):
+        return {"type": "conductor", **_metal(material)}
+    if isinstance(material, RoughConductor):
+        return {"type": "roughconductor", "alpha": material.alpha, "distribution": material.distribution,
+                **_metal(material)}
+    if isinstance(material, RoughPlastic):
+        return {"type": "roughplastic", "alpha": material.alpha, "distribution": material.distribution,
+                **_coat(material)}
+    if isinstance(material, Plastic):
+        return {"type": "plastic", **_coat(material)}
+    assert isinstance(material, Diffuse), material
+    return {"type": "diffuse", "reflectance": _rgb(material.albedo)}
+
+
 def _bsdf(material: Any) -> dict[str, Any]:
     """Our opaque surfaces reflect on both sides (the furnace is seen from inside); Mitsuba's
-    are one-sided unless wrapped in `twosided`. Glass is two-sided by nature."""
+    are one-sided unless wrapped in `twosided`. Glass and thin glass are two-sided by nature
+    (Mitsuba refuses them in `twosided`)."""
     if isinstance(material, Glass):
+        transmittance = material.albedo if material.transmittance is None else material.transmittance
         return {"type": "dielectric", "int_ior": material.ior, "ext_ior": 1.0,
-                "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(material.albedo)}
-    if isinstance(material, Mirror):
-        inner = {"type": "conductor", "material": "none", "specular_reflectance": _rgb(material.albedo)}
-    elif isinstance(material, Glossy):
-        inner = {"type": "roughconductor", "material": "none", "distribution": "beckmann",
-                 "alpha": beckmann_alpha(material.exponent), "specular_reflectance": _rgb(material.albedo)}
-    else:
-        inner = {"type": "diffuse", "reflectance": _rgb(material.albedo)}
-    return {"type": "twosided", "bsdf": inner}
+                "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(transmittance)}
+    if isinstance(material, ThinGlass):
+        return {"type": "thindielectric", "int_ior": material.ior, "ext_ior": 1.0,
+                "specular_reflectance": _rgb(material.albedo),
+                "specular_transmittance": _rgb(material.transmittance)}
+    return {"type": "twosided", "bsdf": _opaque(material)}
 
 
 def _frame(axis: np.ndarray) -> np.ndarray:

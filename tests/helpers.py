@@ -1,5 +1,6 @@
 """Helpers several test modules share: the `photonfarm render` command line; scene files
-and the Cornell box's corner check against Mitsuba 3; a running job written straight into
+and the Cornell box's corner check against Mitsuba 3; a Mitsuba bsdf and one of our
+materials stated in the same fields; a running job written straight into
 the store (as the API and a worker's setup leave it), and the sharded-state setup of
 tests/test_sharded_state.py and tests/test_lost_deltas.py (its deltas are the `deltas`
 fixture of tests/conftest.py)."""
@@ -7,12 +8,15 @@ fixture of tests/conftest.py)."""
 from __future__ import annotations
 
 import json
+import math
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import redis
+from pydantic import BaseModel
 
 from tests.analytic import camera_rays, spot_plane_scene
 from worker.engine import Engine
@@ -151,3 +155,67 @@ def xml(body: str, version: str = "3.0.0") -> str:
 SENSOR = """<sensor type="perspective"><float name="fov" value="40"/>
 <transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
 <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film></sensor>"""
+
+
+# Mitsuba 3's bsdf classes (as a loaded bsdf describes itself) and the material each becomes.
+MITSUBA_BSDF_CLASSES = {"SmoothDiffuse": "diffuse", "SmoothConductor": "conductor", "RoughConductor": "rough_conductor",
+                        "SmoothDielectric": "glass", "ThinDielectric": "thin_glass", "SmoothPlastic": "plastic",
+                        "RoughPlastic": "rough_plastic"}
+
+
+def mitsuba_material(mi, bsdf) -> dict:
+    """A loaded Mitsuba bsdf (a `twosided` one's front) in our material's fields: the values of
+    `mi.traverse`, Mitsuba's defaults where it lists none (1 for an unset reflectance or
+    transmittance), and what it keeps out of traverse (distribution, nonlinear) from its description.
+    A conductor of eta 0 reflects everything whatever k: a `mirror`, or a rough conductor without eta."""
+    text = str(bsdf)
+    kind = next(MITSUBA_BSDF_CLASSES[c] for c in re.findall(r"(\w+)\[", text) if c in MITSUBA_BSDF_CLASSES)
+    params = {key.removeprefix("brdf_0."): value for key, value in mi.traverse(bsdf).items()}
+
+    def rgb(name: str, default: float = 1.0) -> list[float]:
+        return np.broadcast_to(np.asarray(params.get(f"{name}.value", default), np.float64), (3,)).tolist()
+
+    def described(name: str) -> str:
+        found = re.search(rf"\b{name} = (\w+)", text)
+        assert found, (name, text)
+        return found.group(1)
+
+    if kind == "diffuse":
+        return {"type": kind, "albedo": rgb("reflectance")}
+    if kind in ("glass", "thin_glass"):
+        return {"type": kind, "ior": float(params["eta"]), "albedo": rgb("specular_reflectance"),
+                "transmittance": rgb("specular_transmittance")}
+    if kind in ("plastic", "rough_plastic"):
+        out = {"type": kind, "albedo": rgb("diffuse_reflectance"), "specular": rgb("specular_reflectance"),
+               "ior": float(params["eta"]), "nonlinear": described("nonlinear") == "1"}
+        if kind == "rough_plastic":
+            out.update(alpha=float(params["alpha"]), distribution=described("distribution"))
+        return out
+    out = {"type": kind, "specular": rgb("specular_reflectance")}
+    if any(rgb("eta", 0.0)):
+        out.update(eta=rgb("eta", 0.0), k=rgb("k", 1.0))
+    elif kind == "conductor":
+        return {"type": "mirror", "albedo": out["specular"]}
+    if kind == "rough_conductor":
+        out.update(alpha=float(params.get("alpha.value", params.get("alpha_u.value", math.nan))),
+                   distribution=described("distribution"))
+    return out
+
+
+def our_material(material: BaseModel) -> dict:
+    """One of our materials (validated, so with its defaults) as `mitsuba_material` states
+    Mitsuba's: a glass's transmittance is its albedo unless given; an unset eta and k left out."""
+    out = material.model_dump(exclude_none=True)
+    if out["type"] == "glass":
+        out.setdefault("transmittance", out["albedo"])
+    return out
+
+
+def assert_same_material(ours: dict, theirs: dict, rtol: float = 0.01) -> None:
+    """The same fields; numbers within `rtol` (and 1e-3 absolute), the rest equal."""
+    assert ours.keys() == theirs.keys(), (ours, theirs)
+    for name, value in ours.items():
+        if isinstance(value, (str, bool)):
+            assert value == theirs[name], (name, ours, theirs)
+        else:
+            np.testing.assert_allclose(value, theirs[name], rtol=rtol, atol=1e-3, err_msg=f"{name}: {ours} {theirs}")

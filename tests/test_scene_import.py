@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bench.mitsuba_peer import beckmann_alpha
 from tests.conftest import image, render
 from tests.helpers import SENSOR, xml
 from worker.error_estimate import LUMINANCE
 from worker.meshes import MeshError, load_mesh
-from worker.mitsuba_scene import Node, beckmann_alpha, convert_mitsuba, look_at, phong_exponent, to_world_matrix
+from worker.mitsuba_scene import Node, convert_mitsuba, look_at, to_world_matrix
 from worker.scene import (
     SCENES_DIR,
     LoadBudget,
@@ -95,7 +96,7 @@ def test_scenes_use_what_they_claim() -> None:
     assert {light["type"] for light in obj["lights"]} == {"point", "spot", "directional"}
     glossy = convert_mitsuba(MITSUBA_SCENES / "thinlens-glossy.xml")
     assert glossy["camera"]["aperture_radius"] > 0
-    assert any(m["type"] == "glossy" for m in glossy["materials"].values())
+    assert any(m["type"] == "rough_conductor" for m in glossy["materials"].values())
     assert (MITSUBA_SCENES / "meshes" / "icosphere.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
     for data in (obj, glossy):  # what `photonfarm convert` writes is plain JSON that reads back
         assert parse_scene(json.loads(json.dumps(data))) == parse_scene(data)
@@ -217,24 +218,32 @@ def test_materials(tmp_path: Path) -> None:
     <bsdf type="roughconductor" id="rough"><float name="alpha" value="0.1"/></bsdf>
     <bsdf type="roughplastic" id="plastic"><rgb name="diffuse_reflectance" value="0.2, 0.3, 0.4"/>
         <float name="alpha" value="0.2"/></bsdf>
+    <bsdf type="plastic" id="smooth"><boolean name="nonlinear" value="true"/></bsdf>
+    <bsdf type="thindielectric" id="pane"><rgb name="specular_transmittance" value="0.5"/></bsdf>
     <bsdf type="twosided" id="two"><bsdf type="diffuse"><rgb name="reflectance" value="0.25"/></bsdf></bsdf>
     <shape type="sphere"><ref id="glass"/></shape>""")
     m = data["materials"]
     assert m["glass"] == {"type": "glass", "ior": pytest.approx(1.6 / 1.2), "albedo": [1.0, 1.0, 1.0]}
     assert m["named"]["ior"] == pytest.approx(1.3330 / 1.000277)
     assert m["mirror"] == {"type": "mirror", "albedo": [0.9, 0.8, 0.7]}
-    assert m["rough"] == {"type": "glossy", "albedo": [1.0, 1.0, 1.0], "exponent": pytest.approx((2 / 0.01 - 2) / 4)}
-    assert m["plastic"] == {"type": "glossy", "albedo": [0.2, 0.3, 0.4], "exponent": pytest.approx((2 / 0.04 - 2) / 4)}
+    assert m["rough"] == {"type": "rough_conductor", "specular": [1.0, 1.0, 1.0], "alpha": 0.1,
+                          "distribution": "beckmann"}
+    assert m["plastic"] == {"type": "rough_plastic", "albedo": [0.2, 0.3, 0.4], "specular": [1.0, 1.0, 1.0],
+                            "ior": pytest.approx(1.49 / 1.000277), "nonlinear": False, "alpha": 0.2,
+                            "distribution": "beckmann"}
+    assert m["smooth"] == {"type": "plastic", "albedo": [0.5, 0.5, 0.5], "specular": [1.0, 1.0, 1.0],
+                           "ior": pytest.approx(1.49 / 1.000277), "nonlinear": True}
+    assert m["pane"] == {"type": "thin_glass", "ior": pytest.approx(1.5046 / 1.000277), "albedo": [1.0, 1.0, 1.0],
+                         "transmittance": [0.5, 0.5, 0.5]}
     assert m["two"] == {"type": "diffuse", "albedo": [0.25, 0.25, 0.25]}
 
 
-@pytest.mark.parametrize("alpha", [0.03, 0.1, 0.2])
-def test_glossy_lobe_width_matches_beckmann(alpha: float) -> None:
-    """At normal incidence, the angle from the mirror direction where the lobe falls to half
-    its peak: our cos^n lobe against Beckmann's D(half vector) / cos^4, within 5%; and the
-    Mitsuba peer's export (`beckmann_alpha`) inverts the import's mapping."""
-    n = phong_exponent(alpha)
-    assert beckmann_alpha(n) == pytest.approx(alpha, rel=1e-12)
+@pytest.mark.parametrize("n", [555.0, 49.5, 12.0])
+def test_glossy_lobe_width_matches_beckmann(n: float) -> None:
+    """The Mitsuba peer's Beckmann roughness for our Phong exponent (`beckmann_alpha`): at
+    normal incidence, the angle from the mirror direction where the lobe falls to half its
+    peak, our cos^n lobe against Beckmann's D(half vector) / cos^4, within 5%."""
+    alpha = beckmann_alpha(n)
     psi = np.linspace(0, 1.2, 200_001)
     phong = np.cos(psi) ** n
     th = psi / 2  # the half vector turns half as far as the reflected direction
@@ -391,7 +400,6 @@ def test_unknown_plugin_names_element_and_line(tmp_path: Path) -> None:
     ('<emitter type="envmap"/>', "envmap", "unknown emitter plugin"),
     ('<medium type="homogeneous"/>', "medium", "not supported"),
     ('<shape type="sphere"><float name="roughness" value="1"/></shape>', "roughness", "not supported"),
-    ('<bsdf type="plastic" id="p"/>', "plastic", "smooth plastic"),
     ('<bsdf type="conductor" id="c"><string name="material" value="Au"/></bsdf>', "Au", "material"),
     ('<bsdf type="roughconductor" id="c"><float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.3"/></bsdf>',
      "alpha_u", "anisotropic"),

@@ -37,6 +37,7 @@ from worker.scene import (
     read_mesh,
 )
 from worker.serialized import header_counts, read_serialized
+from worker.spectra import Kind
 
 # Named indices of refraction, as Mitsuba 3's dielectric documentation lists them.
 NAMED_IOR = {
@@ -46,9 +47,10 @@ NAMED_IOR = {
     "pyrex": 1.470, "acrylic glass": 1.49, "polypropylene": 1.49, "bk7": 1.5046, "sodium chloride": 1.544,
     "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
+# Mitsuba's dielectric-like plugins: refused inside `twosided`, as Mitsuba refuses them there.
+TRANSMISSIVE = {"dielectric", "thindielectric", "roughdielectric"}
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
 CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (area within 1e-4)
-GLOSSY_EXPONENT_MAX = 100_000.0  # the schema's bound on the Phong exponent
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
 # What the model cannot hold, refused by name wherever it appears.
@@ -56,22 +58,6 @@ UNSUPPORTED = {"medium": "participating media are not supported",
                "phase": "participating media (phase functions) are not supported",
                "volume": "participating media (volume grids) are not supported"}
 PROPERTY_TAGS = {"float", "integer", "boolean", "string", "rgb", "spectrum", "point", "vector", "transform", "ref"}
-
-
-def phong_exponent(alpha: float) -> float:
-    """Our Phong exponent n for a Beckmann roughness alpha: n = (2 / alpha^2 - 2) / 4.
-
-    Walter et al. 2007 match Beckmann's alpha to the exponent m of a Phong lobe about the
-    half vector, m = 2 / alpha^2 - 2. Our lobe is about the mirror direction, which moves
-    twice as fast as the half vector: cos^m(psi / 2) ~ cos^(m/4)(psi) for small angles, so
-    n = m / 4. `beckmann_alpha` is the inverse (the Mitsuba peer's export).
-    """
-    return (2.0 / alpha ** 2 - 2.0) / 4.0
-
-
-def beckmann_alpha(exponent: float) -> float:
-    """The Beckmann roughness whose lobe matches our Phong exponent (inverse of `phong_exponent`)."""
-    return math.sqrt(2.0 / (4.0 * exponent + 2.0))
 
 
 # ------------------------------------------------------------------------ XML reading
@@ -289,9 +275,9 @@ class Props:
         if node is not None:
             self.conv.note(self.owner, node, name, why)
 
-    def color(self, name: str, default: float, emission: bool = False) -> tuple[float, float, float]:
-        """rgb, float, or a spectrum (converted to linear sRGB as a reflectance, or as an
-        emission); textures are outside the subset."""
+    def color(self, name: str, default: float, kind: Kind = "reflectance") -> tuple[float, float, float]:
+        """rgb, float, or a spectrum (converted to linear sRGB as `kind`, worker/spectra.py);
+        textures are outside the subset."""
         node = self.values.get(name)
         if node is None:
             for obj in self.objects:
@@ -303,7 +289,7 @@ class Props:
         node = self._take(name, {"rgb", "spectrum", "float"})
         assert node is not None, "taken just after it was found"
         if node.tag == "spectrum":
-            return self.conv.spectrum(node, emission)
+            return self.conv.spectrum(node, kind)
         values = _floats(node, node.attrs.get("value", ""))
         if len(values) == 1:
             values *= 3
@@ -508,39 +494,39 @@ class Converter:
         self.scene(_read_xml(path, self.budget, node.file.name, node.where()), depth + 1)
 
     # -------------------------------------------------------------- spectra
-    def spectrum(self, node: Node, emission: bool) -> tuple[float, float, float]:
+    def spectrum(self, node: Node, kind: Kind) -> tuple[float, float, float]:
         """A <spectrum> as linear sRGB (worker/spectra.py): `value` (one number, or
         wavelength:value pairs), `filename` (a .spd file), or a plugin (`blackbody`, `uniform`)."""
-        kind = node.attrs.get("type")
+        plugin = node.attrs.get("type")
         try:
-            if kind is not None:
-                return self._spectrum_plugin(node, kind, emission)
+            if plugin is not None:
+                return self._spectrum_plugin(node, plugin, kind)
             if "filename" in node.attrs:
                 path = self.resolve(node, node.attrs["filename"])
                 data = self.budget.read(path, "scene files", node.file.name, node.where())
                 w, v = spectra.parse_spd(data.decode("utf-8", errors="replace"))
-                return spectra.sampled_to_rgb(w, v, emission)
+                return spectra.sampled_to_rgb(w, v, kind)
             text = node.attrs.get("value", "")
             if ":" not in text:
-                return spectra.uniform_to_rgb(_floats(node, text, 1)[0], emission)
+                return spectra.uniform_to_rgb(_floats(node, text, 1)[0], kind)
             pairs = [item.split(":") for item in re.split(r"\s*,\s*", text.strip()) if item]
             if not all(len(pair) == 2 for pair in pairs):
                 raise ValueError("expected wavelength:value pairs separated by commas")
             w, v = spectra.check_samples([float(a) for a, _ in pairs], [float(b) for _, b in pairs])
-            return spectra.sampled_to_rgb(w, v, emission)
+            return spectra.sampled_to_rgb(w, v, kind)
         except ValueError as exc:
             raise _error(node, str(exc)) from None
 
-    def _spectrum_plugin(self, node: Node, kind: str, emission: bool) -> tuple[float, float, float]:
+    def _spectrum_plugin(self, node: Node, plugin: str, kind: Kind) -> tuple[float, float, float]:
         p = Props(node, self)
-        if kind == "blackbody":
-            if not emission:
+        if plugin == "blackbody":
+            if kind != "emission":
                 raise _error(node, "a blackbody spectrum is an emission (in an emitter)")
             out = spectra.blackbody_to_rgb(p.number("temperature", math.nan) or math.nan)
-        elif kind == "uniform":
-            out = spectra.uniform_to_rgb(p.number("value", 1.0) or 0.0, emission)
+        elif plugin == "uniform":
+            out = spectra.uniform_to_rgb(p.number("value", 1.0) or 0.0, kind)
         else:  # Mitsuba's RGB variants cannot evaluate `regular` and `irregular` either
-            raise _error(node, f"unknown spectrum plugin {kind!r} (have: blackbody, uniform; "
+            raise _error(node, f"unknown spectrum plugin {plugin!r} (have: blackbody, uniform; "
                                "or wavelength:value pairs in `value`)")
         for obj in p.objects:
             raise _error(obj, f"<{obj.tag}> is not supported in a spectrum")
@@ -653,13 +639,19 @@ class Converter:
             inner = [self.deref(o) if o.tag == "ref" else o for o in p.objects]
             if len(inner) != 1 or inner[0].tag != "bsdf":
                 raise _error(node, "twosided takes exactly one nested bsdf (different sides are not supported)")
+            if inner[0].attrs.get("type") in TRANSMISSIVE:
+                raise _error(p.objects[0], "twosided takes an opaque bsdf (Mitsuba refuses one that transmits)")
             p.done()
             if p.objects[0].tag == "ref":
                 return dict(self.materials[inner[0].attrs["id"]])
             return self.material(inner[0])
+        if kind == "roughdielectric":
+            raise _error(node, "rough dielectrics (microfacet refraction) are not supported: use dielectric "
+                               "(smooth glass) or thindielectric")
         convert: dict[str, Callable[[Props], dict]] = {
             "diffuse": self._diffuse, "conductor": self._conductor, "roughconductor": self._roughconductor,
-            "dielectric": self._dielectric, "roughplastic": self._roughplastic, "plastic": self._plastic,
+            "dielectric": self._dielectric, "thindielectric": self._thindielectric, "plastic": self._plastic,
+            "roughplastic": self._roughplastic,
         }
         if kind not in convert:
             raise _error(node, f"unknown bsdf plugin {kind!r} (have: {', '.join(['twosided', *convert])})")
@@ -682,47 +674,54 @@ class Converter:
     def _diffuse(self, p: Props) -> dict:
         return {"type": "diffuse", "albedo": self._albedo(p, "reflectance", 0.5)}
 
-    def _check_no_fresnel(self, p: Props) -> None:
+    def _metal(self, p: Props) -> dict:
+        """A conductor's `specular` and, unless Mitsuba's eta is 0, its `eta` and `k`.
+
+        Mitsuba reads eta (default 0) and k (default 1) when `material` is "none" (its
+        default) and measured data for a named metal otherwise. With eta = 0, eta^2 = -k^2 is
+        real and eta^2 - sin^2 negative, so both polarisations' Fresnel ratios are of the form
+        |x - i y|^2 / |x + i y|^2 = 1 (x, y real): such a conductor reflects `specular` at every
+        angle whatever k, and has no eta and k here.
+        """
         material = p.string("material", "none")
-        if material != "none" or "eta" in p.values or "k" in p.values:
-            raise _error(p.owner, "only material=\"none\" (a perfect reflector) is supported: "
-                                  "our mirror and glossy have no conductor Fresnel term")
+        if material != "none":
+            raise _error(p.node_of("material"), f"named conductor material {material!r}: no measured data is "
+                                                "held here; give eta and k (rgb, float or spectrum) instead")
+        if "ext_ior" in p.values:  # Mitsuba 3 refuses it too (an unreferenced property)
+            raise _error(p.values["ext_ior"], "a conductor takes no ext_ior: give eta and k relative to "
+                                              "the outside")
+        out: dict[str, Any] = {"specular": self._albedo(p, "specular_reflectance", 1.0)}
+        eta = p.color("eta", 0.0, "unbounded")
+        if not any(eta):
+            p.ignore("k", "with eta 0 (Mitsuba's default) the Fresnel reflectance is 1 whatever k")
+            return out
+        out["eta"], out["k"] = list(eta), list(p.color("k", 1.0, "unbounded"))
+        return out
 
-    def _conductor(self, p: Props) -> dict:
-        self._check_no_fresnel(p)
-        return {"type": "mirror", "albedo": self._albedo(p, "specular_reflectance", 1.0)}
-
-    def _exponent(self, p: Props) -> float:
-        """Our Phong exponent for the element's microfacet roughness (see `phong_exponent`)."""
+    def _microfacet(self, p: Props) -> dict:
+        """Mitsuba's isotropic microfacet distribution: `alpha` (default 0.1) and
+        `distribution` (beckmann, default, or ggx); `sample_visible` is sampling only."""
         distribution = p.string("distribution", "beckmann")
         if distribution not in ("beckmann", "ggx"):
             raise _error(p.node_of("distribution"), "distribution must be beckmann or ggx")
+        given = [name for name in ("alpha", "alpha_u", "alpha_v") if name in p.values]
+        if given not in ([], ["alpha"], ["alpha_u", "alpha_v"]):
+            raise _error(p.node_of(given[-1]), "give alpha, or both alpha_u and alpha_v (as Mitsuba requires)")
         alpha = p.number("alpha", 0.1)
         alpha_u, alpha_v = p.number("alpha_u", alpha), p.number("alpha_v", alpha)
         if alpha_u != alpha_v:
-            raise _error(p.owner, "anisotropic roughness is not supported")
-        p.boolean("sample_visible", True)  # sampling strategy only
-        n = phong_exponent(alpha_u) if alpha_u > 0 else math.inf
-        if not 1.0 <= n <= GLOSSY_EXPONENT_MAX:
-            raise _error(p.node_of("alpha"), f"alpha {alpha_u:g} maps to Phong exponent {n:g}, outside "
-                                             f"[1, {GLOSSY_EXPONENT_MAX:g}] (alpha in [0.0023, 0.577])")
-        return n
+            raise _error(p.owner, "anisotropic roughness (alpha_u != alpha_v) is not supported")
+        p.boolean("sample_visible", True)
+        return {"alpha": alpha_u, "distribution": distribution}
+
+    def _conductor(self, p: Props) -> dict:
+        metal = self._metal(p)
+        if "eta" not in metal:
+            return {"type": "mirror", "albedo": metal["specular"]}
+        return {"type": "conductor", **metal}
 
     def _roughconductor(self, p: Props) -> dict:
-        self._check_no_fresnel(p)
-        return {"type": "glossy", "albedo": self._albedo(p, "specular_reflectance", 1.0), "exponent": self._exponent(p)}
-
-    def _roughplastic(self, p: Props) -> dict:
-        """A diffuse base under a rough coat, as one Phong lobe: albedo = diffuse_reflectance,
-        exponent from alpha. Approximate (docs/scenes.md): the coat's Fresnel reflection is dropped."""
-        self._ior(p, "int_ior", "polypropylene"), self._ior(p, "ext_ior", "air")  # the coat's: dropped
-        p.boolean("nonlinear", False)
-        p.color("specular_reflectance", 1.0)
-        return {"type": "glossy", "albedo": self._albedo(p, "diffuse_reflectance", 0.5), "exponent": self._exponent(p)}
-
-    def _plastic(self, p: Props) -> dict:
-        raise _error(p.owner, "smooth plastic (a mirror coat over a diffuse base) has no counterpart in our "
-                              "materials: use roughplastic, roughconductor or diffuse")
+        return {"type": "rough_conductor", **self._metal(p), **self._microfacet(p)}
 
     def _ior(self, p: Props, name: str, default: str) -> float:
         node = p.values.get(name)
@@ -734,16 +733,37 @@ class Converter:
         value = p.number(name)
         return NAMED_IOR[default] if value is None else value
 
-    def _dielectric(self, p: Props) -> dict:
-        ior = self._ior(p, "int_ior", "bk7") / self._ior(p, "ext_ior", "air")
-        reflect = self._albedo(p, "specular_reflectance", 1.0)
-        transmit = self._albedo(p, "specular_transmittance", 1.0)
-        if reflect != transmit:
-            raise _error(p.owner, "specular_reflectance and specular_transmittance must be equal "
-                                  "(our glass has one tint)")
-        if not 1.0 <= ior <= 3.0:
+    def _relative_ior(self, p: Props, interior: str) -> float:
+        """Mitsuba's eta = int_ior / ext_ior (numbers or names; the exterior defaults to air),
+        which our materials take in [1, 3]."""
+        ior = self._ior(p, "int_ior", interior) / self._ior(p, "ext_ior", "air")
+        if ior < 1.0:
+            raise _error(p.owner, f"int_ior / ext_ior = {ior:g} is below 1 (the outside is denser): ours "
+                                  "take interior over exterior, from 1 to 3")
+        if ior > 3.0:
             raise _error(p.owner, f"int_ior / ext_ior = {ior:g} must lie in [1, 3]")
-        return {"type": "glass", "ior": ior, "albedo": reflect}
+        return ior
+
+    def _dielectric(self, p: Props) -> dict:
+        out = {"type": "glass", "ior": self._relative_ior(p, "bk7"),
+               "albedo": self._albedo(p, "specular_reflectance", 1.0)}
+        transmittance = self._albedo(p, "specular_transmittance", 1.0)
+        if transmittance != out["albedo"]:  # our glass tints refraction by `albedo` unless told otherwise
+            out["transmittance"] = transmittance
+        return out
+
+    def _thindielectric(self, p: Props) -> dict:
+        return {"type": "thin_glass", "ior": self._relative_ior(p, "bk7"),
+                "albedo": self._albedo(p, "specular_reflectance", 1.0),
+                "transmittance": self._albedo(p, "specular_transmittance", 1.0)}
+
+    def _plastic(self, p: Props) -> dict:
+        return {"type": "plastic", "albedo": self._albedo(p, "diffuse_reflectance", 0.5),
+                "specular": self._albedo(p, "specular_reflectance", 1.0),
+                "ior": self._relative_ior(p, "polypropylene"), "nonlinear": p.boolean("nonlinear", False)}
+
+    def _roughplastic(self, p: Props) -> dict:
+        return {**self._plastic(p), "type": "rough_plastic", **self._microfacet(p)}
 
     # -------------------------------------------------------------- shapes
     def shape(self, node: Node, parent: np.ndarray | None = None) -> None:
@@ -782,7 +802,7 @@ class Converter:
                 if emission is not None:
                     raise _error(obj, "a shape has one area emitter")
                 ep = Props(target, self)
-                emission = list(ep.color("radiance", 1.0, emission=True))
+                emission = list(ep.color("radiance", 1.0, "emission"))
                 for inner in ep.objects:
                     raise _error(inner, f"<{inner.tag}> is not supported in an area emitter")
                 ep.done()
@@ -954,7 +974,7 @@ class Converter:
             m = p.transform()
             pos = p.vector("position", "point")
             position = _apply(m, (pos if pos is not None else np.zeros(3))[None])[0]
-            power = 4 * math.pi * np.array(p.color("intensity", 1.0, emission=True))
+            power = 4 * math.pi * np.array(p.color("intensity", 1.0, "emission"))
             light = {"type": "point", "position": position.tolist(), "power": power.tolist()}
         elif kind == "spot":
             m = p.transform()
@@ -966,7 +986,7 @@ class Converter:
             if not 0 < cutoff <= 90:
                 raise _error(p.node_of("cutoff_angle"), "cutoff_angle must lie in (0, 90]")
             solid_angle = 2 * math.pi * (1 - math.cos(math.radians(cutoff)))
-            power = solid_angle * np.array(p.color("intensity", 1.0, emission=True))
+            power = solid_angle * np.array(p.color("intensity", 1.0, "emission"))
             light = {"type": "spot", "position": m[:3, 3].tolist(), "direction": m[:3, 2].tolist(),
                      "cone_angle": cutoff, "power": power.tolist()}
         elif kind == "directional":
@@ -974,7 +994,7 @@ class Converter:
             d = p.vector("direction", "vector")
             direction = m[:3, :3] @ (d if d is not None else np.array([0.0, 0.0, 1.0]))
             light = {"type": "directional", "direction": direction.tolist(),
-                     "irradiance": list(p.color("irradiance", 1.0, emission=True))}
+                     "irradiance": list(p.color("irradiance", 1.0, "emission"))}
         elif kind == "area":
             raise _error(node, "an area emitter belongs inside a shape")
         else:

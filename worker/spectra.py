@@ -6,6 +6,8 @@ A spectrum s(lambda) (piecewise linear between its samples, zero outside them) b
 
 - reflectance: seen under D65 and normalised by it, XYZ = int s D65 xyz / int D65 y, so a
   flat reflectance r is grey r; the result is clamped to [0, 1] (a reflectance is bounded);
+- unbounded (a conductor's eta and k): as a reflectance, but only negative components are
+  clamped (to 0), as Mitsuba's parser converts those properties (checked with mi.traverse);
 - emission: under the equal-energy illuminant, XYZ = int s xyz / int y, so a flat radiance
   L is XYZ (L, L, L), not grey in sRGB.
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import Literal
 
 import numpy as np
 
@@ -26,6 +29,7 @@ CIE_MIN, CIE_MAX = 360.0, 830.0  # nm: the matching functions' range used for th
 INTEGRATION_STEPS = 1000
 # Planck's law constants (CODATA 2014, as SI values).
 PLANCK_H, LIGHT_C, BOLTZMANN_K = 6.62607004e-34, 2.99792458e8, 1.38064852e-23
+Kind = Literal["reflectance", "unbounded", "emission"]  # what a spectrum describes (module docstring)
 
 
 @lru_cache(maxsize=1)
@@ -44,21 +48,23 @@ def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return wavelengths, xyz, illuminant, matrix
 
 
-def sampled_to_rgb(wavelengths: np.ndarray, values: np.ndarray, emission: bool) -> tuple[float, float, float]:
-    """Linear sRGB of a sampled spectrum (increasing `wavelengths` in nm), as reflectance or emission."""
+def sampled_to_rgb(wavelengths: np.ndarray, values: np.ndarray, kind: Kind) -> tuple[float, float, float]:
+    """Linear sRGB of a sampled spectrum (increasing `wavelengths` in nm) describing `kind`."""
     grid, xyz, d65, matrix = _tables()
     s = np.interp(grid, wavelengths, values, left=0.0, right=0.0)
-    weight = np.ones_like(grid) if emission else d65
+    weight = np.ones_like(grid) if kind == "emission" else d65
     tristimulus = (s * weight) @ xyz / float(weight @ xyz[:, 1])
     rgb = matrix @ tristimulus
-    if not emission:
+    if kind == "reflectance":
         rgb = np.clip(rgb, 0.0, 1.0)
+    elif kind == "unbounded":
+        rgb = np.maximum(rgb, 0.0)
     return float(rgb[0]), float(rgb[1]), float(rgb[2])
 
 
-def uniform_to_rgb(value: float, emission: bool) -> tuple[float, float, float]:
-    """Linear sRGB of a flat spectrum: grey for a reflectance, XYZ (v, v, v) for an emission."""
-    if not emission:
+def uniform_to_rgb(value: float, kind: Kind) -> tuple[float, float, float]:
+    """Linear sRGB of a flat spectrum: grey unless an emission, which is XYZ (v, v, v)."""
+    if kind != "emission":
         return value, value, value
     rgb = _tables()[3] @ np.full(3, value)
     return float(rgb[0]), float(rgb[1]), float(rgb[2])
@@ -78,7 +84,7 @@ def blackbody_to_rgb(temperature: float) -> tuple[float, float, float]:
     if not (math.isfinite(temperature) and temperature > 0):
         raise ValueError("temperature must be a positive number of kelvin")
     grid = _tables()[0]
-    return sampled_to_rgb(grid, blackbody(grid, temperature), emission=True)
+    return sampled_to_rgb(grid, blackbody(grid, temperature), "emission")
 
 
 def parse_spd(text: str) -> tuple[np.ndarray, np.ndarray]:
