@@ -3,8 +3,8 @@
 here once per scene.
 
 Plastics follow Mitsuba 3's definitions: the diffuse base is divided by 1 - R_int, R_int the
-coat's internal diffuse reflectance, 2 * integral of F(mu, 1/eta) mu dmu for a smooth coat
-(the hemispherical average of the Fresnel reflectance seen from inside), and for a rough coat
+coat's internal diffuse reflectance, 2 * integral of F(mu, 1/eta) mu dmu over [0, 1] for a
+smooth coat (the cosine-weighted mean of the Fresnel reflectance seen from inside), and for a rough coat
 the mean of R(mu, 1/eta) mu over TABLE_SIZE evenly spaced cosines, times 2, R the rough
 dielectric's reflectance; a rough coat's transmittance T(mu) from outside is tabulated at the
 same cosines. Both integrals are over microfacet normals h drawn by D(h) cos_h (Walter et al.
@@ -40,7 +40,7 @@ def fresnel(cos_i: np.ndarray, eta: float) -> np.ndarray:
 
 def smith_g1(cos_v: np.ndarray, cos_vh: np.ndarray, alpha: float, beckmann: bool) -> np.ndarray:
     """Smith masking of one direction (kernels/materials.cl, mf_g1)."""
-    tan2 = np.clip(1.0 - cos_v ** 2, 0.0, None) / cos_v ** 2
+    tan2 = np.clip(1.0 - cos_v ** 2, 0.0, None) / np.maximum(cos_v ** 2, 1e-30)
     if beckmann:
         b = 1.0 / (alpha * np.sqrt(np.maximum(tan2, 1e-30)))  # tan 0: b far past 1.6, so 1
         g = np.where(b >= 1.6, 1.0, (3.535 * b + 2.181 * b * b) / (1.0 + 2.276 * b + 2.577 * b * b))
@@ -92,9 +92,13 @@ def coat_constants(material: Plastic) -> tuple[float, np.ndarray | None]:
     """(R_int, the transmittance table or None) of a plastic's coat."""
     eta = material.ior
     if not isinstance(material, RoughPlastic):
+        # Inside, below the critical cosine mu_c every ray is reflected (F = 1): R_int =
+        # mu_c^2 + 2 * integral over [mu_c, 1] of F mu, the smooth rest by Gauss-Legendre.
+        mu_c = math.sqrt(max(0.0, 1.0 - 1.0 / eta ** 2))
         x, w = np.polynomial.legendre.leggauss(QUADRATURE)
-        mu = 0.5 * (x + 1.0)
-        return float(np.sum(0.5 * w * fresnel(mu, 1.0 / eta) * mu) * 2.0), None
+        mu = mu_c + 0.5 * (x + 1.0) * (1.0 - mu_c)
+        rest = float(np.sum(0.5 * (1.0 - mu_c) * w * fresnel(mu, 1.0 / eta) * mu))
+        return mu_c ** 2 + 2.0 * rest, None
     beckmann = material.distribution == "beckmann"
     mu = table_cosines()
     internal = rough_dielectric_albedo(mu, 1.0 / eta, material.alpha, beckmann, transmit=False)
