@@ -20,8 +20,8 @@
 // (directional: a disc of radius R facing the light's direction covers the scene). The
 // NEE estimate is then f cos li / (pick direct_pdf) for every kind.
 //
-// Direct light at a diffuse point x (albedo rho, f = rho / pi) is estimated per pass by
-// one light sample and one cosine-weighted BSDF sample. Delta lights (point, spot,
+// Direct light at a measurement point x through its diffuse part (f = g h(wi) / pi,
+// bsdf.cl) is estimated per pass by one light sample and one cosine-weighted BSDF sample. Delta lights (point, spot,
 // directional) give L f cos / p with no MIS (a BSDF sample never hits them); area lights
 // are weighted by the power heuristic between the two techniques, whose pdfs in solid
 // angle at x are
@@ -30,7 +30,10 @@
 // (P_k = pi sum(Le) A_k the emitter's power, P the total: the light pdf of a direction
 // needs only the emission of the surface it hits). The photon pass then stores nothing at
 // a photon's first hit, so direct light is counted once, while light reaching x through
-// specular surfaces (caustics) stays with the photons: a shadow ray stops at glass.
+// specular surfaces (caustics) stays with the photons: a shadow ray stops at glass. At a
+// glossy vertex of an eye path (light_sample_parts) one light sample is weighted the same
+// way against the path's own next bounce, whose emission hit the eye pass weights by
+// emission_weight.
 
 // Index of the emitter whose CDF interval holds u (binary search).
 inline int pick_emitter(__global const float* cdf, int n, float u) {
