@@ -178,6 +178,15 @@ inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float
 inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int mask, Rng* rng, BsdfSample* s) {
     float3 wo = -d, n = dot(wo, ng) > 0.0f ? ns : -ns;
     float co = dot(wo, n);
+    if (m->type == MAT_DIFFUSE && (mask & PART_DIFFUSE)) {  // the common case, in closed form: f cos / pdf = rho
+        s->dir = sample_cosine(n, rng_float(rng), rng_float(rng));
+        float ci = dot(s->dir, n);
+        s->delta = false;
+        s->weight = m->base;
+        s->pdf_fwd = ci / PI_F;
+        s->pdf_rev = co / PI_F;
+        return co > 0.0f && ci > 0.0f && dot(s->dir, ng) * dot(wo, ng) > 0.0f;
+    }
     float3 p = part_choice(m, fmax(co, 0.0f), mask);
     // Choose the part (a random number only where there is a choice).
     int part = p.x > 0.0f ? PART_DIFFUSE : p.y > 0.0f ? PART_GLOSSY : PART_DELTA;
@@ -207,9 +216,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     }
     BsdfEval e = bsdf_eval(m, ng, ns, wo, s->dir, mask);
     if (e.pdf_fwd <= 0.0f) return false;
-    float ci = fabs(dot(s->dir, ns));
-    // Diffuse alone: f cos / pdf = rho exactly (the closed form keeps its rounding off the path).
-    s->weight = m->type == MAT_DIFFUSE ? m->base : e.f * (ci / e.pdf_fwd);
+    s->weight = e.f * (fabs(dot(s->dir, ns)) / e.pdf_fwd);
     s->pdf_fwd = e.pdf_fwd;
     s->pdf_rev = e.pdf_rev;
     return true;
