@@ -23,7 +23,8 @@ import pytest
 from api_tests.cluster import Cluster, finished
 from api_tests.helpers import zip_bomb, zip_bytes
 from service.upload import MAX_UPLOAD_BYTES, MAX_UPLOAD_FILES
-from worker.scene import SCENES_DIR
+from worker.scene import SCENES_DIR, load_any_scene
+from worker.store.record import MAX_JOB_NOTES, MAX_NOTE_CHARS
 
 MITSUBA = SCENES_DIR / "mitsuba"
 PLY_SCENE = {"ply-mesh.xml": MITSUBA / "ply-mesh.xml", "room.xml": MITSUBA / "room.xml",
@@ -116,7 +117,8 @@ def test_mitsuba_xml_with_its_ply_renders_to_the_exact_totals(cluster: Cluster, 
 
 def test_mitsuba_search_paths_and_notes(cluster: Cluster) -> None:
     """A scene whose files are found through <path> and from a fragment in a subfolder renders
-    from an upload; the answer to the submission lists what the scene holds that was ignored."""
+    from an upload; what the scene holds that was ignored is kept with the job: in the answer
+    to the submission and in every view of the job after it, to its end."""
     names = ["search-paths.xml", "room.xml", "fragments/objects.xml", "fragments/block.xml", "meshes/gem.obj",
              "shared/blob.serialized", "spectral-box.xml", "spectra/teal.spd"]
     entries = {name: (MITSUBA / name).read_bytes() for name in names}
@@ -126,10 +128,46 @@ def test_mitsuba_search_paths_and_notes(cluster: Cluster) -> None:
     assert note.startswith('ignored: search-paths.xml line 8: <integrator type="path">'), note
     done = cluster.wait(resp.json()["id"], finished, timeout=180)
     assert done["status"] == "completed" and done["passes"] == PASSES, done
+    assert done["notes"] == [note], done["notes"]
     resp = _upload(cluster, "spectral-box.xml", archive=("scene.zip", zip_bytes(entries)))
     assert resp.status_code == 201, resp.text
     notes = resp.json()["notes"]
     assert any("focus_distance" in n for n in notes) and all(n.startswith("ignored: ") for n in notes), notes
+    assert cluster.job(resp.json()["id"])["notes"] == notes
+    plain = cluster.http.post("/v1/jobs", json={"scene_name": "cornell-box", "settings": SETTINGS})
+    assert plain.status_code == 201 and plain.json()["notes"] == [], plain.text
+    cluster.wait(plain.json()["id"], finished, timeout=180)
+    cluster.wait(resp.json()["id"], finished, timeout=180)
+
+
+def test_thousands_of_ignored_properties_keep_a_bounded_record(cluster: Cluster, tmp_path: Path) -> None:
+    """A scene with thousands of textures nothing refers to (each noted: Mitsuba loads and never
+    renders them), the first with a very long id: the job keeps the first distinct notes, the
+    long one cut, and a last line counting the rest, the same on every view of the job."""
+    long_id = "t" * 4 * MAX_NOTE_CHARS
+    textures = "".join(f'<texture type="bitmap" id="{long_id if i == 0 else f"t{i}"}"/>\n' for i in range(3000))
+    text = (MITSUBA / "ply-mesh.xml").read_text().replace("</scene>", textures + "</scene>")
+    entries = {**_files(PLY_SCENE), "ply-mesh.xml": text.encode()}
+    for name, data in entries.items():  # the same scene read here: every note it yields
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(data)
+    every: list[str] = []
+    load_any_scene(tmp_path / "ply-mesh.xml", notes=every)
+    assert len(every) > 3000 and len(every) == len(set(every))
+    resp = _upload(cluster, "ply-mesh.xml", archive=("scene.zip", zip_bytes(entries)))
+    assert resp.status_code == 201, resp.text
+    notes = resp.json()["notes"]
+    assert len(notes) == MAX_JOB_NOTES + 1 and notes[-1] == f"... and {len(every) - MAX_JOB_NOTES} more", notes
+    for kept, note in zip(notes[:-1], every[:MAX_JOB_NOTES], strict=True):
+        if len(note) <= MAX_NOTE_CHARS:
+            assert kept == note
+        else:  # cut
+            assert len(kept) == MAX_NOTE_CHARS and kept.endswith("...") and note.startswith(kept[:-3]), kept
+    assert any(long_id[:100] in note for note in notes), "the long note is among those kept"
+    done = cluster.wait(resp.json()["id"], finished, timeout=180)
+    assert done["status"] == "completed" and done["notes"] == notes, done["status"]
+    listed = cluster.http.get("/v1/jobs", params={"limit": 500}).json()
+    assert next(job for job in listed if job["id"] == done["id"])["notes"] == notes
 
 
 def _scene_xml(shape: str) -> bytes:
@@ -264,14 +302,17 @@ def test_photonfarm_submit_sends_a_scene_with_its_obj_beside_it(cluster: Cluster
     job_id = re.match(r"job (\S+) ", run.stdout).group(1)
     done = cluster.wait(job_id, finished, timeout=180)
     assert done["status"] == "completed" and done["photons"] == 2 * 4096, done
-    # One with a serialized mesh found through <path>: sent too; what it ignores is printed.
+    # One with a serialized mesh found through <path>: sent too; what it ignores is printed once
+    # while it is watched, as the job keeps it.
     run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(MITSUBA / "search-paths.xml"),
                           "--url", str(cluster.http.base_url), "--max-passes", "2", "--photons-per-pass", "4096",
-                          "--resolution", "16x16"], capture_output=True, text=True, timeout=60, env=cluster.env)
+                          "--resolution", "16x16", "--watch", "--poll", "0.3", "--out", str(tmp_path / "notes.png")],
+                         capture_output=True, text=True, timeout=240, env=cluster.env)
     assert run.returncode == 0, run.stderr
-    assert run.stderr.startswith("photonfarm: ignored: search-paths.xml line 8: <integrator"), run.stderr
-    done = cluster.wait(re.match(r"job (\S+) ", run.stdout).group(1), finished, timeout=180)
-    assert done["status"] == "completed", done
+    assert "completed: 2 passes, 8192 photons" in run.stdout, run.stdout
+    printed = [line.removeprefix("photonfarm: ") for line in run.stderr.splitlines() if "ignored: " in line]
+    assert printed == cluster.job(re.match(r"job (\S+) ", run.stdout).group(1))["notes"], run.stderr
+    assert len(printed) == 1 and printed[0].startswith("ignored: search-paths.xml line 8: <integrator"), printed
     # The same scene without its mesh beside it is refused by the service, naming the mesh.
     (folder / "gem.obj").unlink()
     run = subprocess.run([sys.executable, "-m", "service.cli", "submit", str(folder / "scene.json"),

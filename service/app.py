@@ -112,7 +112,7 @@ def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
         elapsed_seconds=round(record.elapsed_seconds(), 3), photons_per_second=round(record.photons_per_second, 1),
         workers_active=jobs.leases.owners(record.id), created=_iso(record.created), started=_iso(record.started),
         finished=_iso(record.finished), failure=record.failure, error_estimate=jobs.last_error(record.id),
-        error_history=jobs.history(record.id) if history else None,
+        error_history=jobs.history(record.id) if history else None, notes=list(record.notes),
         links=JobLinks(self=base, image_png=f"{base}/image?format=png", image_exr=f"{base}/image?format=exr",
                        error_png=f"{base}/error?format=png", error_exr=f"{base}/error?format=exr"))
 
@@ -360,7 +360,7 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     def create_job(loaded: LoadedScene, settings: JobSettings, scene_name: str | None,
                    scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
         """The one way a job is made (JSON body or upload) from its loaded scene: check the
-        pixels, store the job, issue its batches."""
+        pixels, store the job with the scene's notes, issue its batches."""
         problem = camera_problem(settings, loaded.aperture_radius)
         if problem:
             raise _unprocessable(["body", "settings", "method"], problem)
@@ -370,13 +370,13 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
         try:
             job_id = jobs.create(loaded.scene_json, Settings(**dict(settings)), width, height, scene_name,
-                                 max_active=MAX_ACTIVE_JOBS)
+                                 max_active=MAX_ACTIVE_JOBS, notes=loaded.notes)
         except JobLimitReached as exc:  # not the request's fault: the same request succeeds later
             raise HTTPException(429, detail=str(exc)) from None
         feed(jobs, job_id)
         response.headers["Location"] = f"/v1/jobs/{job_id}"
         log.info(f"job submitted: {scene_name or 'inline scene'} {width}x{height}", extra={"job": job_id})
-        return job_view(jobs, existing(job_id)).model_copy(update={"notes": list(loaded.notes)})
+        return job_view(jobs, existing(job_id))
 
     @app.post("/v1/jobs", status_code=201, response_model=JobView, dependencies=secured,
               responses=errors(*auth, 413, 422, 429))

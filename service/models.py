@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from worker.scene import MAX_RESOLUTION, MAX_SCENE_NAME, SCENE_NAME_PATTERN, bundled_scene_names
 from worker.settings import DEFAULTS, Settings
 from worker.store.policy import Status
+from worker.store.record import MAX_JOB_NOTES, MAX_NOTE_CHARS
 
 # Service limits (docs/limits.md): each answers 413 or 422 naming what it limits.
 MAX_BODY_BYTES = 16 * 1024 * 1024
@@ -112,8 +113,10 @@ class JobView(BaseModel):
     failure: str | None = Field(description="why the job failed")
     error_estimate: ErrorPoint | None = Field(description="the latest estimate (after the last merge)")
     error_history: list[ErrorPoint] | None = Field(None, description="every estimate so far (single-job view)")
-    notes: list[str] | None = Field(None, description="what the scene holds that was accepted but ignored "
-                                                      "(\"ignored: ...\"), in the answer to the submission")
+    notes: list[str] = Field(description="what the scene holds that was accepted but ignored (\"ignored: "
+                                         "...\"), one line each, kept with the job: repeats dropped, each cut "
+                                         f"to {MAX_NOTE_CHARS} characters, at most {MAX_JOB_NOTES} and then "
+                                         "\"... and N more\"")
     links: JobLinks
 
 

@@ -1,6 +1,7 @@
 """The generated reference stays true to the code: every PHOTONFARM_* variable the code
-reads is declared in worker/environment.py and every declared one is read, and the
-settings table the docs hook builds names every Settings field with its default."""
+reads is declared in worker/environment.py and every declared one is read, the
+settings table the docs hook builds names every Settings field with its default, and the
+job notes' cap is in the limits table and the job view's reference."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from types import ModuleType
 
 from worker.environment import VARIABLES
 from worker.settings import Settings
+from worker.store.record import MAX_JOB_NOTES, MAX_NOTE_CHARS
 
 ROOT = Path(__file__).resolve().parent.parent
 NAME = re.compile(r"PHOTONFARM_[A-Z_]+")
@@ -71,3 +73,14 @@ def test_settings_table_lists_every_field_with_its_default() -> None:
             for key, value in table_by.items():
                 assert f"{key} `{value:g}`" in row, f"{name}: default for {key} missing"
     assert len([line for line in lines if line.startswith("| `")]) == len(Settings.model_fields)
+
+
+def test_the_job_notes_cap_is_in_the_limits_table_and_the_job_view() -> None:
+    hook = _hook()
+    row = next((line for line in hook.limits_table().splitlines() if line.startswith("| notes per job |")), None)
+    assert row is not None, "the notes cap is missing from the generated limits table"
+    assert f"| {MAX_JOB_NOTES} distinct, each at most {MAX_NOTE_CHARS:,} characters |" in row, row
+    reference = hook.http_reference()
+    view = reference[reference.index("### JobView"):]
+    notes = next(line for line in view.splitlines() if line.startswith("| `notes` |"))
+    assert f"at most {MAX_JOB_NOTES}" in notes and f"{MAX_NOTE_CHARS} characters" in notes, notes

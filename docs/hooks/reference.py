@@ -117,7 +117,7 @@ def limits_table() -> str:
     from service import models, scene_loader, upload
     from worker import scene
     from worker.settings import MAX_PHOTONS_PER_PASS
-    from worker.store import policy, tiles
+    from worker.store import policy, record, tiles
 
     rows = [
         ("request body", f"{models.MAX_BODY_BYTES // 2**20} MiB", "413", "bounds the API's memory per request",
@@ -152,6 +152,10 @@ def limits_table() -> str:
         ("scene loads in the API", f"{scene_loader.LOAD_PROCESSES} at once, {scene_loader.LOAD_QUEUE} waiting, "
          f"{scene_loader.LOAD_SECONDS:g} s each", "503", "each in a child process: parsing never holds the "
          "threads that serve requests", "`service/scene_loader.py`"),
+        ("notes per job", f"{record.MAX_JOB_NOTES} distinct, each at most {record.MAX_NOTE_CHARS:,} characters",
+         "the rest counted in a last line, \"... and N more\"; a longer note cut",
+         "bounds the job record, which every poll of the job reads",
+         "`worker/store/record.py`"),
         ("batch lease", f"{policy.LEASE_SECONDS:g} s", "re-issue",
          "a batch whose worker stops beating is rendered again", "`PHOTONFARM_LEASE_SECONDS`"),
         ("finished jobs kept", f"{policy.RETENTION_SECONDS / 86_400:g} days", "deleted",

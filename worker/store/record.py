@@ -31,7 +31,7 @@ import json
 import logging
 import time
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, cast
 
@@ -52,6 +52,10 @@ from worker.store.tiles import TILE_PIXELS, Tiling
 
 log = logging.getLogger("photonfarm.store")
 COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
+# A job's notes (what its scene holds that was accepted but ignored) are kept in its record,
+# which every poll of the job reads: bounded, whatever the scene holds (docs/limits.md).
+MAX_JOB_NOTES = 32  # distinct notes kept; the rest are counted in a last line
+MAX_NOTE_CHARS = 512  # one note: room for a file name of 255 characters and the rest of its line
 # A field of a hash that exists (a deleted job's record is not brought back).
 SET_IF_EXISTS = """
 if redis.call('exists', KEYS[1]) == 1 then redis.call('hset', KEYS[1], ARGV[1], ARGV[2]) end
@@ -61,6 +65,17 @@ if redis.call('exists', KEYS[1]) == 1 then redis.call('hset', KEYS[1], ARGV[1], 
 def _scored(reply: object) -> list[tuple[bytes, float]]:
     """A ZRANGE ... WITHSCORES reply: (member, score) pairs (redis-py types it loosely)."""
     return cast("list[tuple[bytes, float]]", reply)
+
+
+def bounded_notes(notes: Iterable[str]) -> tuple[str, ...]:
+    """The notes as a record keeps them: the repeats dropped (first seen first), at most
+    MAX_JOB_NOTES of them, each cut to MAX_NOTE_CHARS, and then "... and N more" counting
+    the distinct notes left out."""
+    distinct = list(dict.fromkeys(notes))
+    kept = tuple(note if len(note) <= MAX_NOTE_CHARS else note[:MAX_NOTE_CHARS - 3] + "..."
+                 for note in distinct[:MAX_JOB_NOTES])
+    left_out = len(distinct) - len(kept)
+    return (*kept, f"... and {left_out} more") if left_out else kept
 
 
 class JobLimitReached(Exception):
@@ -104,6 +119,7 @@ class JobRecord:
     merge_cpu_seconds: float  # CPU time of the workers' processes while pushing and accepting
     failure: str | None
     counters: dict[str, int]  # the integrator's summed scalars (Delta.counters), hash fields "counter:NAME"
+    notes: tuple[str, ...]  # what the scene holds that was accepted but ignored (bounded_notes), set at creation
 
     @classmethod
     def parse(cls, job_id: str, h: Mapping[bytes, bytes] | Mapping[bytes | str, bytes | str]) -> JobRecord:
@@ -133,7 +149,8 @@ class JobRecord:
                    merges=int(f.get("merges", 0)), merge_seconds=float(f.get("merge_seconds", 0.0)),
                    merge_cpu_seconds=float(f.get("merge_cpu_seconds", 0.0)),
                    failure=f.get("error") or None,
-                   counters={k[len(COUNTER):]: int(v) for k, v in f.items() if k.startswith(COUNTER)})
+                   counters={k[len(COUNTER):]: int(v) for k, v in f.items() if k.startswith(COUNTER)},
+                   notes=tuple(json.loads(f.get("notes", "[]"))))
 
     @property
     def fold_seconds(self) -> float:
@@ -184,15 +201,17 @@ class Jobs:
 
     # ------------------------------------------------------------------ records
     def create(self, scene: dict[str, Any] | str, settings: Settings, width: int, height: int,
-               scene_name: str | None, max_active: int | None = None) -> str:
+               scene_name: str | None, max_active: int | None = None, notes: Iterable[str] = ()) -> str:
         """A new queued job; raises JobLimitReached if `max_active` jobs are active. `scene` is
-        the scene JSON, as a dict or already encoded (the API's loads encode it off its threads)."""
+        the scene JSON, as a dict or already encoded (the API's loads encode it off its threads);
+        `notes` are written with the record, in the same transaction, as bounded_notes keeps them."""
         job_id = uuid.uuid4().hex[:16]
         now = time.time()
         fields: Fields = {"status": Status.QUEUED.value, "settings": settings.model_dump_json(),
                   "scene_name": scene_name or "", "width": width, "height": height, "created": now,
                   "passes": 0, "emitted": 0, "next_pass": 0, "pass_seconds": 0.0, "attempts": "{}",
-                  "shards": len(self.tiles.nodes), "tile_pixels": self.tile_pixels}
+                  "shards": len(self.tiles.nodes), "tile_pixels": self.tile_pixels,
+                  "notes": json.dumps(bounded_notes(notes))}
         with self.r.pipeline() as pipe:
             while True:
                 try:
