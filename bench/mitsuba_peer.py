@@ -32,6 +32,7 @@ from worker.scene import (
     PointLight,
     Quad,
     RoughConductor,
+    RoughGlass,
     RoughPlastic,
     Scene,
     Sphere,
@@ -111,8 +112,11 @@ def _bsdf(material: Any) -> dict[str, Any]:
     (Mitsuba refuses them in `twosided`)."""
     if isinstance(material, Glass):
         transmittance = material.albedo if material.transmittance is None else material.transmittance
-        return {"type": "dielectric", "int_ior": material.ior, "ext_ior": 1.0,
-                "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(transmittance)}
+        out = {"type": "dielectric", "int_ior": material.ior, "ext_ior": 1.0,
+               "specular_reflectance": _rgb(material.albedo), "specular_transmittance": _rgb(transmittance)}
+        if isinstance(material, RoughGlass):
+            out.update(type="roughdielectric", alpha=material.alpha, distribution=material.distribution)
+        return out
     if isinstance(material, ThinGlass):
         return {"type": "thindielectric", "int_ior": material.ior, "ext_ior": 1.0,
                 "specular_reflectance": _rgb(material.albedo),

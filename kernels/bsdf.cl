@@ -20,8 +20,17 @@
 //                 lobes f = R D G / (4 cos_o cos_i) of rough_conductor (R its Fresnel term)
 //                 and rough_plastic's coat (R = specular F(wo.h)), sampled by D(h) cos_h
 //                 with pdf D cos_h / (4 wo.h) (Walter et al. 2007).
+//                 rough_glass: reflection as rough_plastic's coat (tinted by its albedo),
+//                 and refraction through microfacet h (Walter et al. 2007, eq. 21; pbrt-v4's
+//                 rough dielectric) f = T (1 - F) D G |wi.h| |wo.h| / (|cos_i| cos_o
+//                 (wi.h + wo.h / eta)^2), eta = n(wi's side) / n(wo's side), h the
+//                 generalised half vector wo + eta wi; the choice between them is F(wo.h).
 //   PART_DELTA    mirror reflection (conductor, plastic's coat) and a smooth dielectric's
 //                 reflection and refraction (glass, thin_glass).
+// Refraction in `radiance` mode (camera and eye paths) divides f by eta^2, the radiance a
+// ray gains entering a denser medium; photons and light subpaths carry flux (importance
+// mode) and do not. Every path that starts and ends outside an object crosses its surface in
+// and out in pairs, whose factors cancel; a path that ends on a surface inside it keeps one.
 // Plastics choose between coat and base as Mitsuba 3 does: P_coat proportional to
 // w F(wo) (rough: w (1 - T(wo))), P_base to (1 - w)(1 - F(wo)) (rough: (1 - w) T(wo)), w the
 // specular sampling weight. A caller may restrict the parts (`mask`): probabilities are
@@ -50,7 +59,8 @@ inline int material_parts(const Material* m) {
     switch (m->type) {
         case MAT_DIFFUSE: return PART_DIFFUSE;
         case MAT_GLOSSY:
-        case MAT_ROUGH_CONDUCTOR: return PART_GLOSSY;
+        case MAT_ROUGH_CONDUCTOR:
+        case MAT_ROUGH_GLASS: return PART_GLOSSY;
         case MAT_PLASTIC: return PART_DIFFUSE | PART_DELTA;
         case MAT_ROUGH_PLASTIC: return PART_DIFFUSE | PART_GLOSSY;
         default: return PART_DELTA;
@@ -120,8 +130,43 @@ inline float3 glossy_eval(const Material* m, float3 n, float3 wo, float3 wi, flo
     return r * (d * gm / (4.0f * co * ci));
 }
 
-inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, float3 wi, int mask) {
+// rough_glass: f and both pdfs for wo and wi on either side (go, gi: their cosines to ng).
+inline BsdfEval rough_glass_eval(const Material* m, float3 ng, float3 ns, float3 wo, float3 wi, float go, float gi,
+                                 bool radiance) {
     BsdfEval e = {(float3)(0.0f), 0.0f, 0.0f};
+    float3 n = go > 0.0f ? ns : -ns;
+    float co = dot(wo, n), ci = dot(wi, n);
+    bool reflect = go * gi > 0.0f;
+    if (co <= 0.0f || (reflect ? ci <= 0.0f : ci >= 0.0f)) return e;
+    float eta = reflect ? 1.0f : (go > 0.0f ? m->eta.x : 1.0f / m->eta.x);  // n(wi's side) / n(wo's side)
+    float3 hv = normalize(reflect ? wo + wi : wo + eta * wi);
+    if (dot(hv, n) < 0.0f) hv = -hv;
+    float oh = dot(wo, hv), ih = dot(wi, hv), ch = dot(hv, n);
+    if (oh <= 0.0f || ih * ci <= 0.0f) return e;  // a microfacet seen from its back
+    bool beckmann = (m->flags & MF_BECKMANN) != 0;
+    float d = mf_d(ch, m->rough, beckmann);
+    float gm = mf_g1(co, oh, m->rough, beckmann) * mf_g1(ci, ih, m->rough, beckmann);
+    float ct;
+    float fr = fresnel_dielectric(oh, go > 0.0f ? m->eta.x : 1.0f / m->eta.x, &ct);
+    if (reflect) {
+        e.f = m->base * (fr * d * gm / (4.0f * co * ci));
+        e.pdf_fwd = e.pdf_rev = fr * d * ch / (4.0f * oh);
+        return e;
+    }
+    float denom = (ih + oh / eta) * (ih + oh / eta);
+    float value = (1.0f - fr) * d * gm * fabs(ih) * oh / (denom * fabs(ci) * co);
+    e.f = m->second * (radiance ? value / (eta * eta) : value);
+    e.pdf_fwd = (1.0f - fr) * d * ch * fabs(ih) / denom;
+    e.pdf_rev = (1.0f - fr) * d * ch * oh / (eta * eta * denom);  // the same from wi's side, 1 / eta
+    return e;
+}
+
+inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, float3 wi, int mask, bool radiance) {
+    BsdfEval e = {(float3)(0.0f), 0.0f, 0.0f};
+    if (m->type == MAT_ROUGH_GLASS) {
+        float go = dot(wo, ng), gi = dot(wi, ng);
+        return (mask & PART_GLOSSY) && go * gi != 0.0f ? rough_glass_eval(m, ng, ns, wo, wi, go, gi, radiance) : e;
+    }
     int parts = material_parts(m) & mask & (PART_DIFFUSE | PART_GLOSSY);
     float go = dot(wo, ng), gi = dot(wi, ng);
     if (go * gi <= 0.0f || parts == 0) return e;  // reflection only, both on one side of the true surface
@@ -144,8 +189,8 @@ inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, fl
 }
 
 // A delta part's bounce of a path arriving along d at a surface whose normal n faces it.
-inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float co, Rng* rng, float3* nd,
-                         float3* weight) {
+inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float co, bool radiance, Rng* rng,
+                         float3* nd, float3* weight) {
     if (m->type == MAT_CONDUCTOR) {
         *nd = reflect_dir(d, n);
         *weight = conductor_reflectance(m, co);
@@ -168,14 +213,15 @@ inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float
         *weight = m->base;
     } else {
         *nd = m->type == MAT_THIN_GLASS ? d : normalize(d / eta + (co / eta - ct) * n);
-        *weight = m->second;
+        *weight = radiance && m->type == MAT_GLASS ? m->second / (eta * eta) : m->second;
     }
     return true;
 }
 
 // A bounce of a path arriving along d (propagation direction), taking a part among those
 // in `mask`; false if the path ends (absorbed, or sampled through the surface).
-inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int mask, Rng* rng, BsdfSample* s) {
+inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int mask, bool radiance, Rng* rng,
+                        BsdfSample* s) {
     float3 wo = -d, n = dot(wo, ng) > 0.0f ? ns : -ns;
     float co = dot(wo, n);
     if (m->type == MAT_DIFFUSE && (mask & PART_DIFFUSE)) {  // the common case, in closed form: f cos / pdf = rho
@@ -198,7 +244,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     s->delta = part == PART_DELTA;
     s->pdf_fwd = s->pdf_rev = 1.0f;
     if (s->delta) {
-        if (!delta_sample(m, d, n, ng, co, rng, &s->dir, &s->weight)) return false;
+        if (!delta_sample(m, d, n, ng, co, radiance, rng, &s->dir, &s->weight)) return false;
         s->weight /= p.z;
         return true;
     }
@@ -213,8 +259,18 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     } else {
         float3 hv = mf_sample(n, m->rough, (m->flags & MF_BECKMANN) != 0, rng_float(rng), rng_float(rng));
         s->dir = reflect_dir(d, hv);
+        if (m->type == MAT_ROUGH_GLASS) {  // reflect with F(wo.h), else refract through h
+            float oh = dot(wo, hv), ct;
+            if (oh <= 0.0f) return false;
+            float eta = dot(wo, ng) > 0.0f ? m->eta.x : 1.0f / m->eta.x;
+            float fr = fresnel_dielectric(oh, eta, &ct);
+            bool refract = rng_float(rng) >= fr;
+            if (refract) s->dir = normalize(d / eta + (oh / eta - ct) * hv);
+            // A steep microfacet can send either branch to the wrong side of the surface: lost.
+            if ((dot(s->dir, ng) * dot(wo, ng) < 0.0f) != refract) return false;
+        }
     }
-    BsdfEval e = bsdf_eval(m, ng, ns, wo, s->dir, mask);
+    BsdfEval e = bsdf_eval(m, ng, ns, wo, s->dir, mask, radiance);
     if (e.pdf_fwd <= 0.0f) return false;
     s->weight = e.f * (fabs(dot(s->dir, ns)) / e.pdf_fwd);
     s->pdf_fwd = e.pdf_fwd;

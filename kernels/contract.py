@@ -23,7 +23,7 @@ import numpy as np
 # `mirror` is a conductor without a Fresnel term (MF_NO_FRESNEL); TABLE_SIZE: the cosines a
 # rough plastic's coat transmittance is tabulated at, evenly over [0, 1] (as Mitsuba 3's).
 MATERIALS = {"diffuse": 0, "glossy": 1, "conductor": 2, "rough_conductor": 3, "glass": 4, "thin_glass": 5,
-             "plastic": 6, "rough_plastic": 7}
+             "plastic": 6, "rough_plastic": 7, "rough_glass": 8}
 MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4}
 SURF_ROWS = 4
 TABLE_SIZE = 64

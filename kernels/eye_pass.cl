@@ -380,9 +380,9 @@ __kernel void eye_pass(
         float keep = 1.0f - p_diffuse;
         if (material_parts(&m) & PART_GLOSSY)  // photons are stored on diffuse parts only: this light is the light sample's alone
             direct += thr / keep * light_sample_parts(&g, emitters, emitter_cdf, n_emitters, &m, p, h.ng, h.ns, -d, mask,
-                                                      &light_rng);
+                                                      true, &light_rng);
         BsdfSample b;
-        if (!bsdf_sample(&m, h.ng, h.ns, d, mask, &rng, &b)) break;
+        if (!bsdf_sample(&m, h.ng, h.ns, d, mask, true, &rng, &b)) break;
         if (h.smooth && shading_bounce(d, b.dir, h.ng, h.ns, false) == 0.0f) break;
         last_pdf = b.delta ? 0.0f : b.pdf_fwd;
         thr *= b.weight / keep;

@@ -191,10 +191,10 @@ inline float3 direct_light(const SceneGeom* g, __global const float4* surfaces, 
 // emission_weight. ng: the geometric normal as the shape defines it.
 inline float3 light_sample_parts(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
                                  int n_emitters, const Material* m, float3 x, float3 ng, float3 ns, float3 wo,
-                                 int mask, Rng* rng) {
+                                 int mask, bool radiance, Rng* rng) {
     DirectSample s;
     if (n_emitters == 0 || !sample_direct(g, emitters, cdf, n_emitters, x, rng, &s)) return (float3)(0.0f);
-    BsdfEval e = bsdf_eval(m, ng, ns, wo, s.wi, mask);
+    BsdfEval e = bsdf_eval(m, ng, ns, wo, s.wi, mask, radiance);
     if (e.pdf_fwd <= 0.0f) return (float3)(0.0f);
     float3 side = dot(s.wi, ng) > 0.0f ? ng : -ng;
     if (shadowed(g, x + side * ray_eps(g, x), &s)) return (float3)(0.0f);

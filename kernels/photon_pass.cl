@@ -139,7 +139,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surfaces,
             sink_photon(sink, p, stored, (uint2)(pack_dir(-d), pack_dir(n)), key);
         }
         BsdfSample b;
-        if (!bsdf_sample(&m, h.ng, h.ns, d, PART_ALL, rng, &b)) return;
+        if (!bsdf_sample(&m, h.ng, h.ns, d, PART_ALL, false, rng, &b)) return;
         float3 w = b.weight, nd = b.dir;
         if (h.smooth) w *= shading_bounce(d, nd, h.ng, h.ns, true);
         // Russian roulette on the throughput factor keeps the expected flux unchanged.

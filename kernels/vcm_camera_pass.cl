@@ -26,7 +26,9 @@ typedef struct {
     Material m;
 } CameraVertex;
 
-inline BsdfEval camera_bsdf(const CameraVertex* x, float3 wi) { return bsdf_eval(&x->m, x->ng, x->ns, x->wo, wi, PART_ALL); }
+inline BsdfEval camera_bsdf(const CameraVertex* x, float3 wi) {
+    return bsdf_eval(&x->m, x->ng, x->ns, x->wo, wi, PART_ALL, true);
+}
 
 // One light sample, weighted 1 / (w_light + 1 + w_cam): w_light = p_bsdf / (pick p_direct)
 // (0 for delta lights), w_cam = p_emit cos_x / (p_direct cos_l) (eta_vm + dVCM + dVC p_rev).
@@ -36,7 +38,8 @@ inline float3 next_event(const SceneGeom* g, __global const float4* emitters, __
     if (!sample_direct(g, emitters, cdf, n_emitters, x->p, rng, &ls)) return (float3)(0.0f);
     BsdfEval e = camera_bsdf(x, ls.wi);
     if (e.pdf_fwd <= 0.0f) return (float3)(0.0f);
-    if (shadowed(g, x->p + x->side * ray_eps(g, x->p), &ls)) return (float3)(0.0f);
+    float3 off = dot(ls.wi, x->ng) > 0.0f ? x->ng : -x->ng;  // the side the light is on (transmission: the other)
+    if (shadowed(g, x->p + off * ray_eps(g, x->p), &ls)) return (float3)(0.0f);
     float w_light = ls.delta ? 0.0f : e.pdf_fwd / (ls.pick * ls.direct_pdf);
     float w_cam = ls.emission_pdf * fabs(dot(ls.wi, x->ng)) / (ls.direct_pdf * ls.cos_light)
                 * (eta.vm + s->dVCM + s->dVC * e.pdf_rev);
@@ -60,10 +63,11 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
         BsdfEval ex = camera_bsdf(x, dir);
         if (ex.pdf_fwd <= 0.0f) continue;
         Material my = load_material(surfaces, y.surf);
-        BsdfEval ey = bsdf_eval(&my, y.ng, y.ns, y.wo, -dir, PART_ALL);
+        BsdfEval ey = bsdf_eval(&my, y.ng, y.ns, y.wo, -dir, PART_ALL, false);
         if (ey.pdf_fwd <= 0.0f) continue;
         float3 y_side = dot(y.ng, dir) < 0.0f ? y.ng : -y.ng;  // y's normal on x's side
-        if (blocked_between(g, x->p + x->side * ray_eps(g, x->p), y.pos + y_side * ray_eps(g, y.pos))) continue;
+        float3 x_side = dot(x->ng, dir) > 0.0f ? x->ng : -x->ng;  // x's normal on y's side
+        if (blocked_between(g, x->p + x_side * ray_eps(g, x->p), y.pos + y_side * ray_eps(g, y.pos))) continue;
         float cos_x = fabs(dot(dir, x->ng)), cos_y = fabs(dot(dir, y.ng));
         float w_light = ex.pdf_fwd * cos_y / d2 * (eta.vm + y.dVCM + y.dVC * ey.pdf_rev);
         float w_cam = ey.pdf_fwd * cos_x / d2 * (eta.vm + s->dVCM + s->dVC * ex.pdf_rev);
@@ -89,6 +93,7 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
     uint entries[8];
     int n_entries = ball_entries(x->p, sqrt(r2), inv_cell, mask, entries);
     bool uncut = (cut.x & cut.y) == CUT_NONE;  // inside_cut's own first test, kept out of the loop
+    bool transmits = x->m.type == MAT_ROUGH_GLASS;
     // The candidate loop calls no builtin (dot3, geometry.cl): a call spills every live
     // vector register, and most candidates lie beyond r.
     for (int k = 0; k < n_entries; ++k) {
@@ -100,7 +105,9 @@ inline float3 merge_light_vertices(const CameraVertex* x, const SubPath* s, MisE
             if (dd >= r2 || !(uncut || inside_cut(cut, x->side, v, sqrt(r2)))) continue;
             LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, as_uint(gp.w));
             float3 y_side = dot(y.wo, y.ng) > 0.0f ? y.ng : -y.ng;
-            if (dot(y_side, x->side) <= NORMAL_MATCH_COS) continue;  // another surface (eye_pass.cl)
+            // Another surface (eye_pass.cl); a surface that transmits takes light from either side.
+            float match = transmits ? fabs(dot(y_side, x->side)) : dot(y_side, x->side);
+            if (match <= NORMAL_MATCH_COS) continue;
             BsdfEval e = camera_bsdf(x, y.wo);
             if (e.pdf_fwd <= 0.0f) continue;
             float w_light = y.dVCM * eta.vc + y.dVM * e.pdf_fwd;

@@ -40,7 +40,7 @@ inline void subpath_arrive(SubPath* s, const Hit* h, float dist) {
 inline bool subpath_bounce(const SceneGeom* g, SubPath* s, const Hit* h, float3 p, const Material* m, int parts,
                            bool light, MisEtas eta, Rng* rng) {
     BsdfSample b;
-    if (!bsdf_sample(m, h->ng, h->ns, s->d, parts, rng, &b)) return false;
+    if (!bsdf_sample(m, h->ng, h->ns, s->d, parts, !light, rng, &b)) return false;
     float3 w = b.weight;
     if (h->smooth) w *= shading_bounce(s->d, b.dir, h->ng, h->ns, light);
     float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));

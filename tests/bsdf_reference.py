@@ -1,9 +1,9 @@
 """The BSDFs of the scene model in numpy, written from their equations (kernels/bsdf.cl
 states them) for the closed forms the tests compare renders with: f(wo, wi) without the
-cosine, for directions as (..., 3) arrays about the normal +z... of any frame given `n`.
+cosine, for directions as (..., 3) arrays and the normal `n` of the side they leave from.
 
 Only reflection: what a point light gives a plane, and a convex object's directional albedo
-in a uniform field, need no more.
+in a uniform field, need no more (a rough glass's reflected part alone).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from worker.scene import Glossy, Plastic, RoughConductor, RoughPlastic
+from worker.scene import Glossy, Plastic, RoughConductor, RoughGlass, RoughPlastic
 from worker.surfaces import coat_constants, fresnel, smith_g1, table_cosines
 
 
@@ -54,7 +54,7 @@ def bsdf(material: object, n: np.ndarray, wo: np.ndarray, wi: np.ndarray) -> np.
     h = h / np.linalg.norm(h, axis=-1, keepdims=True)
     oh, ch = _dot(wo, h), _dot(h, n)
     out = np.zeros(np.broadcast_shapes(co.shape, ci.shape) + (3,))
-    if isinstance(material, RoughConductor | RoughPlastic):
+    if isinstance(material, RoughConductor | RoughPlastic | RoughGlass):
         beckmann = material.distribution == "beckmann"
         g = smith_g1(co, oh, material.alpha, beckmann) * smith_g1(ci, oh, material.alpha, beckmann)
         lobe = microfacet_d(ch, material.alpha, beckmann) * g / (4.0 * np.abs(co) * np.abs(ci))
@@ -62,7 +62,8 @@ def bsdf(material: object, n: np.ndarray, wo: np.ndarray, wi: np.ndarray) -> np.
             r = np.array(material.specular) * (1.0 if material.eta is None else
                                                fresnel_conductor(oh, np.array(material.eta), np.array(material.k)))
         else:
-            r = np.array(material.specular) * fresnel(np.clip(oh, 0.0, 1.0), material.ior)[..., None]
+            tint = material.albedo if isinstance(material, RoughGlass) else material.specular
+            r = np.array(tint) * fresnel(np.clip(oh, 0.0, 1.0), material.ior)[..., None]
         out = out + r * lobe[..., None]
     if isinstance(material, Plastic):
         internal, table = coat_constants(material)
@@ -75,3 +76,19 @@ def bsdf(material: object, n: np.ndarray, wo: np.ndarray, wi: np.ndarray) -> np.
             t_o, t_i = np.interp(co, table_cosines(), table), np.interp(ci, table_cosines(), table)
         out = out + rho / (1.0 - inner) * (t_o * t_i / (material.ior ** 2 * math.pi))[..., None]
     return np.where(up, out, 0.0)
+
+
+def rough_transmission(material: RoughGlass, n: np.ndarray, wo: np.ndarray, wi: np.ndarray,
+                       eta: float) -> np.ndarray:
+    """A rough glass's refraction f(wo, wi), rgb, in radiance mode: wo on n's side, wi beyond,
+    eta = n(wi's side) / n(wo's side) (Walter et al. 2007, eq. 21, over eta^2)."""
+    h = wo + eta * wi
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    h = np.where((_dot(h, n) < 0.0)[..., None], -h, h)
+    oh, ih, co, ci, ch = _dot(wo, h), _dot(wi, h), _dot(wo, n), _dot(wi, n), _dot(h, n)
+    beckmann = material.distribution == "beckmann"
+    g = smith_g1(co, oh, material.alpha, beckmann) * smith_g1(ci, ih, material.alpha, beckmann)
+    f = ((1.0 - fresnel(np.clip(oh, 1e-12, 1.0), eta)) * microfacet_d(ch, material.alpha, beckmann) * g
+         * np.abs(ih) * oh / ((ih + oh / eta) ** 2 * np.abs(ci) * co * eta ** 2))
+    tint = material.albedo if material.transmittance is None else material.transmittance
+    return np.where(((co > 0.0) & (ci < 0.0) & (oh > 0.0))[..., None], np.array(tint) * f[..., None], 0.0)

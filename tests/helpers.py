@@ -160,7 +160,7 @@ SENSOR = """<sensor type="perspective"><float name="fov" value="40"/>
 # Mitsuba 3's bsdf classes (as a loaded bsdf describes itself) and the material each becomes.
 MITSUBA_BSDF_CLASSES = {"SmoothDiffuse": "diffuse", "SmoothConductor": "conductor", "RoughConductor": "rough_conductor",
                         "SmoothDielectric": "glass", "ThinDielectric": "thin_glass", "SmoothPlastic": "plastic",
-                        "RoughPlastic": "rough_plastic"}
+                        "RoughPlastic": "rough_plastic", "RoughDielectric": "rough_glass"}
 
 
 def mitsuba_material(mi, bsdf) -> dict:
@@ -182,9 +182,12 @@ def mitsuba_material(mi, bsdf) -> dict:
 
     if kind == "diffuse":
         return {"type": kind, "albedo": rgb("reflectance")}
-    if kind in ("glass", "thin_glass"):
-        return {"type": kind, "ior": float(params["eta"]), "albedo": rgb("specular_reflectance"),
-                "transmittance": rgb("specular_transmittance")}
+    if kind in ("glass", "thin_glass", "rough_glass"):
+        out = {"type": kind, "ior": float(params["eta"]), "albedo": rgb("specular_reflectance"),
+               "transmittance": rgb("specular_transmittance")}
+        if kind == "rough_glass":
+            out.update(alpha=float(params["alpha.value"]), distribution=described("distribution"))
+        return out
     if kind in ("plastic", "rough_plastic"):
         out = {"type": kind, "albedo": rgb("diffuse_reflectance"), "specular": rgb("specular_reflectance"),
                "ior": float(params["eta"]), "nonlinear": described("nonlinear") == "1"}
@@ -206,7 +209,7 @@ def our_material(material: BaseModel) -> dict:
     """One of our materials (validated, so with its defaults) as `mitsuba_material` states
     Mitsuba's: a glass's transmittance is its albedo unless given; an unset eta and k left out."""
     out = material.model_dump(exclude_none=True)
-    if out["type"] == "glass":
+    if out["type"] in ("glass", "rough_glass"):
         out.setdefault("transmittance", out["albedo"])
     return out
 

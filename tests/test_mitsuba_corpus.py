@@ -150,9 +150,9 @@ def test_materials(mi) -> None:
     assert ours.materials["panel"].distribution == "ggx"
     assert ours.materials["glass"].transmittance != ours.materials["glass"].albedo
     spheres = [s for s in ours.shapes if s.type == "sphere"]
-    assert len(spheres) == sum(not s.is_mesh() for s in scene.shapes()) == 3
+    assert len(spheres) == sum(not s.is_mesh() for s in scene.shapes()) == 4
     assert 2 * (len(ours.shapes) - len(spheres) - 1) + 12 == faces(scene)  # quads and the cube (Mitsuba merges meshes)
-    assert [line.split(" (")[0].split(": ")[-1] for line in notes] == ["<integrator>"], notes
+    assert [line.split(" (")[0].split(": ")[-1] for line in notes] == ["<integrator>", "<rfilter>"], notes
 
 
 def test_blackbody_matches_a_spectral_render(mi) -> None:

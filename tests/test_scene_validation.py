@@ -121,7 +121,7 @@ def test_minimal_scene_is_valid():
 # ------------------------------------------------------------------------ materials
 def test_unknown_material_type():
     d = minimal_scene()
-    d["materials"]["shiny"] = {"type": "plastic", "albedo": [0.5, 0.5, 0.5]}
+    d["materials"]["shiny"] = {"type": "velvet", "albedo": [0.5, 0.5, 0.5]}
     assert parse_error(d).field == "materials.shiny"
 
 

@@ -645,12 +645,10 @@ class Converter:
             if p.objects[0].tag == "ref":
                 return dict(self.materials[inner[0].attrs["id"]])
             return self.material(inner[0])
-        if kind == "roughdielectric":
-            raise _error(node, "rough dielectrics (microfacet refraction) are not supported: use dielectric "
-                               "(smooth glass) or thindielectric")
         convert: dict[str, Callable[[Props], dict]] = {
             "diffuse": self._diffuse, "conductor": self._conductor, "roughconductor": self._roughconductor,
-            "dielectric": self._dielectric, "thindielectric": self._thindielectric, "plastic": self._plastic,
+            "dielectric": self._dielectric, "roughdielectric": self._roughdielectric,
+            "thindielectric": self._thindielectric, "plastic": self._plastic,
             "roughplastic": self._roughplastic,
         }
         if kind not in convert:
@@ -751,6 +749,12 @@ class Converter:
         if transmittance != out["albedo"]:  # our glass tints refraction by `albedo` unless told otherwise
             out["transmittance"] = transmittance
         return out
+
+    def _roughdielectric(self, p: Props) -> dict:
+        out = {"type": "rough_glass", "ior": self._relative_ior(p, "bk7"),
+               "albedo": self._albedo(p, "specular_reflectance", 1.0),
+               "transmittance": self._albedo(p, "specular_transmittance", 1.0)}
+        return {**out, **self._microfacet(p)}
 
     def _thindielectric(self, p: Props) -> dict:
         return {"type": "thin_glass", "ior": self._relative_ior(p, "bk7"),

@@ -2,7 +2,7 @@
 
 The model holds no more than the bundled scenes need: a pinhole or thin-lens camera,
 spheres, quads and triangle meshes (any of which may emit and is then an area light),
-nine materials and three kinds of delta light. Every validation failure is reported
+ten materials and three kinds of delta light. Every validation failure is reported
 as a `SceneError` whose `field` is the dotted path of the offending value, so the CLI
 and the HTTP API can name it.
 """
@@ -163,6 +163,15 @@ class Glass(_Model):
     transmittance: Albedo | None = None
 
 
+class RoughGlass(Glass):
+    """A dielectric with a rough surface: microfacet reflection and refraction of roughness
+    `alpha`."""
+
+    type: Literal["rough_glass"]  # type: ignore[assignment]
+    alpha: Roughness = 0.1
+    distribution: Distribution = "beckmann"
+
+
 class ThinGlass(_Model):
     """A thin dielectric sheet (a window pane): the interreflections inside it summed, rays pass
     straight through."""
@@ -226,7 +235,7 @@ class RoughPlastic(Plastic):
 
 
 Material = Annotated[
-    Diffuse | Mirror | Glass | ThinGlass | Glossy | Conductor | RoughConductor | Plastic | RoughPlastic,
+    Diffuse | Mirror | Glass | RoughGlass | ThinGlass | Glossy | Conductor | RoughConductor | Plastic | RoughPlastic,
     Field(discriminator="type"),
 ]
 
@@ -473,8 +482,8 @@ def shape_triangles(scene: Scene, base_dir: Path, root: Path = SCENES_DIR) -> li
 
 
 _UNION_TAGS = {
-    "materials": {"diffuse", "mirror", "glass", "thin_glass", "glossy", "conductor", "rough_conductor", "plastic",
-                  "rough_plastic"},
+    "materials": {"diffuse", "mirror", "glass", "rough_glass", "thin_glass", "glossy", "conductor", "rough_conductor",
+                  "plastic", "rough_plastic"},
     "shapes": {"sphere", "quad", "mesh"},
     "lights": {"point", "spot", "directional"},
 }

@@ -18,7 +18,18 @@ import math
 import numpy as np
 
 from kernels.contract import MATERIAL_FLAGS, MATERIALS, SURF_ROWS, TABLE_SIZE
-from worker.scene import Conductor, Glass, Glossy, Mirror, Plastic, RoughConductor, RoughPlastic, Scene, ThinGlass
+from worker.scene import (
+    Conductor,
+    Glass,
+    Glossy,
+    Mirror,
+    Plastic,
+    RoughConductor,
+    RoughGlass,
+    RoughPlastic,
+    Scene,
+    ThinGlass,
+)
 
 QUADRATURE = 96  # Gauss-Legendre nodes per dimension of the microfacet integrals
 
@@ -127,7 +138,11 @@ def surface_records(scene: Scene) -> np.ndarray:
                 rows[1, 3] = material.alpha
                 flags |= MATERIAL_FLAGS["beckmann"] if material.distribution == "beckmann" else 0
         elif isinstance(material, Glass | ThinGlass):
-            kind = "thin_glass" if isinstance(material, ThinGlass) else "glass"
+            kind = "thin_glass" if isinstance(material, ThinGlass) else "rough_glass" if isinstance(
+                material, RoughGlass) else "glass"
+            if isinstance(material, RoughGlass):
+                rows[1, 3] = material.alpha
+                flags |= MATERIAL_FLAGS["beckmann"] if material.distribution == "beckmann" else 0
             rows[0, :3] = material.albedo
             rows[2, 0] = material.ior
             rows[3, :3] = material.albedo if material.transmittance is None else material.transmittance
