@@ -12,11 +12,9 @@ XML is read with expat, which reports the line of every element (ElementTree doe
 
 from __future__ import annotations
 
-import gc
 import math
 import re
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, overload
@@ -33,6 +31,7 @@ from worker.scene import (
     LoadBudget,
     Scene,
     SceneError,
+    collector_paused,
     parse_scene,
     read_mesh,
 )
@@ -844,9 +843,9 @@ class Converter:
     def _mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None, flip: bool) -> dict:
         if flip:
             triangles = triangles[:, ::-1]
-        out = {"type": "mesh", "vertices": vertices.tolist(), "triangles": triangles.tolist()}
+        out = {"type": "mesh", "vertices": vertices, "triangles": triangles}
         if normals is not None:
-            out["normals"] = (-normals if flip else normals).tolist()
+            out["normals"] = -normals if flip else normals
         return out
 
     def _rectangle(self, p: Props, m: np.ndarray, flip: bool) -> dict:
@@ -1042,32 +1041,17 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
     data, _, found = convert_and_validate(path, params, root, budget)
     if notes is not None:
         notes.extend(found)
+    with collector_paused():
+        for shape in data["shapes"]:  # a mesh's arrays as JSON's lists
+            shape.update({key: value.tolist() for key, value in shape.items() if isinstance(value, np.ndarray)})
     return data
-
-
-@contextmanager
-def _collector_paused() -> Iterator[None]:
-    """Pause Python's cyclic garbage collector: a large mesh becomes millions of small lists,
-    and every few hundred of them would start a collection pass over all the others (the
-    objects made here hold no cycles; reference counting frees them)."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def convert_and_validate(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
                          budget: LoadBudget | None = None) -> tuple[dict, Scene, list[str]]:
-    """`convert_mitsuba`'s JSON, the Scene it validated to (validated once) and the notes."""
-    with _collector_paused():
-        return _convert_and_validate(Path(path).resolve(), params, root, budget)
-
-
-def _convert_and_validate(path: Path, params: dict[str, str] | None, root: Path | None,
-                          budget: LoadBudget | None) -> tuple[dict, Scene, list[str]]:
+    """`convert_mitsuba`'s JSON (a mesh's vertices, triangles and normals still NumPy arrays),
+    the Scene it validated to (validated once) and the notes."""
+    path = Path(path).resolve()
     conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()},
                      budget=budget or LoadBudget())
     top = _read_xml(path, conv.budget)
