@@ -50,6 +50,7 @@ NAMED_IOR = {
 TRANSMISSIVE = {"dielectric", "thindielectric", "roughdielectric"}
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
 CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (area within 1e-4)
+NORMALS_CHUNK = 1 << 14  # triangles per step of _vertex_normals: its temporaries stay in cache, not in fresh pages
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
 # What the model cannot hold, refused by name wherever it appears.
@@ -205,8 +206,14 @@ def to_world_matrix(node: Node) -> np.ndarray:
     return m
 
 
+def _times(rows: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """rows @ a for (n, 3) rows and a 3 x 3 matrix, computed in this thread: matmul hands so
+    thin a product to BLAS, whose threads stall while the machine's cores are busy."""
+    return np.einsum("ij,jk->ik", rows, a)
+
+
 def _apply(m: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ m[:3, :3].T + m[:3, 3]
+    return _times(points, m[:3, :3].T) + m[:3, 3]
 
 
 # ----------------------------------------------------------------------- properties
@@ -915,7 +922,7 @@ class Converter:
         normals = None
         if not face_normals:  # Mitsuba computes angle-weighted vertex normals where the file has none
             normals = mesh.normals if mesh.normals is not None else _vertex_normals(mesh.vertices, tris)
-            normals = normals @ np.linalg.inv(m[:3, :3])  # normals transform by the inverse transpose
+            normals = _times(normals, np.linalg.inv(m[:3, :3]))  # normals transform by the inverse transpose
         if np.linalg.det(m[:3, :3]) < 0:
             tris = tris[:, ::-1]
         return self._mesh(_apply(m, mesh.vertices), tris, normals, flip)
@@ -1017,18 +1024,26 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them):
     each face adds its unit normal times its angle at the vertex. Zero for a vertex that only
     degenerate faces touch (the renderer then takes the face normal)."""
-    p = vertices[triangles]
-    edges = [p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]]
-    unit = [e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300) for e in edges]
-    face = np.cross(edges[0], -edges[2])
-    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-300)
-    out = np.zeros_like(vertices, dtype=np.float64)
-    for corner in range(3):  # the angle at a corner is between its outgoing edge and the reversed incoming one
-        cos = np.einsum("ij,ij->i", unit[corner], -unit[corner - 1])
-        weighted = face * np.arccos(np.clip(cos, -1.0, 1.0))[:, None]
-        for axis in range(3):
-            out[:, axis] += np.bincount(triangles[:, corner], weighted[:, axis], minlength=len(vertices))
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+    weighted = np.empty((3, len(triangles), 3))  # [axis, triangle, corner]: what the corner adds
+    for start in range(0, len(triangles), NORMALS_CHUNK):
+        part = slice(start, start + NORMALS_CHUNK)
+        p = vertices[triangles[part]]  # (n, 3, 3): corner k of each triangle
+        edge = np.roll(p, -1, axis=1) - p  # edge k leaves corner k
+        unit = edge / np.maximum(_lengths(edge), 1e-300)[..., None]
+        face = np.cross(edge[:, 0], -edge[:, 2])
+        face /= np.maximum(_lengths(face), 1e-300)[:, None]
+        # The angle at a corner is between its outgoing edge and the reversed incoming one.
+        cos = -np.einsum("tkj,tkj->tk", unit, np.roll(unit, 1, axis=1))
+        np.multiply(face.T[:, :, None], np.arccos(np.clip(cos, -1.0, 1.0)), out=weighted[:, part])
+    corners = triangles.ravel()
+    out = np.stack([np.bincount(corners, weighted[axis].ravel(), minlength=len(vertices)) for axis in range(3)],
+                   axis=1)
+    return out / np.maximum(_lengths(out), 1e-300)[:, None]
+
+
+def _lengths(v: np.ndarray) -> np.ndarray:
+    """Euclidean lengths along the last axis."""
+    return np.sqrt(np.einsum("...j,...j->...", v, v))
 
 
 def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
