@@ -91,7 +91,7 @@ def test_matches_mitsuba(make_engine, mi, name: str) -> None:
 def test_scenes_use_what_they_claim() -> None:
     """The three scenes hold what they are there to test."""
     ply = parse_scene(convert_mitsuba(MITSUBA_SCENES / "ply-mesh.xml"))
-    assert any(getattr(s, "normals", None) for s in ply.shapes), "PLY mesh carries its vertex normals"
+    assert any(getattr(s, "normals", None) is not None for s in ply.shapes), "PLY mesh carries its vertex normals"
     obj = convert_mitsuba(MITSUBA_SCENES / "obj-mesh.xml")
     assert {light["type"] for light in obj["lights"]} == {"point", "spot", "directional"}
     glossy = convert_mitsuba(MITSUBA_SCENES / "thinlens-glossy.xml")

@@ -11,7 +11,9 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+import redis
 
 from service.scene_loader import LoadUnavailable, SceneLoader, SceneRequest, load_now
 from tests.helpers import SENSOR, xml
@@ -23,7 +25,10 @@ from worker.scene import (
     inline_json,
     inline_meshes,
     load_any_scene,
+    parse_scene,
 )
+from worker.settings import Settings
+from worker.store import Jobs
 
 
 @pytest.fixture(scope="module")
@@ -87,3 +92,21 @@ def test_inline_json_is_the_inlined_scene_encoded(name: str) -> None:
     path = SCENES_DIR / name
     scene, base_dir = load_any_scene(path)
     assert json.loads(inline_json(scene, base_dir, path.parent)) == inline_meshes(scene, base_dir, path.parent)
+
+
+@pytest.mark.parametrize("name", ["mitsuba/ply-mesh.xml", "mitsuba/obj-mesh.xml"])
+def test_a_jobs_scene_reaches_a_worker_as_it_was_loaded(name: str, redis_url: str) -> None:
+    """The load holds meshes as arrays; the job's scene is JSON text in Redis, and what a
+    worker on any machine parses from it is the same scene, every coordinate to the bit."""
+    path = SCENES_DIR / name
+    loaded = load_now(SceneRequest(path=path, root=path.parent))
+    jobs = Jobs(redis.Redis.from_url(redis_url))
+    job_id = jobs.create(loaded.scene_json, Settings(resolution=(8, 8)), 8, 8, None)
+    received = parse_scene(jobs.scene(job_id))
+    scene, _ = load_any_scene(path)
+    assert received == scene
+    meshes = [(a, b) for a, b in zip(received.shapes, scene.shapes, strict=True) if a.type == "mesh"]
+    assert meshes  # ply-mesh.xml's has normals (test_scene_import.py, test_scenes_use_what_they_claim)
+    for a, b in meshes:
+        for key in ("vertices", "triangles", "normals"):
+            assert np.array_equal(getattr(a, key), getattr(b, key)), key

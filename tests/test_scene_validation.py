@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import StrictInt, TypeAdapter, ValidationError
 
 import worker.scene as scene_mod
 from tests.helpers import PHOTONFARM
@@ -28,6 +29,7 @@ from worker.scene import (
     MAX_SHAPES,
     SCENES_DIR,
     SceneError,
+    Vec3,
     load_scene_file,
     parse_scene,
     shape_triangles,
@@ -388,6 +390,89 @@ def test_mesh_needs_exactly_one_source():
     neither = {"type": "mesh", "material": "white"}
     assert parse_error(scene_with(both)).field.startswith("shapes.1")
     assert parse_error(scene_with(neither)).field.startswith("shapes.1")
+
+
+# ------------------------------------------------------------- inline meshes as arrays
+TRIANGLE = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+
+
+def inline_mesh(**kw) -> dict:
+    return {"type": "mesh", "vertices": copy.deepcopy(TRIANGLE), "triangles": [[0, 1, 2]], "material": "white", **kw}
+
+
+def pydantic_error(rows_type: object, value: object) -> tuple[tuple, str]:
+    """(location, message) of pydantic's own first error for `value` as `rows_type`."""
+    with pytest.raises(ValidationError) as info:
+        TypeAdapter(rows_type).validate_python(value)
+    err = info.value.errors()[0]
+    return err["loc"], err["msg"]
+
+
+INDICES = list[tuple[StrictInt, StrictInt, StrictInt]]
+
+
+@pytest.mark.parametrize("key, rows_type, value", [
+    ("vertices", list[Vec3], TRIANGLE[:2] + [[0.0, True, 0.0]]),
+    ("vertices", list[Vec3], TRIANGLE[:2] + [[0.0, "1", 0.0]]),
+    ("vertices", list[Vec3], TRIANGLE[:2] + [[0.0, float("nan"), 0.0]]),
+    ("vertices", list[Vec3], TRIANGLE[:2] + [[0.0, 2 * scene_mod.MAX_COORD, 0.0]]),
+    ("vertices", list[Vec3], TRIANGLE[:2] + [[0.0, 1.0]]),
+    ("vertices", list[Vec3], TRIANGLE[:2] + [None]),
+    ("vertices", list[Vec3], {"0": [0.0, 0.0, 0.0]}),
+    ("normals", list[Vec3], TRIANGLE[:2] + [[0.0, 0.0, float("inf")]]),
+    ("triangles", INDICES, [[0, 1, 2], [0, 1.0, 2]]),
+    ("triangles", INDICES, [[0, 1, 2], [0, False, 2]]),
+    ("triangles", INDICES, [[0, 1, 2], [0, 1, 2, 3]]),
+], ids=["bool", "string", "nan", "past-max-coord", "two-coordinates", "null-row", "object", "normal-inf",
+        "float-index", "bool-index", "four-indices"])
+def test_inline_mesh_rows_are_refused_as_pydantic_refuses_them(key: str, rows_type: object, value: object):
+    """The arrays are checked vectorised, but a bad value gets pydantic's own error for the
+    list type it stands for, at the element's path."""
+    err = parse_error(scene_with(inline_mesh(**{key: value})))
+    loc, msg = pydantic_error(rows_type, value)
+    assert (err.field, err.message) == (".".join(map(str, ("shapes", 1, key, *loc))), msg)
+
+
+@pytest.mark.parametrize("value", [float("nan"), 2 * scene_mod.MAX_COORD], ids=["nan", "past-max-coord"])
+def test_inline_mesh_arrays_are_refused_as_their_lists_are(value: float):
+    """An array (as the Mitsuba import passes them) is refused with its list's error."""
+    vertices = np.array(TRIANGLE)
+    vertices[2, 1] = value
+    as_array = parse_error(scene_with(inline_mesh(vertices=vertices)))
+    as_list = parse_error(scene_with(inline_mesh(vertices=vertices.tolist())))
+    assert (as_array.field, as_array.message) == (as_list.field, as_list.message)
+    assert as_array.field == "shapes.1.vertices.2.1"
+
+
+def test_inline_mesh_is_held_as_arrays_and_written_as_lists():
+    """Integers are accepted as coordinates (as JSON writes 0 for 0.0); the mesh is held as
+    float64 and int64 arrays; its JSON is lists again and reads back to an equal scene."""
+    d = scene_with(inline_mesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0]], normals=[(0.0, 0.0, 1.0)] * 3))
+    scene = parse_scene(d)
+    mesh = scene.shapes[1]
+    assert mesh.vertices.dtype == np.float64 and mesh.vertices.shape == (3, 3)
+    assert mesh.triangles.dtype == np.int64 and mesh.triangles.shape == (1, 3)
+    np.testing.assert_array_equal(mesh.vertices, TRIANGLE)
+    written = json.loads(scene.model_dump_json(exclude_none=True))["shapes"][1]
+    assert written["vertices"] == TRIANGLE and written["triangles"] == [[0, 1, 2]]
+    assert written["normals"] == [[0.0, 0.0, 1.0]] * 3
+    assert parse_scene(json.loads(scene.model_dump_json())) == scene
+    moved = scene_with(inline_mesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 1e-9]], normals=[(0.0, 0.0, 1.0)] * 3))
+    assert parse_scene(moved) != scene
+
+
+@pytest.mark.parametrize("index", [2**70, -(2**70)], ids=["past-int64", "below-int64"])
+def test_inline_mesh_index_past_int64_is_out_of_range(index: int):
+    err = parse_error(scene_with(inline_mesh(triangles=[[0, 1, 2], [0, index, 2]])))
+    assert err.field == "shapes.1" and "triangles[1] indexes a vertex outside 0..2" in err.message
+
+
+def test_inline_mesh_without_triangles_has_none():
+    scene = parse_scene(scene_with(inline_mesh(triangles=[])))
+    assert scene.shapes[1].triangles.shape == (0, 3)
+    with pytest.raises(SceneError) as info:
+        shape_triangles(scene, SCENES_DIR)
+    assert (info.value.field, info.value.message) == ("shapes.1", "no triangles")
 
 
 # -------------------------------------------------------------------------- limits

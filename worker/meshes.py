@@ -93,7 +93,7 @@ def check_mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray 
         raise MeshError("no vertices")
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
         raise MeshError("no triangles")
-    f = f.astype(np.int64)
+    f = f.astype(np.int64, copy=False)
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"a triangle indexes a vertex outside 0..{len(v) - 1}")
     if not np.all(np.isfinite(v)):

@@ -12,11 +12,9 @@ XML is read with expat, which reports the line of every element (ElementTree doe
 
 from __future__ import annotations
 
-import gc
 import math
 import re
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, overload
@@ -33,6 +31,7 @@ from worker.scene import (
     LoadBudget,
     Scene,
     SceneError,
+    collector_paused,
     parse_scene,
     read_mesh,
 )
@@ -51,6 +50,7 @@ NAMED_IOR = {
 TRANSMISSIVE = {"dielectric", "thindielectric", "roughdielectric"}
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
 CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (area within 1e-4)
+NORMALS_CHUNK = 1 << 14  # triangles per step of _vertex_normals: its temporaries stay in cache, not in fresh pages
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
 RENDER_SETTING_TAGS = {"integrator", "sampler", "rfilter"}
 # What the model cannot hold, refused by name wherever it appears.
@@ -206,8 +206,14 @@ def to_world_matrix(node: Node) -> np.ndarray:
     return m
 
 
+def _times(rows: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """rows @ a for (n, 3) rows and a 3 x 3 matrix, computed in this thread: matmul hands so
+    thin a product to BLAS, whose threads stall while the machine's cores are busy."""
+    return np.einsum("ij,jk->ik", rows, a)
+
+
 def _apply(m: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ m[:3, :3].T + m[:3, 3]
+    return _times(points, m[:3, :3].T) + m[:3, 3]
 
 
 # ----------------------------------------------------------------------- properties
@@ -848,9 +854,9 @@ class Converter:
     def _mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None, flip: bool) -> dict:
         if flip:
             triangles = triangles[:, ::-1]
-        out = {"type": "mesh", "vertices": vertices.tolist(), "triangles": triangles.tolist()}
+        out = {"type": "mesh", "vertices": vertices, "triangles": triangles}
         if normals is not None:
-            out["normals"] = (-normals if flip else normals).tolist()
+            out["normals"] = -normals if flip else normals
         return out
 
     def _rectangle(self, p: Props, m: np.ndarray, flip: bool) -> dict:
@@ -920,7 +926,7 @@ class Converter:
         normals = None
         if not face_normals:  # Mitsuba computes angle-weighted vertex normals where the file has none
             normals = mesh.normals if mesh.normals is not None else _vertex_normals(mesh.vertices, tris)
-            normals = normals @ np.linalg.inv(m[:3, :3])  # normals transform by the inverse transpose
+            normals = _times(normals, np.linalg.inv(m[:3, :3]))  # normals transform by the inverse transpose
         if np.linalg.det(m[:3, :3]) < 0:
             tris = tris[:, ::-1]
         return self._mesh(_apply(m, mesh.vertices), tris, normals, flip)
@@ -1022,18 +1028,26 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Angle-weighted vertex normals (Thuermer and Wuethrich 1998, as Mitsuba computes them):
     each face adds its unit normal times its angle at the vertex. Zero for a vertex that only
     degenerate faces touch (the renderer then takes the face normal)."""
-    p = vertices[triangles]
-    edges = [p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]]
-    unit = [e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300) for e in edges]
-    face = np.cross(edges[0], -edges[2])
-    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-300)
-    out = np.zeros_like(vertices, dtype=np.float64)
-    for corner in range(3):  # the angle at a corner is between its outgoing edge and the reversed incoming one
-        cos = np.einsum("ij,ij->i", unit[corner], -unit[corner - 1])
-        weighted = face * np.arccos(np.clip(cos, -1.0, 1.0))[:, None]
-        for axis in range(3):
-            out[:, axis] += np.bincount(triangles[:, corner], weighted[:, axis], minlength=len(vertices))
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+    weighted = np.empty((3, len(triangles), 3))  # [axis, triangle, corner]: what the corner adds
+    for start in range(0, len(triangles), NORMALS_CHUNK):
+        part = slice(start, start + NORMALS_CHUNK)
+        p = vertices[triangles[part]]  # (n, 3, 3): corner k of each triangle
+        edge = np.roll(p, -1, axis=1) - p  # edge k leaves corner k
+        unit = edge / np.maximum(_lengths(edge), 1e-300)[..., None]
+        face = np.cross(edge[:, 0], -edge[:, 2])
+        face /= np.maximum(_lengths(face), 1e-300)[:, None]
+        # The angle at a corner is between its outgoing edge and the reversed incoming one.
+        cos = -np.einsum("tkj,tkj->tk", unit, np.roll(unit, 1, axis=1))
+        np.multiply(face.T[:, :, None], np.arccos(np.clip(cos, -1.0, 1.0)), out=weighted[:, part])
+    corners = triangles.ravel()
+    out = np.stack([np.bincount(corners, weighted[axis].ravel(), minlength=len(vertices)) for axis in range(3)],
+                   axis=1)
+    return out / np.maximum(_lengths(out), 1e-300)[:, None]
+
+
+def _lengths(v: np.ndarray) -> np.ndarray:
+    """Euclidean lengths along the last axis."""
+    return np.sqrt(np.einsum("...j,...j->...", v, v))
 
 
 def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
@@ -1046,32 +1060,17 @@ def convert_mitsuba(path: Path | str, params: dict[str, str] | None = None, root
     data, _, found = convert_and_validate(path, params, root, budget)
     if notes is not None:
         notes.extend(found)
+    with collector_paused():
+        for shape in data["shapes"]:  # a mesh's arrays as JSON's lists
+            shape.update({key: value.tolist() for key, value in shape.items() if isinstance(value, np.ndarray)})
     return data
-
-
-@contextmanager
-def _collector_paused() -> Iterator[None]:
-    """Pause Python's cyclic garbage collector: a large mesh becomes millions of small lists,
-    and every few hundred of them would start a collection pass over all the others (the
-    objects made here hold no cycles; reference counting frees them)."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def convert_and_validate(path: Path | str, params: dict[str, str] | None = None, root: Path | None = None,
                          budget: LoadBudget | None = None) -> tuple[dict, Scene, list[str]]:
-    """`convert_mitsuba`'s JSON, the Scene it validated to (validated once) and the notes."""
-    with _collector_paused():
-        return _convert_and_validate(Path(path).resolve(), params, root, budget)
-
-
-def _convert_and_validate(path: Path, params: dict[str, str] | None, root: Path | None,
-                          budget: LoadBudget | None) -> tuple[dict, Scene, list[str]]:
+    """`convert_mitsuba`'s JSON (a mesh's vertices, triangles and normals still NumPy arrays),
+    the Scene it validated to (validated once) and the notes."""
+    path = Path(path).resolve()
     conv = Converter(root=(root or path.parent).resolve(), params={k: str(v) for k, v in (params or {}).items()},
                      budget=budget or LoadBudget())
     top = _read_xml(path, conv.budget)

@@ -9,16 +9,30 @@ and the HTTP API can name it.
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
+from itertools import chain
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    GetCoreSchemaHandler,
+    StrictInt,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import CoreSchema, core_schema
 
 from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, declared_counts, load_mesh
 
@@ -57,6 +71,65 @@ Albedo = tuple[Unit, Unit, Unit]
 NonNeg = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0.0, le=1e12)]
 Power = tuple[NonNeg, NonNeg, NonNeg]
 Side = Annotated[int, Field(strict=True, ge=1, le=MAX_RESOLUTION)]  # pixels along one image axis
+
+
+def _rows_out(rows: np.ndarray, info: core_schema.SerializationInfo) -> np.ndarray | list:
+    """A mesh's rows as written: lists in JSON, the array itself in a Python dump."""
+    return rows.tolist() if info.mode_is_json() else rows
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """A pydantic annotation: a mesh's rows of three (vertices, normals, triangles) held as an
+    (n, 3) NumPy array of `dtype`. A value is accepted exactly when pydantic accepts it as
+    `rows` (the list-of-triples type the array stands for), with the same errors: a list of
+    triples of `scalars` (what JSON gives) or an array of `kinds` is checked vectorised, and
+    anything else, or anything that fails that check, goes to pydantic's validator of `rows`,
+    which names the bad element. JSON output is the list of rows."""
+
+    rows: Any
+    dtype: type[np.generic]
+    scalars: frozenset[type]  # Python types `rows` accepts as elements with no conversion
+    kinds: str  # NumPy dtype kinds an array may come in
+    valid: Callable[[np.ndarray], bool]  # every element meets the element type's constraints
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> CoreSchema:
+        return core_schema.no_info_wrap_validator_function(
+            self._validate, handler.generate_schema(self.rows),
+            serialization=core_schema.plain_serializer_function_ser_schema(_rows_out, info_arg=True))
+
+    def _validate(self, value: Any, handler: ValidatorFunctionWrapHandler) -> np.ndarray:
+        fast = self._fast(value)
+        if fast is not None:
+            return fast
+        rows = handler(value.tolist() if isinstance(value, np.ndarray) else value)
+        try:
+            return np.array(rows, self.dtype).reshape(-1, 3)
+        except OverflowError:  # an index past int64, which no vertex has: -1 is as far out of range
+            return np.array([[i if abs(i) < 2**63 else -1 for i in row] for row in rows], self.dtype)
+
+    def _fast(self, value: Any) -> np.ndarray | None:
+        """`value` as an array if it is surely valid; None to leave it to pydantic."""
+        if isinstance(value, list):
+            if not (set(map(type, value)) <= {list, tuple} and set(map(len, value)) <= {3}
+                    and set(map(type, chain.from_iterable(value))) <= self.scalars):
+                return None
+            try:
+                value = np.array(value, self.dtype)
+            except OverflowError:
+                return None
+        elif not (isinstance(value, np.ndarray) and value.ndim == 2 and value.shape[1] == 3
+                  and value.dtype.kind in self.kinds and np.can_cast(value.dtype, self.dtype)):
+            return None
+        rows = np.ascontiguousarray(value, self.dtype).reshape(-1, 3)
+        return rows if self.valid(rows) else None
+
+
+# Mesh rows: vertices and normals as list[Vec3] would be, triangles as triples of StrictInt.
+Vec3Rows = Annotated[np.ndarray, _Rows(list[Vec3], np.float64, frozenset({float, int}), "fiu",
+                                       lambda a: bool(np.all(np.abs(a) <= MAX_COORD)))]
+IndexRows = Annotated[np.ndarray, _Rows(list[tuple[StrictInt, StrictInt, StrictInt]], np.int64, frozenset({int}),
+                                        "iu", lambda a: True)]
 
 
 class SceneError(ValueError):
@@ -267,9 +340,9 @@ class Mesh(_Shape):
     or .ply `file`, relative to the scene file and inside the root the caller allows."""
 
     type: Literal["mesh"]
-    vertices: list[Vec3] | None = None
-    triangles: list[tuple[StrictInt, StrictInt, StrictInt]] | None = None
-    normals: list[Vec3] | None = None
+    vertices: Vec3Rows | None = None  # (V, 3) float64
+    triangles: IndexRows | None = None  # (T, 3) int64
+    normals: Vec3Rows | None = None  # (V, 3) float64
     file: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
 
     @model_validator(mode="after")
@@ -280,13 +353,18 @@ class Mesh(_Shape):
             raise ValueError("normals need inline vertices, one normal per vertex")
         if self.triangles is not None and len(self.triangles) > MAX_TRIANGLES:
             raise ValueError(f"more than {MAX_TRIANGLES} triangles")
-        if self.vertices is not None and self.triangles is not None and self.triangles:
+        if self.vertices is not None and self.triangles is not None and len(self.triangles):
             n = len(self.vertices)
-            tris = np.asarray(self.triangles)
-            bad = np.flatnonzero((tris.min(axis=1) < 0) | (tris.max(axis=1) >= n))
+            bad = np.flatnonzero((self.triangles.min(axis=1) < 0) | (self.triangles.max(axis=1) >= n))
             if len(bad):
                 raise ValueError(f"triangles[{bad[0]}] indexes a vertex outside 0..{n - 1}")
         return self
+
+    def __eq__(self, other: object) -> bool:
+        """Field by field, arrays by value (pydantic's comparison asks arrays for one truth value)."""
+        if not isinstance(other, Mesh):
+            return NotImplemented
+        return all(np.array_equal(getattr(self, name), getattr(other, name)) for name in Mesh.model_fields)
 
 
 Shape = Annotated[Sphere | Quad | Mesh, Field(discriminator="type")]
@@ -354,6 +432,21 @@ class ShapeGeometry:
     normals: np.ndarray | None  # (n, 3, 3) float64, unit length, or None (flat)
 
 
+@contextmanager
+def collector_paused() -> Iterator[None]:
+    """Pause Python's cyclic garbage collector while a large mesh's rows are JSON's lists (made
+    to encode a scene, or read from its text): a million small lists, every few hundred of
+    which would start a collection pass over all the others (they hold no cycles; reference
+    counting frees them)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> dict:
     """The scene as JSON with every mesh file replaced by its triangles (and normals), so
     that a worker on any machine renders it with no file at hand. Also runs the checks
@@ -376,10 +469,11 @@ def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget:
 def inline_json(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> str:
     """`inline_meshes` as JSON text; a scene with no mesh file to inline (the checks still
     run) goes through pydantic's own encoder, about twice as fast for large meshes."""
-    if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
-        return json.dumps(inline_meshes(scene, base_dir, root, budget))
-    shape_geometry(scene, base_dir, root, budget, shading=False)
-    return scene.model_dump_json(exclude_none=True)
+    with collector_paused():
+        if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+            return json.dumps(inline_meshes(scene, base_dir, root, budget))
+        shape_geometry(scene, base_dir, root, budget, shading=False)
+        return scene.model_dump_json(exclude_none=True)
 
 
 def read_mesh(path: Path, budget: LoadBudget, field: str, at: str = "") -> MeshData:
@@ -398,10 +492,9 @@ def read_mesh(path: Path, budget: LoadBudget, field: str, at: str = "") -> MeshD
 def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path, budget: LoadBudget) -> MeshData:
     """The mesh of a shape: its file (confined to `root`) or its inline arrays."""
     if shape.file is None:
+        assert shape.vertices is not None and shape.triangles is not None  # Mesh._check: one source or the other
         try:
-            return check_mesh(np.asarray(shape.vertices, np.float64),
-                              np.asarray(shape.triangles, np.int64).reshape(-1, 3),
-                              None if shape.normals is None else np.asarray(shape.normals, np.float64))
+            return check_mesh(shape.vertices, shape.triangles, shape.normals)
         except MeshError as exc:
             raise SceneError(field, str(exc)) from None
     try:
@@ -554,7 +647,8 @@ def load_any_scene(path: Path | str, params: dict[str, str] | None = None, root:
         raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
     scene, base_dir = load_scene_file(path, budget)
     if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
-        scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir, budget))
+        with collector_paused():
+            scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir, budget))
     return scene, base_dir
 
 

@@ -110,7 +110,7 @@ def read_serialized(data: bytes, index: int = 0) -> SerializedShape:
     for name, k in need.items():
         arrays[name] = np.frombuffer(raw, real, nv * k, pos).reshape(-1, 3) if k == 3 else None
         pos += nv * k * width
-    triangles = np.frombuffer(raw, index_type, nt * 3, pos).reshape(-1, 3).astype(np.int64)
+    triangles = np.frombuffer(raw, index_type, nt * 3, pos).reshape(-1, 3)
     positions = arrays["positions"]
     assert positions is not None
     mesh = check_mesh(positions, triangles, arrays["normals"])

@@ -19,7 +19,7 @@ from kernels.program import create_context
 from worker.engine import Engine
 from worker.heartbeat import holding
 from worker.integrators.base import BatchAborted
-from worker.scene import SCENES_DIR, SceneError, parse_scene
+from worker.scene import SCENES_DIR, SceneError, collector_paused, parse_scene
 from worker.scheduler import feed
 from worker.store import Batch, JobRecord, Jobs, Status
 from worker.store.policy import recent_pass_seconds
@@ -38,7 +38,9 @@ def engine_for(jobs: Jobs, record: JobRecord) -> Engine:
         return _engines[record.id]
     _ctx = _ctx or create_context()
     settings = record.settings.model_copy(update={"resolution": (record.width, record.height)})
-    engine = Engine(parse_scene(jobs.scene(record.id)), SCENES_DIR, settings, ctx=_ctx)
+    with collector_paused():
+        scene = parse_scene(jobs.scene(record.id))
+    engine = Engine(scene, SCENES_DIR, settings, ctx=_ctx)
     _engines[record.id] = engine
     while len(_engines) > ENGINE_CACHE_SIZE:
         _engines.popitem(last=False)
