@@ -50,6 +50,8 @@ typedef struct {
 typedef struct {
     float3 dir;     // the new direction (leaving the surface)
     float3 weight;  // f cos / pdf, the choice of part included
+    float scale;    // the radiance factor 1 / eta^2 of a refraction in `radiance` mode within weight, else 1:
+                    // not an absorption, so Russian roulette leaves it out
     float pdf_fwd, pdf_rev;
     bool delta;     // a delta part: pdfs undefined, weights use the delta rules
 } BsdfSample;
@@ -190,7 +192,8 @@ inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, fl
 
 // A delta part's bounce of a path arriving along d at a surface whose normal n faces it.
 inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float co, bool radiance, Rng* rng,
-                         float3* nd, float3* weight) {
+                         float3* nd, float3* weight, float* scale) {
+    *scale = 1.0f;
     if (m->type == MAT_CONDUCTOR) {
         *nd = reflect_dir(d, n);
         *weight = conductor_reflectance(m, co);
@@ -213,7 +216,8 @@ inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float
         *weight = m->base;
     } else {
         *nd = m->type == MAT_THIN_GLASS ? d : normalize(d / eta + (co / eta - ct) * n);
-        *weight = radiance && m->type == MAT_GLASS ? m->second / (eta * eta) : m->second;
+        if (radiance && m->type == MAT_GLASS) *scale = 1.0f / (eta * eta);
+        *weight = m->second * *scale;
     }
     return true;
 }
@@ -229,6 +233,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
         float ci = dot(s->dir, n);
         s->delta = false;
         s->weight = m->base;
+        s->scale = 1.0f;
         s->pdf_fwd = ci / PI_F;
         s->pdf_rev = co / PI_F;
         return co > 0.0f && ci > 0.0f && dot(s->dir, ng) * dot(wo, ng) > 0.0f;
@@ -244,7 +249,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     s->delta = part == PART_DELTA;
     s->pdf_fwd = s->pdf_rev = 1.0f;
     if (s->delta) {
-        if (!delta_sample(m, d, n, ng, co, radiance, rng, &s->dir, &s->weight)) return false;
+        if (!delta_sample(m, d, n, ng, co, radiance, rng, &s->dir, &s->weight, &s->scale)) return false;
         s->weight /= p.z;
         return true;
     }
@@ -273,6 +278,9 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     BsdfEval e = bsdf_eval(m, ng, ns, wo, s->dir, mask, radiance);
     if (e.pdf_fwd <= 0.0f) return false;
     s->weight = e.f * (fabs(dot(s->dir, ns)) / e.pdf_fwd);
+    bool refracted = dot(s->dir, ng) * dot(wo, ng) < 0.0f;
+    float eta = dot(wo, ng) > 0.0f ? m->eta.x : 1.0f / m->eta.x;
+    s->scale = radiance && refracted && m->type == MAT_ROUGH_GLASS ? 1.0f / (eta * eta) : 1.0f;
     s->pdf_fwd = e.pdf_fwd;
     s->pdf_rev = e.pdf_rev;
     return true;

@@ -43,7 +43,7 @@ inline bool subpath_bounce(const SceneGeom* g, SubPath* s, const Hit* h, float3 
     if (!bsdf_sample(m, h->ng, h->ns, s->d, parts, !light, rng, &b)) return false;
     float3 w = b.weight;
     if (h->smooth) w *= shading_bounce(s->d, b.dir, h->ng, h->ns, light);
-    float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)));
+    float survive = fmin(1.0f, fmax(w.x, fmax(w.y, w.z)) / b.scale);
     if (rng_float(rng) >= survive) return false;
     s->thr *= w / survive;
     float cos_out = fabs(dot(b.dir, h->ng));
