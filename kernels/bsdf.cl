@@ -132,6 +132,10 @@ inline float3 glossy_eval(const Material* m, float3 n, float3 wo, float3 wi, flo
     return r * (d * gm / (4.0f * co * ci));
 }
 
+// A dielectric's relative index n(far side) / n(this side) for a direction leaving the side
+// where its cosine to ng is g: ior from outside, 1 / ior from inside.
+inline float dielectric_eta(const Material* m, float g) { return g > 0.0f ? m->eta.x : 1.0f / m->eta.x; }
+
 // rough_glass: f and both pdfs for wo and wi on either side (go, gi: their cosines to ng).
 inline BsdfEval rough_glass_eval(const Material* m, float3 ng, float3 ns, float3 wo, float3 wi, float go, float gi,
                                  bool radiance) {
@@ -140,7 +144,8 @@ inline BsdfEval rough_glass_eval(const Material* m, float3 ng, float3 ns, float3
     float co = dot(wo, n), ci = dot(wi, n);
     bool reflect = go * gi > 0.0f;
     if (co <= 0.0f || (reflect ? ci <= 0.0f : ci >= 0.0f)) return e;
-    float eta = reflect ? 1.0f : (go > 0.0f ? m->eta.x : 1.0f / m->eta.x);  // n(wi's side) / n(wo's side)
+    float across = dielectric_eta(m, go);      // n(the other side) / n(wo's side)
+    float eta = reflect ? 1.0f : across;      // n(wi's side) / n(wo's side)
     float3 hv = normalize(reflect ? wo + wi : wo + eta * wi);
     if (dot(hv, n) < 0.0f) hv = -hv;
     float oh = dot(wo, hv), ih = dot(wi, hv), ch = dot(hv, n);
@@ -149,7 +154,7 @@ inline BsdfEval rough_glass_eval(const Material* m, float3 ng, float3 ns, float3
     float d = mf_d(ch, m->rough, beckmann);
     float gm = mf_g1(co, oh, m->rough, beckmann) * mf_g1(ci, ih, m->rough, beckmann);
     float ct;
-    float fr = fresnel_dielectric(oh, go > 0.0f ? m->eta.x : 1.0f / m->eta.x, &ct);
+    float fr = fresnel_dielectric(oh, across, &ct);
     if (reflect) {
         e.f = m->base * (fr * d * gm / (4.0f * co * ci));
         e.pdf_fwd = e.pdf_rev = fr * d * ch / (4.0f * oh);
@@ -205,8 +210,7 @@ inline bool delta_sample(const Material* m, float3 d, float3 n, float3 ng, float
         *weight = m->second * fresnel_dielectric(co, m->eta.x, &ct);
         return true;
     }
-    bool entering = dot(d, ng) < 0.0f;
-    float eta = m->type == MAT_THIN_GLASS || entering ? m->eta.x : 1.0f / m->eta.x;
+    float eta = m->type == MAT_THIN_GLASS ? m->eta.x : dielectric_eta(m, -dot(d, ng));
     float r = fresnel_dielectric(co, eta, &ct);
     if (m->type == MAT_THIN_GLASS && r < 1.0f) r += (1.0f - r) * (1.0f - r) * r / (1.0f - r * r);
     // Russian roulette between reflection and refraction with the reflectance: the branch
@@ -267,7 +271,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
         if (m->type == MAT_ROUGH_GLASS) {  // reflect with F(wo.h), else refract through h
             float oh = dot(wo, hv), ct;
             if (oh <= 0.0f) return false;
-            float eta = dot(wo, ng) > 0.0f ? m->eta.x : 1.0f / m->eta.x;
+            float eta = dielectric_eta(m, dot(wo, ng));
             float fr = fresnel_dielectric(oh, eta, &ct);
             bool refract = rng_float(rng) >= fr;
             if (refract) s->dir = normalize(d / eta + (oh / eta - ct) * hv);
@@ -278,9 +282,11 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     BsdfEval e = bsdf_eval(m, ng, ns, wo, s->dir, mask, radiance);
     if (e.pdf_fwd <= 0.0f) return false;
     s->weight = e.f * (fabs(dot(s->dir, ns)) / e.pdf_fwd);
-    bool refracted = dot(s->dir, ng) * dot(wo, ng) < 0.0f;
-    float eta = dot(wo, ng) > 0.0f ? m->eta.x : 1.0f / m->eta.x;
-    s->scale = radiance && refracted && m->type == MAT_ROUGH_GLASS ? 1.0f / (eta * eta) : 1.0f;
+    s->scale = 1.0f;
+    if (radiance && m->type == MAT_ROUGH_GLASS && dot(s->dir, ng) * dot(wo, ng) < 0.0f) {  // refracted
+        float eta = dielectric_eta(m, dot(wo, ng));
+        s->scale = 1.0f / (eta * eta);
+    }
     s->pdf_fwd = e.pdf_fwd;
     s->pdf_rev = e.pdf_rev;
     return true;

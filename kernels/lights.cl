@@ -146,6 +146,14 @@ inline bool shadowed(const SceneGeom* g, float3 o, const DirectSample* s) {
 // Le there: pick / A = (P_k / P) / A = pi sum(Le) / P (Lambertian emitters).
 inline float hit_emitter_pdf_area(float3 le, float power) { return PI_F * (le.x + le.y + le.z) / power; }
 
+// The MIS weight of emission le that a BSDF-sampled direction of pdf `pdf_bsdf` (solid angle)
+// found at distance t, arriving at cos_l to the emitter (power heuristic against the light
+// sample: sample_light, light_sample_parts).
+inline float emission_weight(float3 le, float total, float pdf_bsdf, float t, float cos_l) {
+    float p_light = hit_emitter_pdf_area(le, total) * t * t / cos_l;
+    return power_heuristic(pdf_bsdf, p_light);
+}
+
 // The light sample for the diffuse part f_d = g h(wi) / pi of material m (bsdf.cl; `gw` is g
 // with the caller's weights): MIS-weighted f cos li / (pick direct_pdf) from one emitter
 // chosen by power, or 0 if the emitter is occluded, behind x, or faces away. n: geometric
@@ -172,9 +180,8 @@ inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* su
     float3 le = surface_emission(surfaces, h.surf);
     float sum_le = le.x + le.y + le.z;
     if (sum_le <= 0.0f) return (float3)(0.0f);
-    float p_light = hit_emitter_pdf_area(le, total_power) * h.t * h.t / -dot(wi, h.ng);
     float cos_s = dot(wi, ns);
-    return gw * coat_in(m, cos_s) * le * power_heuristic(cos_s / PI_F, p_light);  // f cos / p_bsdf = g h
+    return gw * coat_in(m, cos_s) * le * emission_weight(le, total_power, cos_s / PI_F, h.t, -dot(wi, h.ng));
 }
 
 // Direct light at x through the diffuse part, by both samples (0 in a scene without emitters).
@@ -203,10 +210,3 @@ inline float3 light_sample_parts(const SceneGeom* g, __global const float4* emit
     return e.f * s.li * (fabs(dot(s.wi, ns)) * mis / pdf);
 }
 
-// The MIS weight of emission le that a BSDF-sampled direction of pdf `pdf_bsdf` (solid angle)
-// found at distance t, arriving at cos_l to the emitter (power heuristic against
-// light_sample_parts).
-inline float emission_weight(float3 le, float total, float pdf_bsdf, float t, float cos_l) {
-    float p_light = hit_emitter_pdf_area(le, total) * t * t / cos_l;
-    return power_heuristic(pdf_bsdf, p_light);
-}

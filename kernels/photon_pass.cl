@@ -134,8 +134,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surfaces,
             float3 ns = dot(d, h.ng) < 0.0f ? h.ns : -h.ns;
             ulong key = (path << 12) | (ulong)bounce;
             if (random_key) key |= (ulong)(rng_u32(rng) >> 4) << 36;
-            float3 stored = h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux;
-            if (m.type != MAT_DIFFUSE) stored *= coat_in(&m, -dot(d, ns));
+            float3 stored = (h.smooth ? flux * shading_arrival(d, h.ng, h.ns) : flux) * coat_in(&m, -dot(d, ns));
             sink_photon(sink, p, stored, (uint2)(pack_dir(-d), pack_dir(n)), key);
         }
         BsdfSample b;

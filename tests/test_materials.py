@@ -50,15 +50,16 @@ def with_plane(material: dict) -> dict:
     return data
 
 
-def plane_radiance(eng, material: object, sub: int = 4) -> np.ndarray:
-    """f(wo, wi) I cos / d^2 per pixel (rgb), averaged over sub x sub positions a pixel."""
+def plane_radiance(eng, f, light_y: float = PLANE_H, sub: int = 4) -> np.ndarray:
+    """f(wo, wi) I |cos| / d^2 per pixel (rgb), averaged over sub x sub positions a pixel, for
+    the point light at (0, light_y, 0) and the plane y = 0; f maps (wo, wi) arrays to rgb."""
     o, d = camera_rays(eng, sub)
     p = o + (-o[1] / d[..., 1])[..., None] * d
-    to_light = np.array([0.0, PLANE_H, 0.0]) - p
+    to_light = np.array([0.0, light_y, 0.0]) - p
     d2 = np.sum(to_light ** 2, axis=-1)
     wi = to_light / np.sqrt(d2)[..., None]
     wo = (o - p) / np.linalg.norm(o - p, axis=-1, keepdims=True)
-    radiance = bsdf(material, np.array([0.0, 1.0, 0.0]), wo, wi) * (PLANE_I * wi[..., 1] / d2)[..., None]
+    radiance = f(wo, wi) * (PLANE_I * np.abs(wi[..., 1]) / d2)[..., None]
     h, w = eng.arrays.height, eng.arrays.width
     return radiance.reshape(h, sub, w, sub, 3).mean(axis=(1, 3))
 
@@ -70,7 +71,8 @@ def test_point_plane_closed_form(make_engine, tmp_path: Path, name: str, method:
     path.write_text(json.dumps(with_plane(PLANE_MATERIALS[name])))
     eng = make_engine(path, method=method, seed=7)
     ours = image(eng, render(eng, 64))
-    expected = plane_radiance(eng, parse_scene(with_plane(PLANE_MATERIALS[name])).materials["plane"])
+    material = parse_scene(with_plane(PLANE_MATERIALS[name])).materials["plane"]
+    expected = plane_radiance(eng, lambda wo, wi: bsdf(material, np.array([0.0, 1.0, 0.0]), wo, wi))
     np.testing.assert_allclose(ours.mean(axis=(0, 1)), expected.mean(axis=(0, 1)), rtol=0.02)
 
 
@@ -91,17 +93,10 @@ def test_rough_glass_plane_transmits_the_closed_form(make_engine, tmp_path: Path
     path.write_text(json.dumps(data))
     eng = make_engine(path, method=method, seed=7)
     ours = image(eng, render(eng, 64))
-    sub = 4
-    o, d = camera_rays(eng, sub)
-    p = o + (-o[1] / d[..., 1])[..., None] * d
-    to_light = np.array([0.0, light_y, 0.0]) - p
-    d2 = np.sum(to_light ** 2, axis=-1)
-    wi = to_light / np.sqrt(d2)[..., None]
-    wo = (o - p) / np.linalg.norm(o - p, axis=-1, keepdims=True)
     n = np.array([0.0, 1.0 if light_below else -1.0, 0.0])  # the camera's side
     eta = 1.5 if light_below else 1.0 / 1.5  # n(light's side) / n(camera's side)
-    f = rough_transmission(parse_scene(data).materials["plane"], n, wo, wi, eta)
-    expected = (f * (PLANE_I * np.abs(wi[..., 1]) / d2)[..., None]).reshape(32, sub, 32, sub, 3).mean(axis=(1, 3))
+    material = parse_scene(data).materials["plane"]
+    expected = plane_radiance(eng, lambda wo, wi: rough_transmission(material, n, wo, wi, eta), light_y)
     np.testing.assert_allclose(ours.mean(axis=(0, 1)), expected.mean(axis=(0, 1)), rtol=0.02)
 
 
