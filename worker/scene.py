@@ -34,6 +34,7 @@ from pydantic import (
 )
 from pydantic_core import CoreSchema, core_schema
 
+from worker.images import IMAGE_SUFFIXES, ImageError, Pixels, image_shape, read_image
 from worker.meshes import MESH_SUFFIXES, MeshData, MeshError, check_mesh, declared_counts, load_mesh
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
@@ -60,6 +61,8 @@ LOAD_LIMITS = {
     "bytes": 64 * 1024 * 1024,  # read from every file together
     "mesh vertices": 3 * MAX_TRIANGLES,  # as declared in mesh files (checked before they are parsed)
     "triangles": MAX_TRIANGLES,  # read from mesh files (declared counts checked before parsing)
+    "image files": 1_000,  # textures and environment maps
+    "texels": 2**26,  # samples of every image read (declared sizes checked before decoding)
 }
 
 # Numbers are strict: a string or a boolean where one belongs is refused, not coerced (JSON lists
@@ -312,6 +315,44 @@ Material = Annotated[
     Field(discriminator="type"),
 ]
 
+# ---------------------------------------------------------------------------- textures
+# A 2x3 affine map of (u, v, 1): where a hit's surface UV is looked up in a texture.
+UvTransform = tuple[Vec3, Vec3]
+IDENTITY_UV: UvTransform = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+FileName = Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")]
+
+
+class Bitmap(_Model):
+    """An image: a `file` (relative to the scene file, inside the root the caller allows) or
+    its `pixels` inline. Integer images are sRGB-encoded unless `raw`; float images are linear."""
+
+    type: Literal["bitmap"]
+    file: FileName | None = None
+    pixels: Pixels | None = None
+    raw: bool = False
+    filter: Literal["bilinear", "nearest"] = "bilinear"
+    wrap_mode: Literal["repeat", "mirror", "clamp"] = "repeat"
+    to_uv: UvTransform = IDENTITY_UV
+
+    @model_validator(mode="after")
+    def _check(self) -> Bitmap:
+        if (self.file is None) == (self.pixels is None):
+            raise ValueError("give either file or pixels")
+        return self
+
+
+class Checkerboard(_Model):
+    """color0 where floor(u) + floor(v) is even (after `to_uv`, in units of a cell), color1 elsewhere."""
+
+    type: Literal["checkerboard"]
+    color0: Albedo = (0.4, 0.4, 0.4)
+    color1: Albedo = (0.2, 0.2, 0.2)
+    to_uv: UvTransform = IDENTITY_UV
+
+
+Texture = Annotated[Bitmap | Checkerboard, Field(discriminator="type")]
+MAX_TEXTURES = 256
+
 # ----------------------------------------------------------------------------- shapes
 
 
@@ -343,7 +384,7 @@ class Mesh(_Shape):
     vertices: Vec3Rows | None = None  # (V, 3) float64
     triangles: IndexRows | None = None  # (T, 3) int64
     normals: Vec3Rows | None = None  # (V, 3) float64
-    file: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS, pattern=r"^[^\x00]*$")] | None = None
+    file: FileName | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Mesh:
@@ -414,9 +455,17 @@ class Scene(_Model):
     materials: dict[str, Material]
     shapes: list[Shape] = Field(max_length=MAX_SHAPES)
     lights: list[Light] = Field(default_factory=list, max_length=MAX_LIGHTS)
+    textures: dict[str, Texture] = Field(default_factory=dict, max_length=MAX_TEXTURES)
 
     @model_validator(mode="after")
     def _check(self) -> Scene:
+        texels = 0
+        for name, texture in self.textures.items():
+            if isinstance(texture, Bitmap) and texture.pixels is not None:
+                texels += texture.pixels.array.size
+                if texels > LOAD_LIMITS["texels"]:
+                    raise SceneError(f"textures.{name}.pixels", f"the scene's images hold more than "
+                                                                 f"{LOAD_LIMITS['texels']} samples")
         for i, shape in enumerate(self.shapes):
             if shape.material not in self.materials:
                 raise SceneError(f"shapes.{i}.material", f"unknown material {shape.material!r}")
@@ -448,9 +497,11 @@ def collector_paused() -> Iterator[None]:
 
 
 def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> dict:
-    """The scene as JSON with every mesh file replaced by its triangles (and normals), so
-    that a worker on any machine renders it with no file at hand. Also runs the checks
-    that need the geometry (mesh paths, triangle limit, zero-area emitters)."""
+    """The scene as JSON with every mesh file replaced by its triangles (and normals) and
+    every image file by its pixels, so that a worker on any machine renders it with no file
+    at hand. Also runs the checks that need the geometry (mesh paths, triangle limit,
+    zero-area emitters)."""
+    budget = budget or LoadBudget()
     geometry = shape_geometry(scene, base_dir, root, budget)
     data = scene.model_dump(mode="json", exclude_none=True)
     for i, shape in enumerate(scene.shapes):
@@ -463,14 +514,28 @@ def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget:
             entry["triangles"] = np.arange(3 * len(geo.triangles)).reshape(-1, 3).tolist()
             if geo.normals is not None:
                 entry["normals"] = geo.normals.reshape(-1, 3).tolist()
+    root = root.resolve()
+    for name, texture in scene.textures.items():
+        if isinstance(texture, Bitmap) and texture.file is not None:
+            field = f"textures.{name}.file"
+            path = scene_path(texture.file, field, base_dir, root, IMAGE_SUFFIXES, "image")
+            entry = data["textures"][name]
+            del entry["file"]
+            entry["pixels"] = read_texture(path, budget, field).model_dump()
     return data
+
+
+def names_files(scene: Scene) -> bool:
+    """Whether the scene names a mesh or image file (to read and inline before it is sent)."""
+    return (any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes)
+            or any(isinstance(t, Bitmap) and t.file is not None for t in scene.textures.values()))
 
 
 def inline_json(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget: LoadBudget | None = None) -> str:
     """`inline_meshes` as JSON text; a scene with no mesh file to inline (the checks still
     run) goes through pydantic's own encoder, about twice as fast for large meshes."""
     with collector_paused():
-        if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+        if names_files(scene):
             return json.dumps(inline_meshes(scene, base_dir, root, budget))
         shape_geometry(scene, base_dir, root, budget, shading=False)
         return scene.model_dump_json(exclude_none=True)
@@ -489,6 +554,26 @@ def read_mesh(path: Path, budget: LoadBudget, field: str, at: str = "") -> MeshD
     return mesh
 
 
+def scene_path(name: str, field: str, base_dir: Path, root: Path, suffixes: tuple[str, ...], kind: str) -> Path:
+    """The file a scene names (`kind`: "mesh", "image"), relative to `base_dir`: it must
+    exist, lie inside `root` and have one of `suffixes`."""
+    try:
+        path = (base_dir / name).resolve()
+    except (OSError, ValueError):
+        raise SceneError(field, f"{kind} file {name!r} not found") from None
+    if not path.is_relative_to(root):
+        raise SceneError(field, f"{kind} path leaves the scene's directory")
+    if path.suffix.lower() not in suffixes:
+        raise SceneError(field, f"{kind} file {name!r} is not one of {', '.join(suffixes)}")
+    try:
+        found = path.is_file()
+    except (OSError, ValueError):  # a name the file system refuses (too long in bytes, ...)
+        found = False
+    if not found:
+        raise SceneError(field, f"{kind} file {name!r} not found")
+    return path
+
+
 def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path, budget: LoadBudget) -> MeshData:
     """The mesh of a shape: its file (confined to `root`) or its inline arrays."""
     if shape.file is None:
@@ -497,26 +582,28 @@ def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path, budget: Load
             return check_mesh(shape.vertices, shape.triangles, shape.normals)
         except MeshError as exc:
             raise SceneError(field, str(exc)) from None
-    try:
-        path = (base_dir / shape.file).resolve()
-    except (OSError, ValueError):
-        raise SceneError(f"{field}.file", f"mesh file {shape.file!r} not found") from None
-    if not path.is_relative_to(root):
-        raise SceneError(f"{field}.file", "mesh path leaves the scene's directory")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise SceneError(f"{field}.file", f"mesh file {shape.file!r} is neither .obj nor .ply")
-    try:
-        found = path.is_file()
-    except (OSError, ValueError):  # a name the file system refuses (too long in bytes, ...)
-        found = False
-    if not found:
-        raise SceneError(f"{field}.file", f"mesh file {shape.file!r} not found")
+    path = scene_path(shape.file, f"{field}.file", base_dir, root, MESH_SUFFIXES, "mesh")
     try:
         return read_mesh(path, budget, f"{field}.file")
     except OSError as exc:
         raise SceneError(f"{field}.file", f"cannot read mesh file {shape.file!r}: {exc.strerror or exc}") from None
     except MeshError as exc:
         raise SceneError(f"{field}.file", f"{shape.file}: {exc}") from None
+
+
+def read_texture(path: Path, budget: LoadBudget, field: str, at: str = "") -> Pixels:
+    """An image file read within the budget: its declared size is checked before it is
+    decoded (decoding is what costs)."""
+    try:
+        budget.take("image files", 1, field, at)
+        budget.take("bytes", path.stat().st_size, field, at)
+        height, width, channels = image_shape(path)
+        budget.take("texels", height * width * channels, field, at)
+        return Pixels.of(read_image(path))
+    except OSError as exc:
+        raise SceneError(field, f"{at + ': ' if at else ''}cannot read {path.name}: {exc.strerror or exc}") from None
+    except ImageError as exc:
+        raise SceneError(field, f"{at + ': ' if at else ''}{path.name}: {exc}") from None
 
 
 def _corner_normals(mesh: MeshData) -> np.ndarray | None:
@@ -579,6 +666,7 @@ _UNION_TAGS = {
                   "plastic", "rough_plastic"},
     "shapes": {"sphere", "quad", "mesh"},
     "lights": {"point", "spot", "directional"},
+    "textures": {"bitmap", "checkerboard"},
 }
 
 
@@ -646,7 +734,7 @@ def load_any_scene(path: Path | str, params: dict[str, str] | None = None, root:
     if params:
         raise SceneError("params", "parameters apply to Mitsuba XML scenes only")
     scene, base_dir = load_scene_file(path, budget)
-    if any(isinstance(shape, Mesh) and shape.file is not None for shape in scene.shapes):
+    if names_files(scene):
         with collector_paused():
             scene = parse_scene(inline_meshes(scene, base_dir, root or base_dir, budget))
     return scene, base_dir
