@@ -40,10 +40,9 @@ from bench.common import (
 )
 from worker.image_io import read_image
 from worker.render_loop import render
-from worker.settings import DEFAULTS
+from worker.settings import DEFAULT_PHOTONS_PER_PASS, DEFAULTS
 
 CANDIDATES = (1 << 18, 1 << 19, 1 << 20)
-DEFAULT_PHOTONS_PER_PASS = DEFAULTS.photons_per_pass  # the engine default (2^18)
 CAP_FACTOR = 3.0  # give up at this multiple of smallppm's time
 GOAL_RATIO = 5.0
 

@@ -35,7 +35,7 @@ from service.models import JobSettings
 
 SCENE = "cornell-caustics"
 RESOLUTION = [128, 128]
-PHOTONS = JobSettings().photons_per_pass  # the service's default
+PHOTONS = JobSettings(method="sppm").for_frame(*RESOLUTION).paths_per_pass  # the default for sppm
 CORES = os.cpu_count() or 1
 ROUTES = ("job", "image_png", "metrics")
 

@@ -7,7 +7,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from worker.scene import MAX_RESOLUTION, MAX_SCENE_NAME, SCENE_NAME_PATTERN, bundled_scene_names
-from worker.settings import DEFAULTS, Settings
+from worker.settings import Settings
 from worker.store.policy import Status
 from worker.store.record import MAX_JOB_NOTES, MAX_NOTE_CHARS
 
@@ -40,8 +40,8 @@ class JobSettings(Settings):
 
     model_config = ConfigDict(json_schema_extra=_settings_schema)
 
-    photons_per_pass: int = Field(DEFAULTS.photons_per_pass, strict=True, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
-                                  description=Settings.model_fields["photons_per_pass"].description)
+    photons_per_pass: int | None = Field(None, strict=True, ge=1, le=MAX_SERVICE_PHOTONS_PER_PASS,
+                                         description=Settings.model_fields["photons_per_pass"].description)
 
     @field_validator("resolution")
     @classmethod

@@ -8,7 +8,7 @@ import sys
 
 from service.cli import RENDER_FIELDS, build_parser
 from service.models import JobRequest, JobSettings
-from worker.settings import DEFAULT_ALPHA, DEFAULTS, Settings
+from worker.settings import DEFAULT_ALPHA, DEFAULT_PHOTONS_PER_PASS, DEFAULTS, MAX_DEFAULT_SUBPATHS, Settings
 
 
 def test_cli_and_api_defaults_are_the_models_own() -> None:
@@ -65,3 +65,23 @@ def test_alpha_defaults_by_method() -> None:
     render = build_parser()._subparsers._group_actions[0].choices["render"]
     alpha_help = next(a.help for a in render._actions if a.dest == "alpha")
     assert all(f"{method} {alpha:g}" in alpha_help for method, alpha in DEFAULT_ALPHA.items())
+
+
+def test_paths_per_pass_default_by_method_and_frame() -> None:
+    """No count given: photon mapping traces its fixed count, the connecting methods one light
+    subpath per pixel (capped); a given count wins; a frame's settings keep the count and the
+    resolution they render with."""
+    for method in ("sppm", "ppm"):
+        assert Settings(method=method).for_frame(64, 32).paths_per_pass == DEFAULT_PHOTONS_PER_PASS
+    for method in ("vcm", "bpt", "lt"):
+        framed = Settings(method=method).for_frame(64, 32)
+        assert framed.paths_per_pass == 64 * 32 and framed.resolution == (64, 32)
+        assert Settings(method=method).for_frame(4096, 4096).paths_per_pass == MAX_DEFAULT_SUBPATHS
+        assert Settings(method=method, photons_per_pass=5).for_frame(64, 32).paths_per_pass == 5
+    assert Settings(resolution=(8, 8)).for_frame(64, 32).resolution == (8, 8)
+    try:
+        _ = Settings().paths_per_pass
+    except ValueError as exc:
+        assert "for_frame" in str(exc)
+    else:
+        raise AssertionError("settings without a frame gave a path count")

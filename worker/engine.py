@@ -134,6 +134,7 @@ class Engine:
     def __init__(self, scene: Scene, base_dir: Path, settings: Settings, ctx: cl.Context | None = None) -> None:
         from worker.integrators.device import passes_for  # the device halves need OpenCL
 
+        settings = settings.for_frame(*(settings.resolution or scene.camera.resolution))
         self.settings = settings
         self.integrator = integrator_for(settings)
         self.arrays: SceneArrays = compile_scene(scene, base_dir, settings.resolution)

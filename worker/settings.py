@@ -16,6 +16,12 @@ from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
 
 MAX_PHOTONS_PER_PASS = 1 << 24
+# Paths per pass when none is given (Settings.for_frame): photon mapping traces a fixed count;
+# the connecting methods one light subpath per pixel, as vcm pairs light and camera subpaths
+# one to one (Georgiev et al. 2012), at most MAX_DEFAULT_SUBPATHS.
+DEFAULT_PHOTONS_PER_PASS = 1 << 18
+MAX_DEFAULT_SUBPATHS = 1 << 22
+SUBPATH_METHODS = ("vcm", "bpt", "lt")
 DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold may be out of reach)
 
 Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
@@ -56,8 +62,11 @@ class Settings(BaseModel):
                                 "r_k^2 = R0^2 (k+1)^(alpha-1) (default by method: "
                                 + ", ".join(f"{m} {a:g}" for m, a in DEFAULT_ALPHA.items()) + ")",
                                 json_schema_extra={"x-default-by": {"method": {**DEFAULT_ALPHA}}})
-    photons_per_pass: int = Field(default=1 << 18, strict=True, ge=1, le=MAX_PHOTONS_PER_PASS,
-                                  description="photon paths per pass (light subpaths for vcm, bpt, lt)")
+    photons_per_pass: int | None = Field(default=None, strict=True, ge=1, le=MAX_PHOTONS_PER_PASS,
+                                         description="photon paths per pass (light subpaths for vcm, bpt, lt); "
+                                                     f"default: {DEFAULT_PHOTONS_PER_PASS} for sppm and ppm, the "
+                                                     f"pixel count for {', '.join(SUBPATH_METHODS)} (at most "
+                                                     f"{MAX_DEFAULT_SUBPATHS})")
     initial_radius: float | None = Field(default=None, strict=True, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "
@@ -128,6 +137,23 @@ class Settings(BaseModel):
         if self.error_threshold is not None and not self.error_estimation:
             raise ValueError("error_threshold needs error_estimation")
         return self
+
+    def for_frame(self, width: int, height: int) -> Settings:
+        """These settings for a frame of width x height pixels, every frame-dependent default
+        filled in (the resolution, the paths per pass), so that a stored job keeps what it
+        renders with."""
+        paths = self.photons_per_pass
+        if paths is None:
+            paths = (min(width * height, MAX_DEFAULT_SUBPATHS) if self.method in SUBPATH_METHODS
+                     else DEFAULT_PHOTONS_PER_PASS)
+        return self.model_copy(update={"resolution": self.resolution or (width, height), "photons_per_pass": paths})
+
+    @property
+    def paths_per_pass(self) -> int:
+        """Paths traced per pass; the settings must have been through `for_frame`."""
+        if self.photons_per_pass is None:
+            raise ValueError("settings not yet given a frame (Settings.for_frame)")
+        return self.photons_per_pass
 
 
 DEFAULTS = Settings()

@@ -97,6 +97,7 @@ def settings_table() -> str:
     head = "| setting | type or choices | default | bounds | meaning |\n|---|---|---|---|---|\n"
     notes = (f"\n\n`null` defaults: `alpha` takes its method's value (`x-default-by` in the schema); with "
              f"neither `max_passes` nor `max_seconds`, `max_seconds` is {DEFAULT_MAX_SECONDS:g}; "
+             f"`photons_per_pass` is the method's (its meaning says the rule); "
              f"`initial_radius` is derived from the scene; `resolution` is the scene's, each side in "
              f"1..{MAX_RESOLUTION} and at most {MAX_PIXELS:,} pixels (the service allows fewer, see Limits).")
     return head + "\n".join(settings_rows().values()) + notes

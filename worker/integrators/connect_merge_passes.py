@@ -38,7 +38,7 @@ class ConnectMergePasses:
         self.integrator = integrator
         self.settings = integrator.settings
         self.dev = device
-        self.n_light = self.settings.photons_per_pass
+        self.n_light = self.settings.paths_per_pass
         n = device.arrays.n_pixels
         self.cam_out = device.buffer(16 * n)
         self.cam_hit = device.buffer(4 * n)

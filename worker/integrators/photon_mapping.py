@@ -113,7 +113,7 @@ class PhotonMapping(Integrator[Accumulators]):
         r, count = state.batch_start()
         chains = None
         if self.adaptive:
-            photons, mutate = self.settings.photons_per_pass, adaptive.mutates(state.counters,
+            photons, mutate = self.settings.paths_per_pass, adaptive.mutates(state.counters,
                                                                                self.settings.target_acceptance)
             iterations = adaptive.iterations(photons) if mutate else adaptive.sample_iterations(photons)
             chains = ChainInputs(adaptive.theta(state.counters), adaptive.chains(state.counters, iterations),

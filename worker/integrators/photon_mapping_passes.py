@@ -77,7 +77,7 @@ class PhotonMappingPasses:
         self.mp_fill = device.buffer(4 * self.mp_entries)
         self.mp_sorted = device.buffer(4 * n)
         self.entries = 0
-        self._reserve_photons(3 * self.settings.photons_per_pass)
+        self._reserve_photons(3 * self.settings.paths_per_pass)
         self.photons_stored = 0  # of the last pass
         self.replica_exchange = True  # False: the adaptive sampler's chains mutate only (an ablation, for tests)
 
@@ -132,8 +132,8 @@ class PhotonMappingPasses:
         while True:
             events = [dev.fill(self.ph_count, np.uint32(0), 1)]
             events.append(dev.program.launch(
-                dev.queue, "photon_pass", self.settings.photons_per_pass, *dev.geometry, *dev.emitter_args,
-                u64(self.settings.seed), u32(pass_index), u32(self.settings.photons_per_pass),
+                dev.queue, "photon_pass", self.settings.paths_per_pass, *dev.geometry, *dev.emitter_args,
+                u64(self.settings.seed), u32(pass_index), u32(self.settings.paths_per_pass),
                 i32(self.settings.max_bounces), u32(self.capacity), skip_first, self.ph_pos, self.ph_flux,
                 self.ph_dirs, self.ph_key, self.ph_count))
             stored = np.zeros(1, np.uint32)
@@ -162,7 +162,7 @@ class PhotonMappingPasses:
         dev, settings = self.dev, self.settings
         inv_cell = f32(1.0 / (2.0 * max_radius))
         self._point_grid(inv_cell)
-        photons = settings.photons_per_pass
+        photons = settings.paths_per_pass
         iterations = photons if chains.iterations is None else chains.iterations
         while True:
             events = [dev.fill(self.ph_count, np.uint32(0), 1),
@@ -214,7 +214,7 @@ class PhotonMappingPasses:
         photons, _scale_pass)."""
         dev, a, p = self.dev, self.dev.arrays, self.dev.program
         n = a.n_pixels if points is None else points
-        photons = f32(self.settings.photons_per_pass)
+        photons = f32(self.settings.paths_per_pass)
         inv_cell = f32(1.0 / (2.0 * max_radius))  # cell = 2 * largest radius (dissertation 10.2.2)
         if (gather or self.settings.gather) == "stochastic":
             entries = _next_pow2(int(math.ceil(n_stored * self.settings.hash_entries_per_photon)))
@@ -354,7 +354,7 @@ class PhotonMappingPasses:
             else:
                 self.photons_stored, counts = self._chain_pass(k, inputs.chains, float(r32.max()))
                 if inputs.chains.mutate:
-                    self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.photons_per_pass))
+                    self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.paths_per_pass))
                 else:  # the chains judged a sample of draws for V_c; the photons are a uniform pass's
                     self.photons_stored = self._photon_pass(k)
                 self._build_and_gather(self.photons_stored, float(r32.max()))
@@ -367,7 +367,7 @@ class PhotonMappingPasses:
                 dev.times.settle()
                 raise BatchAborted(f"stopped after pass {k}")
         return Delta(first_pass=first_pass, n_passes=n_passes,
-                     emitted=n_passes * self.settings.photons_per_pass, sums=dev.read_sums(), counters=totals)
+                     emitted=n_passes * self.settings.paths_per_pass, sums=dev.read_sums(), counters=totals)
 
     # -------------------------------------------------------------------- probe
     def gather_photons(self, points: np.ndarray, normals: np.ndarray, radius: np.ndarray, photon_pos: np.ndarray,
