@@ -72,7 +72,7 @@ from worker.engine import Engine
 from worker.image_io import read_image, write_image
 from worker.render_loop import render
 from worker.scene import Scene, bundled_scene_path, load_scene_file
-from worker.settings import Settings
+from worker.settings import DEFAULTS, Settings
 
 BUNDLED = ("cornell-box", "cornell-caustics", "directional-caustic", "furnace", "gap", "glossy", "point-plane",
            "smallppm")
@@ -129,8 +129,8 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
     return {"visible_fraction": v_c, "visible_photon_ratio": 1.0 / v_c if v_c else None,
             "traced_per_splat": traced / c["splats"] if c["splats"] else None,
             "new_visible_per_traced": (c["visible"] + c["accepted"]) / traced if traced else None,
-            "theta": adaptive.theta(c), "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations
-            else None, "passes": passes,
+            "theta": adaptive.theta(c, eng.settings.target_acceptance),
+            "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations else None, "passes": passes,
             "gain": adaptive.gain(v_c, eng.settings.target_acceptance) if v_c is not None else None}
 
 
@@ -258,7 +258,7 @@ def at_defaults(scene: Scene, res: tuple[int, int], photons: int, budget: float,
         out[variant] = {"passes": [run["state"].passes for run in pair],
                         "noise": rel_rms(images[0], images[1]) / math.sqrt(2.0),
                         "visible_fraction": adaptive.visible_fraction(counters) if counters else None,
-                        "theta": adaptive.theta(counters) if counters else None}
+                        "theta": adaptive.theta(counters, DEFAULTS.target_acceptance) if counters else None}
         if analytic:
             truth = patch_plane(pair[0]["engine"]).reshape(res[1], res[0])
             out[variant]["error"] = [float(np.sqrt(np.mean((img.mean(axis=2) / truth - 1.0) ** 2))) for img in images]

@@ -85,7 +85,7 @@ def test_every_path_visible_gives_no_mutations_and_the_uniform_image(make_engine
     # Pass 0 (no V_c yet) and, V_c being 1, every later pass are the uniform photon pass;
     # passes 0, 8 and 16 judge a sample of their draws for V_c.
     assert c["visible"] == c["draws"] == c["splats"] == 3 * adaptive.sample_iterations(1 << 13)
-    assert adaptive.theta(c) == 1.0  # nothing to adapt
+    assert adaptive.theta(c, 0.234) == 1.0  # nothing to adapt
     # The same estimator with other photon random numbers: per pixel within the noise of
     # both (the two share their measurement points, the same seed's eye passes, so the
     # difference lacks the eye jitter's part of the per-pass noise: a spread below 1).
@@ -309,7 +309,7 @@ def test_acceptance_reaches_the_target(make_engine, tmp_path, target: float) -> 
     mutations = state.counters["mutations"] - before["mutations"]
     accepted = state.counters["accepted"] - before["accepted"]
     assert mutations > 5_000
-    assert abs(accepted / mutations - target) < 0.02, (accepted / mutations, adaptive.theta(state.counters))
+    assert abs(accepted / mutations - target) < 0.02, (accepted / mutations, adaptive.theta(state.counters, target))
     v_c = adaptive.visible_fraction(state.counters)
     assert v_c < 0.02
 
@@ -497,3 +497,50 @@ def test_chains_mutate_only_where_they_gain(make_engine, tmp_path, scene: str, m
         assert v_c < 0.005 and min(per_pass[1:]) > 0, (v_c, per_pass)
     else:
         assert v_c > 0.5 and per_pass[1:] == [0, 0], (v_c, per_pass)
+
+
+@pytest.mark.parametrize("batches", [1, 8, 40, 200])
+@pytest.mark.parametrize("best", [0.002, 0.3, 20.0])
+def test_theta_controller_is_the_same_for_any_number_of_concurrent_batches(batches: int, best: float) -> None:
+    """The controller alone on a model acceptance A(theta) = 1 / (1 + (theta / best)^1.5)
+    (falling from 1 to 0, A* = 0.234 near theta = 2.2 best) with binomial noise: rounds of
+    `batches` concurrent 8-pass batches, each from the merged counters of the rounds
+    before, reach the target within 0.03 by the fourth round from 1.0, best 1/500 to 20
+    times theta's start, and stay there, whatever the number of concurrent batches."""
+    rng = np.random.default_rng(5)
+    target, counters = 0.234, {}
+
+    def acceptance(theta: float) -> float:
+        return 1.0 / (1.0 + (theta / best) ** 1.5)
+
+    rounds = []
+    for _ in range(8):
+        theta = adaptive.theta(counters, target)  # every batch of the round starts from the same state
+        rounds.append(acceptance(theta))
+        for _ in range(batches * 8):
+            mutations = 2_000
+            accepted = int(rng.binomial(mutations, acceptance(theta)))
+            for name, value in adaptive.binned(theta, mutations, accepted).items():
+                counters[name] = counters.get(name, 0) + value
+    assert all(abs(a - target) < 0.03 for a in rounds[3:]), rounds
+
+
+@pytest.mark.usefixtures("chains_mutate")
+def test_concurrent_batches_reach_the_target_acceptance(make_engine, tmp_path) -> None:
+    """The real sampler on the patch scene (V_c ~ 0.008): rounds of 8 concurrent 8-pass
+    batches, all from the round's merged state, as 8 workers run them; the fourth round's
+    acceptance is within 0.03 of the target."""
+    eng = make_engine(_scene_file(tmp_path, patch_scene(6.0)), photons_per_pass=1 << 13, seed=3,
+                      sampler="adaptive")
+    target = eng.settings.target_acceptance
+    state = eng.start()
+    eng.integrator.merge(state, eng.run_batch(eng.integrator.batch_inputs(state), 0, 1))  # V_c
+    acceptance = []
+    for r in range(4):
+        inputs = eng.integrator.batch_inputs(state)
+        deltas = [eng.run_batch(inputs, 1 + 64 * r + 8 * b, 8) for b in range(8)]
+        mutations = sum(d.counters["mutations"] for d in deltas)
+        acceptance.append(sum(d.counters["accepted"] for d in deltas) / mutations)
+        for d in deltas:
+            eng.integrator.merge(state, d)
+    assert abs(acceptance[3] - target) < 0.03, acceptance

@@ -22,19 +22,20 @@ Why not the pooled V_c (the paper's): (1) SPPM's radius rule (N = alpha M_1, the
 count, which uniform photons do whatever a pass's iterations; (2) a V_c pooled over passes
 whose V_k drifts as the radius shrinks is biased (mean V times mean 1 / V).
 
-theta is frozen within a pass and adapted between passes by the controlled-MCMC rule of
-eq. 11, theta += gamma_k (A_k - A*), taken on log theta (theta spans 1e-3..64; a step of a
-given size in log theta is the same relative change everywhere) and with gamma_k =
-THETA_GAIN / sqrt(k + 1) for pass index k (diminishing: the sum of gamma_k diverges, each
-step goes to 0). Each pass's step is a function of that pass alone (its index, the theta
-it used and its own acceptance A_k), rounded to an integer number of THETA_QUANTUM and
-summed like the other counters: log theta = (sum of steps) * THETA_QUANTUM, clamped to
-[THETA_MIN, THETA_MAX]. So theta is a function of the merged state, integer sums make it
+theta is the mutation size of every pass of a batch, chosen from the job's merged counters so
+that the chains' acceptance A(theta) meets the target A* (the controlled-MCMC goal of eq. 11,
+dissertation 8.2). theta takes values on a grid, theta_j = exp(j THETA_BIN) within
+[THETA_MIN, THETA_MAX], and each pass adds its mutations and acceptances to its grid point's
+counters (`binned`). From the pooled acceptance per grid point, made non-increasing in theta
+by isotonic regression (pool adjacent violators, weighted by mutations: a larger mutation is
+never more likely accepted), the next theta is where logit(A) crosses logit(A*) on the line,
+in log theta, through the two grid points that bracket the crossing (a secant step), or, with
+no bracket yet, through the two points nearest it (one point: slope PRIOR_SLOPE), rounded to
+the grid and clamped to the range. So theta is a function of the merged counters alone, not
+of how they split into batches or how many batches ran at once: concurrent batches from one
+state all use the same theta and only add evidence at its grid point; integer sums make it
 bit-exact whatever order batches merged in, and a re-issued batch given the same state
-replays its passes bit for bit. A step that would push theta further beyond a bound is 0
-(projection), so the sum cannot wind up there. Passes of one batch share the theta the
-batch started with (the paper adapts after every mutation; a pass's thousands of
-mutations already make A_k precise).
+replays its passes bit for bit.
 """
 
 from __future__ import annotations
@@ -43,10 +44,11 @@ import math
 
 # Counters a pass adds, in the kernel's order (kernels/photon_chains.cl, CTR_*).
 COUNTERS = ("draws", "visible", "splats", "mutations", "accepted", "started", "boot")  # boot: the starts' draws
-THETA_STEPS = "theta_steps"  # the sum of the passes' log-theta steps, in THETA_QUANTUM
-THETA_QUANTUM = 2.0 ** -24
 THETA_MIN, THETA_MAX = 1e-3, 64.0  # "bounding theta to a large finite range" (dissertation 8.2)
-THETA_GAIN = 4.0  # gamma_k = THETA_GAIN / sqrt(k + 1), in log theta per unit of acceptance error
+THETA_BIN = math.log(2.0) / 4.0  # the grid of theta: four points an octave
+PRIOR_SLOPE = -1.0  # d logit(A) / d log theta assumed until two grid points measure it
+LOGIT_CLAMP = 1e-4  # acceptances are taken within [this, 1 - this] in logit
+MIN_EVIDENCE = 64  # mutations at a grid point before its acceptance counts
 MIN_GAIN = 12.0  # chains mutate only while they promise this many times uniform tracing's visible paths (mutates)
 ITERATION_COST = 8  # a chain iteration costs about this many uniform photon paths (iterations)
 CHAIN_SHARE = 0.05  # chains = this share of the visible paths a pass expects (a chain's start costs 1 / V_c draws)
@@ -56,20 +58,60 @@ VISIBILITY_SAMPLE = 16  # a pass whose chains do not mutate judges one uniform d
 JUDGE_EVERY = 8  # ... in one pass of this many (pass index 0, 8, 16, ...); the others are uniform passes alone
 
 
-def theta(counters: dict[str, int]) -> float:
-    """The mutation size for a batch starting from these merged counters."""
-    log_theta = counters.get(THETA_STEPS, 0) * THETA_QUANTUM
-    return min(max(math.exp(log_theta), THETA_MIN), THETA_MAX)
+def theta_index(theta_value: float) -> int:
+    """The grid point of a mutation size."""
+    return round(math.log(theta_value) / THETA_BIN)
 
 
-def theta_step(pass_index: int, used: float, mutations: int, accepted: int, target: float) -> int:
-    """Pass `pass_index`'s step of log theta (in THETA_QUANTUM), from its own acceptance."""
-    if mutations == 0:
-        return 0  # every uniform draw was visible (or no chain had a state): nothing to adapt
-    error = accepted / mutations - target
-    if (used >= THETA_MAX and error > 0.0) or (used <= THETA_MIN and error < 0.0):
-        return 0
-    return round(THETA_GAIN / math.sqrt(pass_index + 1.0) * error / THETA_QUANTUM)
+def binned(theta_value: float, mutations: int, accepted: int) -> dict[str, int]:
+    """A pass's counters for the grid point of the theta it used."""
+    j = theta_index(theta_value)
+    return {f"mutations_at_{j}": mutations, f"accepted_at_{j}": accepted} if mutations else {}
+
+
+def theta(counters: dict[str, int], target: float) -> float:
+    """The mutation size for a batch starting from these merged counters (module docstring)."""
+    points = sorted((j, counters[f"accepted_at_{j}"], m) for j, m in _evidence(counters))
+    if not points:
+        return 1.0
+    fitted = _non_increasing([a / m for _, a, m in points], [m for _, _, m in points])
+    x = [j * THETA_BIN for j, _, _ in points]  # log theta
+    y = [_logit(a) for a in fitted]
+    above = [i for i, a in enumerate(fitted) if a >= target]  # theta too small there
+    if above and len(above) < len(points):  # a bracket: the points on either side of the crossing
+        i0, i1 = above[-1], above[-1] + 1
+    elif above:  # every theta tried is too small: extrapolate from the largest two
+        i0, i1 = max(len(points) - 2, 0), len(points) - 1
+    else:
+        i0, i1 = 0, min(1, len(points) - 1)
+    slope = (y[i1] - y[i0]) / (x[i1] - x[i0]) if y[i1] < y[i0] else PRIOR_SLOPE
+    ref = i1 if above else i0  # on the line either point; with the prior slope, the one nearest the crossing
+    j = (x[ref] + (_logit(target) - y[ref]) / slope) / THETA_BIN
+    return math.exp(min(max(round(j), theta_index(THETA_MIN)), theta_index(THETA_MAX)) * THETA_BIN)
+
+
+def _logit(a: float) -> float:
+    a = min(max(a, LOGIT_CLAMP), 1.0 - LOGIT_CLAMP)
+    return math.log(a / (1.0 - a))
+
+
+def _evidence(counters: dict[str, int]) -> list[tuple[int, int]]:
+    """(grid point, mutations) of every grid point with at least MIN_EVIDENCE mutations."""
+    prefix = "mutations_at_"
+    return [(int(name[len(prefix):]), m) for name, m in counters.items()
+            if name.startswith(prefix) and m >= MIN_EVIDENCE]
+
+
+def _non_increasing(values: list[float], weights: list[int]) -> list[float]:
+    """The weighted least-squares non-increasing fit of `values` (pool adjacent violators)."""
+    blocks: list[list[float]] = []  # [mean, weight, count]
+    for v, w in zip(values, weights, strict=True):
+        blocks.append([v, float(w), 1])
+        while len(blocks) > 1 and blocks[-2][0] < blocks[-1][0]:
+            v2, w2, n2 = blocks.pop()
+            v1, w1, n1 = blocks[-1]
+            blocks[-1] = [(v1 * w1 + v2 * w2) / (w1 + w2), w1 + w2, n1 + n2]
+    return [b[0] for b in blocks for _ in range(int(b[2]))]
 
 
 def gain(v_c: float, target: float) -> float:

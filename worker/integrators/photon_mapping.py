@@ -113,10 +113,10 @@ class PhotonMapping(Integrator[Accumulators]):
         r, count = state.batch_start()
         chains = None
         if self.adaptive:
-            photons, mutate = self.settings.paths_per_pass, adaptive.mutates(state.counters,
-                                                                               self.settings.target_acceptance)
+            target, photons = self.settings.target_acceptance, self.settings.paths_per_pass
+            mutate = adaptive.mutates(state.counters, target)
             iterations = adaptive.iterations(photons) if mutate else adaptive.sample_iterations(photons)
-            chains = ChainInputs(adaptive.theta(state.counters), adaptive.chains(state.counters, iterations),
+            chains = ChainInputs(adaptive.theta(state.counters, target), adaptive.chains(state.counters, iterations),
                                  iterations, mutate)
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None

@@ -358,9 +358,7 @@ class PhotonMappingPasses:
                 else:  # the chains judged a sample of draws for V_c; the photons are a uniform pass's
                     self.photons_stored = self._photon_pass(k)
                 self._build_and_gather(self.photons_stored, float(r32.max()))
-                counts[adaptive.THETA_STEPS] = adaptive.theta_step(k, inputs.chains.theta, counts["mutations"],
-                                                                   counts["accepted"],
-                                                                   self.settings.target_acceptance)
+                counts.update(adaptive.binned(inputs.chains.theta, counts["mutations"], counts["accepted"]))
                 for name, value in counts.items():
                     totals[name] = totals.get(name, 0) + value
             if keep_going is not None and not keep_going(k):
