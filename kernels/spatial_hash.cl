@@ -189,7 +189,7 @@ __kernel void grid_permute(uint n, __global const PhotonSlot* slots, __global fl
 // (photon - point):
 //     lap K = -30 t (t-1) (5t-3) / r^2          (K'' + K'/t, over r^2)
 // The pass's sums go into the batch's per-pixel sums at the radius r it used (digest 11.2):
-//     S += w Phi_K / (k1 r^2 c),  D += M / (pi r^2),  G += lap / (k1 r^2 c)
+//     S += w Phi_K / (k1 r^2 c),  D += M / (pi r^2),  G += lap / (k1 r^2 c),  GR += r^2 G's term
 // where M is the raw photon count (the radius rule is count based) and c the share of the
 // disc's kernel weight on the point's own surface (eye_pass.cl, disc_coverage). For the variance
 // estimate (eq. 6.22), the pass's own luminance estimate minus the bias estimated at the
@@ -258,6 +258,7 @@ inline void accumulate(__global double* batch_sums, int n_pixels, int gid, float
 #ifdef SUM_G
     double lap = (double)s.lap / kr2;
     ADD_SUM(SUM_G, lap);
+    ADD_SUM(SUM_GR, lap * (double)r * (double)r);  // at the pass's own radius: eq. 6.18's sum
     ADD_SUM(SUM_L2, (lap / (double)photons) * (lap / (double)photons));  // the pass's own lap L, squared
     double x = dot(flux, (double3)(LUM_R, LUM_G, LUM_B)) / (double)photons - (double)bias;
     ADD_SUM(SUM_X1, x);

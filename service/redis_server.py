@@ -29,7 +29,7 @@ from worker import allocator
 
 PASSWORD_FILE = "password"
 # A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
-# rather than dropping a job's state. One job takes 128 bytes a pixel (80 without error
+# rather than dropping a job's state. One job takes up to 144 bytes a pixel (80 without error
 # estimation), and its batches' deltas up to as much again between checkpoints (docs/limits.md).
 MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
 AOF_REWRITE_PERCENTAGE = 400  # the append-only file's growth, in % of the data set, that starts a rewrite

@@ -29,7 +29,7 @@ from worker.store.tiles import as_sent
 W, H = 32, 16
 BATCHES, PASSES = 1000, 10  # 10^4 passes
 FOLD_EVERY = 5  # batches accepted between folds
-SIGNED = {"G", "X1", "Dh"}
+SIGNED = {"G", "GR", "X1", "Dh"}
 UNIT = 2.0 ** -24  # float32's unit roundoff (round to nearest) ...
 HALF_UNIT = 2.0 ** -11 + 2.0 ** -23  # ... float16's, after float32's (two roundings) ...
 HALF_STEP = 2.0 ** -39 * (1 + 2.0 ** -13)  # ... and its subnormals' half step (and float32's), of the tile's largest

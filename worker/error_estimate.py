@@ -6,7 +6,9 @@ adaptive sampler's sums are in uniform photons too, worker/adaptive.py):
 
     L      = Y(S) / E                          the estimate (smooth kernel, eq. 6.34)
     lap L  = G / E                             its Laplacian, from the kernel's (tangent plane)
-    B      = 0.5 R^2 c lap L                   bias, eq. 6.20, R the current radius
+    B      = 0.5 c GR / E                      bias, eq. 6.18: GR sums each pass's Laplacian
+                                               term times its own radius R_j^2, so B is the
+                                               mean of the passes' biases 0.5 R_j^2 c lap L
     V      = (X2 - X1^2 / i) / (i - 1)         eq. 6.22: sample variance of x_j = L_pj - B_j
     noise  = t(1 - beta/2, i - 1) sqrt(V / i)  eq. 6.10 half-width; Student t with i - 1
                                                degrees of freedom (i samples; the text's
@@ -19,8 +21,11 @@ samples whose spread gives the standard error s_B of B (from L2). Eq. 6.12 adds 
 it were exact, so under uniform light (true bias 0) the noise of B alone would inflate the
 bound. So the bound adds only the part of |B| beyond z = 1.25 of its standard errors s_B
 (soft thresholding): a larger z drops the real bias of caustic edges, a smaller one keeps
-some noise (coverage by z: docs/results.md). `bias` reports the plain eq. 6.20 (or,
-where the bound uses the discontinuity bias below, its estimate EDGE_FACTOR dh).
+some noise (coverage by z: docs/results.md). `bias` reports the plain eq. 6.18 (or,
+where the bound uses the discontinuity bias below, its estimate EDGE_FACTOR dh). Eq. 6.19's
+shortcut, the current radius R_i for every pass, would report alpha times the bias: under
+the radius schedule the passes' mean R_j^2 is R_i^2 / alpha (worker/stats.py: a_k = A(k)
+alpha / k), which also scales s_B.
 
 Discontinuities. The Laplacian describes the bias only where the density is smooth within
 the disc; at a shadow edge, a spot light's cone edge or a surface boundary it is no
@@ -120,8 +125,9 @@ class ErrorEstimate:
 
 
 def bias_estimate(radius: np.ndarray, G: np.ndarray, emitted: float, constant: str) -> np.ndarray:
-    """B = 0.5 R^2 c lap L per pixel, lap L = G / E (zero before any photon was emitted);
-    computed in one array (a frame's temporaries cost more than the arithmetic)."""
+    """B = 0.5 R^2 c lap L per pixel at radius R, lap L = G / E (zero before any photon was
+    emitted): what a pass at R subtracts from its sample; computed in one array (a frame's
+    temporaries cost more than the arithmetic)."""
     if emitted == 0:
         return np.zeros(len(radius))
     bias = np.square(radius)
@@ -219,7 +225,7 @@ def _block(run: _Round, blk: slice, direct: np.ndarray | None, dark: np.ndarray,
     r = state.radius()[blk]
     r2 = r ** 2
     G = state.G[blk]
-    bias = bias_estimate(r, G, state.emitted, run.constant)
+    bias = bias_estimate(np.ones(len(r)), state.GR[blk], state.emitted, run.constant)  # eq. 6.18
     n = len(r)
     if i >= 2:
         # Noise: the per-pass samples' variance (and with NEE its direct light's).
@@ -231,7 +237,7 @@ def _block(run: _Round, blk: slice, direct: np.ndarray | None, dark: np.ndarray,
         emitted = state.emitted
         lap_sum = G / (emitted / i) if emitted > 0 else np.zeros(n)  # sum of each pass's lap L
         lap_var = np.maximum(state.L2[blk] - lap_sum ** 2 / i, 0.0) / (i - 1)
-        bias_se = 0.5 * r2 * BIAS_CONSTANTS[run.constant] * np.sqrt(lap_var / i)
+        bias_se = 0.5 * r2 / state.alpha * BIAS_CONSTANTS[run.constant] * np.sqrt(lap_var / i)
         bias_noise = run.significance * bias_se
         # The discontinuity bias.
         rough, edge_estimate, edge_bias = discontinuity_bias(state.Dh[blk], state.Dh2[blk], i, bias, bias_se,

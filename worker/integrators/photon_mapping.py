@@ -37,7 +37,7 @@ BATCH_ONLY = ("M",)
 # half precision (worker/store/tiles.py). The error estimator's subtract one another
 # (X2 - X1^2 / i, Dh2 - Dh^2 / i, ...) and go as float32.
 HALF_SUMS = tuple(name for name, _ in PHOTON_SUMS)
-ERROR_SUMS = (("G", 1), ("X1", 1), ("X2", 1), ("L2", 1), ("Dh", 1), ("Dh2", 1))
+ERROR_SUMS = (("G", 1), ("GR", 1), ("X1", 1), ("X2", 1), ("L2", 1), ("Dh", 1), ("Dh2", 1))
 NEE_ERROR_SUMS = (("Ld2", 1),)
 
 

@@ -109,7 +109,7 @@ return 1
 
 
 # Tiles per round trip to a node, and per transaction of a fold's writes (TiledState._on_versions):
-# 4 tiles of state are 34 MB at 128 bytes a pixel.
+# 4 tiles of state are 36 MB at 136 bytes a pixel.
 TILES_PER_TRIP = 4
 # A batch's inputs read while a fold round writes them (tiles of two rounds) are read again,
 # at most this many times in all, so far apart (a round writes them in milliseconds).

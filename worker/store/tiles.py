@@ -2,7 +2,7 @@
 encodings of what moves per tile: the folded state, a batch's delta and a batch's inputs.
 
 A tile is a run of TILE_PIXELS consecutive pixels (row-major, so a band of rows at most;
-65,536 pixels by default, 8.4 MB of state at 128 bytes a pixel); tile k lives on node
+65,536 pixels by default, 8.9 MB of state at 136 bytes a pixel); tile k lives on node
 k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
 (comma-separated), else the main Redis alone; a job records how many nodes it was created
 with, and every process must name the same nodes in the same order. Queues, job records
@@ -71,7 +71,7 @@ from worker.store.connection import Fields, connect, text
 TILE_PIXELS = int(os.environ.get("PHOTONFARM_TILE_PIXELS", str(1 << 16)))
 STATE_URLS_ENV = "PHOTONFARM_STATE_URLS"
 # Folded tiles a process keeps, in bytes (the API process reads what it folded without a
-# round trip; the default holds a 3840 x 2160 job's state at 128 bytes a pixel).
+# round trip; the default holds a 3840 x 2160 job's state at 136 bytes a pixel).
 CACHE_BYTES = int(float(os.environ.get("PHOTONFARM_TILE_CACHE_MB", "2048")) * 1e6)
 
 
