@@ -13,7 +13,7 @@ from scipy import integrate
 from kernels.contract import K1, K2, LUMINANCE
 from tests.analytic import FURNACE_L, point_plane
 from tests.conftest import render
-from worker.error_estimate import BIAS_CONSTANTS, bias_estimate, estimate
+from worker.error_estimate import BIAS_CONSTANTS, FLOOR_FRACTION, bias_estimate, estimate
 from worker.image_io import read_image
 from worker.integrators.photon_mapping import sum_layout
 from worker.stats import Accumulators
@@ -195,8 +195,12 @@ def test_guards_fewer_than_two_passes_and_unlit_pixels() -> None:
     assert est.relative[2] == 1.0  # never lit, and no radius to bound it with: counts as 100%
     assert est.measured.tolist() == [True, True, True, False]
     assert est.known.tolist() == [True, True, False, False]
-    # the larger of the means over pixels that found photons and over every measured pixel
-    assert est.average == pytest.approx(max((est.relative[0] + 0.0) / 2, (est.relative[0] + 0.0 + 1.0) / 3))
+    # the larger of the means over pixels that found photons and over every measured pixel,
+    # each pixel weighted by max(L, floor): pixel 0's luminance, the floor for the others
+    lum = est.luminance[0]
+    floor = FLOOR_FRACTION * lum  # the mean over lit pixels: pixel 0 alone
+    weighted = est.relative[:3] * [lum, floor, floor]
+    assert est.average == pytest.approx(max(weighted[:2].sum() / (lum + floor), weighted.sum() / (lum + 2 * floor)))
 
 
 def test_zero_state_has_zero_bias() -> None:

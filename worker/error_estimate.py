@@ -69,13 +69,18 @@ Its relative error is capped at 1: an estimate of 0 is off by at most max(L, flo
 
 The image average. Per pixel, relative error = bound / max(L, floor), floor =
 FLOOR_FRACTION x the mean L of lit pixels, so dim pixels are measured against a visible
-fraction of the image. The image's average relative error is the LARGER of two means:
-over pixels that found photons, and over every measured pixel (those that never found one
-included). A black region then cannot hold the average up forever (its errors fall with
-the bound above), nor, by being most of the image, dilute the error of the lit part
-(which is averaged on its own); and it raises the average in proportion to its size, so a
-few pixels measured in a pass or two without a photon do not set the whole image's error
-to 100%.
+fraction of the image. The image's average is the mean of the pixels' relative errors
+weighted by max(L, floor), that is sum(bound) / sum(max(L, floor)) over a group of pixels
+(a relative L1 error): a pixel's error counts in proportion to the light it holds. So a
+thin ring of dim pixels at a small lit region's edge, whose bounds are large against their
+own luminance and shrink only with the radius, cannot hold the average up, while an edge
+that is wrong where the light is, bright pixels with large errors, weighs in full. The
+average is the LARGER of two such means: over pixels that found photons, and over every
+measured pixel (those that never found one included, each bound at most its weight). A
+black region then cannot hold the average up forever (its errors fall with the bound
+above), nor, by being most of the image, dilute the error of the lit part (which is
+averaged on its own); and it raises the average in proportion to its size, so a few pixels
+measured in a pass or two without a photon do not set the whole image's error to 100%.
 With fewer than two passes the noise is unknown and the average is 1.
 
 Direct light by next-event estimation (`direct: nee`). Then the image is the photon
@@ -293,7 +298,7 @@ def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
             relative[blk] = np.where(measured[blk] & np.isfinite(bound[blk]),
                                      bound[blk] / np.maximum(lum[blk], floor), 1.0)
     relative[dark] = np.minimum(relative[dark], 1.0)  # an estimate of 0 is off by at most 100%
-    average = image_average(relative, known, measured) if i >= 2 else 1.0
+    average = image_average(relative, np.maximum(lum, floor), known, measured) if i >= 2 else 1.0
     return ErrorEstimate(luminance=lum, bias=out["bias"], noise=out["noise"], bound=bound, relative=relative,
                          measured=measured, known=known, average=average, confidence=confidence)
 
@@ -301,17 +306,19 @@ def estimate(state: Accumulators, confidence: float, constant: str = "taylor",
 def actual_average(est: ErrorEstimate, truth: np.ndarray) -> float:
     """The image's actual average relative error against a known answer (luminance per
     pixel), by the definition the estimate uses: |L - truth| / max(truth, floor), floor =
-    FLOOR_FRACTION x the mean truth of lit pixels, averaged as `image_average` does."""
+    FLOOR_FRACTION x the mean truth of lit pixels, averaged as `image_average` does with
+    weights max(truth, floor)."""
     truth = np.broadcast_to(np.asarray(truth, np.float64), est.luminance.shape)
     lit = truth > 0.0
     floor = FLOOR_FRACTION * float(truth[lit].mean()) if lit.any() else 1.0
-    actual = np.abs(est.luminance - truth) / np.maximum(truth, floor)
-    return image_average(actual, est.known, est.measured)
+    weight = np.maximum(truth, floor)
+    return image_average(np.abs(est.luminance - truth) / weight, weight, est.known, est.measured)
 
 
-def image_average(relative: np.ndarray, known: np.ndarray, measured: np.ndarray) -> float:
-    """The larger of the mean relative error over pixels that found photons (`known`) and
-    over every measured pixel, those that never did included (module docstring); 1 if no
-    pixel was measured."""
-    means = [float(relative.mean(where=group)) for group in (known, measured) if group.any()]
+def image_average(relative: np.ndarray, weight: np.ndarray, known: np.ndarray, measured: np.ndarray) -> float:
+    """The larger of the `weight`ed mean relative error over pixels that found photons
+    (`known`) and over every measured pixel, those that never did included (module
+    docstring; weight = max(L, floor)); 1 if no pixel was measured."""
+    means = [float(np.sum(relative * weight, where=group) / np.sum(weight, where=group))
+             for group in (known, measured) if group.any()]
     return max(means) if means else 1.0

@@ -170,9 +170,10 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
         noise = bound = np.full(n, np.inf)
     lit = measured & (lum > 0.0)
     floor = FLOOR_FRACTION * float(lum[lit].mean()) if lit.any() else 1.0
+    weight = np.maximum(lum, floor)
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where(measured & np.isfinite(bound), bound / np.maximum(lum, floor), 1.0)
+        relative = np.where(measured & np.isfinite(bound), bound / weight, 1.0)
     relative[dark] = np.minimum(relative[dark], 1.0)
-    average = image_average(relative, known, measured) if i >= 2 else 1.0
+    average = image_average(relative, weight, known, measured) if i >= 2 else 1.0
     return ErrorEstimate(luminance=lum, bias=bias, noise=noise, bound=bound, relative=relative,
                          measured=measured, known=known, average=average, confidence=confidence)
