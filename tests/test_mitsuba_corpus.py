@@ -8,8 +8,8 @@ referenced by id, `<ref name>`, twosided over a reference, ignored sensor and fi
 properties, spectra (wavelength:value lists, a single value, an .spd file, blackbody),
 serialized meshes (two shapes in one file, face normals), cylinders, disks, spheres,
 instances of a shapegroup, and every bsdf plugin we read (plastic, roughplastic, conductor
-and roughconductor with eta and k, thindielectric, a dielectric tinted differently in
-reflection and transmission).
+and roughconductor with eta and k and with a named metal, thindielectric, a dielectric tinted
+differently in reflection and transmission).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import pytest
 from kernels.contract import LUMINANCE
 from tests.conftest import image, render
 from tests.helpers import assert_same_material, mitsuba_material, our_material
+from worker.metals import METALS
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SCENES_DIR, parse_scene
 
@@ -135,7 +136,8 @@ def test_instances(mi) -> None:
 
 def test_materials(mi) -> None:
     """Each bsdf of materials.xml is the material of the same parameters as `mi.traverse`
-    gives for it (within 1%), through a twosided wrapper too; the integrator is the one note."""
+    gives for it (within 1%), through a twosided wrapper too, a named metal's eta and k being
+    worker/metals.py's; the integrator and the rfilter are the notes."""
     path = CORPUS / "materials.xml"
     notes: list[str] = []
     ours = parse_scene(convert_mitsuba(path, notes=notes))
@@ -147,10 +149,16 @@ def test_materials(mi) -> None:
         material = our_material(ours.materials[name])
         assert material["type"] == kind
         assert_same_material(material, mitsuba_material(mi, bsdfs[name]))
+    for name, (kind, metal) in {"gold": ("conductor", "Au"), "rough-copper": ("rough_conductor", "Cu")}.items():
+        material, theirs = our_material(ours.materials[name]), mitsuba_material(mi, bsdfs[name])
+        assert material["type"] == kind
+        assert material.pop("eta") == METALS[metal].eta and material.pop("k") == METALS[metal].k
+        del theirs["eta"], theirs["k"]  # Mitsuba's own data: reflectance within 2% (tests/test_named_metals.py)
+        assert_same_material(material, theirs)
     assert ours.materials["panel"].distribution == "ggx"
     assert ours.materials["glass"].transmittance != ours.materials["glass"].albedo
     spheres = [s for s in ours.shapes if s.type == "sphere"]
-    assert len(spheres) == sum(not s.is_mesh() for s in scene.shapes()) == 4
+    assert len(spheres) == sum(not s.is_mesh() for s in scene.shapes()) == 6
     assert 2 * (len(ours.shapes) - len(spheres) - 1) + 12 == faces(scene)  # quads and the cube (Mitsuba merges meshes)
     assert [line.split(" (")[0].split(": ")[-1] for line in notes] == ["<integrator>", "<rfilter>"], notes
 

@@ -358,10 +358,6 @@ def test_conductor_k_without_eta_is_noted(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("body, needle, says, mitsuba_loads", [
-    ('<bsdf type="conductor" id="c"><string name="material" value="Au"/></bsdf>', "Au",
-     "named conductor material 'Au'", True),
-    ('<bsdf type="roughconductor" id="c"><string name="material" value="Cu"/></bsdf>', "Cu",
-     "give eta and k", True),
     ('<bsdf type="conductor" id="c"><rgb name="eta" value="1"/><rgb name="k" value="2"/>'
      '<float name="ext_ior" value="1.33"/></bsdf>', "ext_ior", "a conductor takes no ext_ior", False),
     ('<bsdf type="roughconductor" id="c"><float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.3"/>'
@@ -379,7 +375,7 @@ def test_conductor_k_without_eta_is_noted(tmp_path: Path) -> None:
     ('<bsdf type="twosided" id="c">\n<bsdf type="dielectric"/></bsdf>', 'type="dielectric"', "opaque bsdf", False),
     ('<bsdf type="plastic" id="c"><rgb name="diffuse_reflectance" value="1.2, 0.5, 0.5"/></bsdf>', "1.2",
      "diffuse_reflectance must lie in [0, 1]", False),
-], ids=["named-metal", "named-metal-rough", "conductor-ext-ior", "anisotropic", "alpha-u-alone", "alpha-and-uv",
+], ids=["conductor-ext-ior", "anisotropic", "alpha-u-alone", "alpha-and-uv",
         "distribution", "ior-below-1", "ior-above-3", "twosided-dielectric", "colour-above-1"])
 def test_bsdf_refusals(mi, tmp_path: Path, body: str, needle: str, says: str, mitsuba_loads: bool) -> None:
     """What a bsdf holds that we cannot honour is one error naming it and its line; where

@@ -24,6 +24,7 @@ import numpy as np
 
 from worker import spectra
 from worker.meshes import MeshData, MeshError
+from worker.metals import METALS
 from worker.scene import (
     MAX_INCLUDE_DEPTH,
     MAX_TRIANGLES,
@@ -320,6 +321,18 @@ class Props:
             name, node = next(iter(self.values.items()))
             raise _error(node, f"property {name!r} is not supported on <{self.owner.tag} "
                                f"type=\"{self.owner.attrs.get('type', '')}\">")
+
+
+def _named_metal(node: Node, name: str, p: Props) -> tuple[list[float], list[float]]:
+    """rgb eta and k of Mitsuba's named conductor `name` (its <string> is `node`) from
+    worker/metals.py; an error for a name it does not hold, or with eta or k given too."""
+    for given in ("eta", "k"):
+        if given in p.values:
+            raise _error(p.values[given], f"give material or {given}, not both (Mitsuba refuses both too)")
+    if name not in METALS:
+        raise _error(node, f"named conductor material {name!r} is not held here (have: {', '.join(METALS)}); "
+                           "give eta and k (rgb, float or spectrum) instead")
+    return list(METALS[name].eta), list(METALS[name].k)
 
 
 # ------------------------------------------------------------------------ conversion
@@ -682,19 +695,21 @@ class Converter:
         """A conductor's `specular` and, unless Mitsuba's eta is 0, its `eta` and `k`.
 
         Mitsuba reads eta (default 0) and k (default 1) when `material` is "none" (its
-        default) and measured data for a named metal otherwise. With eta = 0, eta^2 = -k^2 is
+        default) and a named metal's measured data otherwise (refusing eta or k beside a
+        name); a name's eta and k here are worker/metals.py's. With eta = 0, eta^2 = -k^2 is
         real and eta^2 - sin^2 negative, so both polarisations' Fresnel ratios are of the form
         |x - i y|^2 / |x + i y|^2 = 1 (x, y real): such a conductor reflects `specular` at every
         angle whatever k, and has no eta and k here.
         """
-        material = p.string("material", "none")
-        if material != "none":
-            raise _error(p.node_of("material"), f"named conductor material {material!r}: no measured data is "
-                                                "held here; give eta and k (rgb, float or spectrum) instead")
         if "ext_ior" in p.values:  # Mitsuba 3 refuses it too (an unreferenced property)
             raise _error(p.values["ext_ior"], "a conductor takes no ext_ior: give eta and k relative to "
                                               "the outside")
         out: dict[str, Any] = {"specular": self._albedo(p, "specular_reflectance", 1.0)}
+        named = p.node_of("material")
+        material = p.string("material", "none")
+        if material != "none":
+            out["eta"], out["k"] = _named_metal(named, material, p)
+            return out
         eta = p.color("eta", 0.0, "unbounded")
         if not any(eta):
             p.ignore("k", "with eta 0 (Mitsuba's default) the Fresnel reflectance is 1 whatever k")
