@@ -125,3 +125,10 @@ def test_name_with_eta_or_k_is_refused_as_by_mitsuba(mi, tmp_path: Path, given: 
         convert_mitsuba(path)
     with pytest.raises(RuntimeError):
         mi.load_file(str(path))
+
+
+def test_the_scene_format_page_lists_every_held_name_with_its_dataset() -> None:
+    page = (Path(__file__).resolve().parent.parent / "docs" / "scenes.md").read_text()
+    rows = {line for line in page.splitlines() if line.startswith("| `") and "`main/" in line}
+    for name, entry in METALS.items():
+        assert any(f"`{name}`" in row and f"`{entry.dataset}`" in row for row in rows), name
