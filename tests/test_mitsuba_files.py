@@ -220,10 +220,12 @@ def test_serialized_reader_against_mitsuba(mi, tmp_path: Path) -> None:
         assert (shape.mesh.normals is None) == (n is None)
 
 
-def test_vertex_normals_as_mitsuba_computes_them(mi, tmp_path: Path, monkeypatch) -> None:
-    """A serialized mesh without normals, rotated, scaled and moved: our angle-weighted vertex
-    normals, computed a few triangles at a time (so steps meet inside the mesh), point where
-    Mitsuba's do (ours are not rescaled after the transform: directions are compared)."""
+@pytest.mark.parametrize("scale", ['<scale value="2"/>', '<scale x="1" y="3" z="0.5"/>', '<scale x="-1"/>'],
+                         ids=["uniform", "non-uniform", "mirrored"])
+def test_vertex_normals_as_mitsuba_computes_them(mi, tmp_path: Path, monkeypatch, scale: str) -> None:
+    """A serialized mesh without normals, rotated, scaled (uniformly, non-uniformly,
+    mirrored) and moved: our angle-weighted vertex normals, computed a few triangles at a
+    time (so steps meet inside the mesh), point where Mitsuba's do (directions compared)."""
     import trimesh
 
     from worker import mitsuba_scene
@@ -233,7 +235,7 @@ def test_vertex_normals_as_mitsuba_computes_them(mi, tmp_path: Path, monkeypatch
     vertices = ico.vertices * (1 + 0.2 * np.random.default_rng(8).random((len(ico.vertices), 1)))
     (tmp_path / "m.serialized").write_bytes(write_serialized([(vertices, ico.faces, None)]))
     path = write(tmp_path / "scene.xml", '<shape type="serialized"><string name="filename" value="m.serialized"/>'
-                 '<transform name="to_world"><rotate x="1" angle="30"/><scale value="2"/><translate x="1"/>'
+                 f'<transform name="to_world"><rotate x="1" angle="30"/>{scale}<translate x="1"/>'
                  '</transform></shape>', sensor=True)
     ours = np.array(convert_mitsuba(path)["shapes"][0]["normals"])
     theirs = np.reshape(mi.traverse(mi.load_file(str(path)).shapes()[0])["vertex_normals"], (-1, 3))

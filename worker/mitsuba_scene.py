@@ -938,13 +938,15 @@ class Converter:
         except MeshError as exc:
             raise _error(named, f"{filename}: {exc}") from None
         tris = mesh.triangles
+        world = _apply(m, mesh.vertices)
         normals = None
-        if not face_normals:  # Mitsuba computes angle-weighted vertex normals where the file has none
-            normals = mesh.normals if mesh.normals is not None else _vertex_normals(mesh.vertices, tris)
-            normals = _times(normals, np.linalg.inv(m[:3, :3]))  # normals transform by the inverse transpose
+        if mesh.normals is not None and not face_normals:  # normals transform by the inverse transpose
+            normals = _times(mesh.normals, np.linalg.inv(m[:3, :3]))
+        elif not face_normals:  # Mitsuba computes angle-weighted vertex normals from the placed mesh
+            normals = _vertex_normals(world, tris)
         if np.linalg.det(m[:3, :3]) < 0:
             tris = tris[:, ::-1]
-        return self._mesh(_apply(m, mesh.vertices), tris, normals, flip)
+        return self._mesh(world, tris, normals, flip)
 
     def _serialized(self, path: Path, index: int, named: Node) -> tuple[MeshData, bool]:
         """Shape `index` of a serialized file and whether it asks for face normals, read
