@@ -400,7 +400,7 @@ def test_unknown_plugin_names_element_and_line(tmp_path: Path) -> None:
     ('<emitter type="envmap"/>', "envmap", "unknown emitter plugin"),
     ('<medium type="homogeneous"/>', "medium", "not supported"),
     ('<shape type="sphere"><float name="roughness" value="1"/></shape>', "roughness", "not supported"),
-    ('<bsdf type="conductor" id="c"><string name="material" value="Au"/></bsdf>', "Au", "material"),
+    ('<bsdf type="conductor" id="c"><string name="material" value="Cr"/></bsdf>', "Cr", "material"),
     ('<bsdf type="roughconductor" id="c"><float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.3"/></bsdf>',
      "alpha_u", "anisotropic"),
     ('<emitter type="spot"><float name="cutoff_angle" value="30"/></emitter>', "spot", "no falloff"),
