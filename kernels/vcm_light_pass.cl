@@ -93,7 +93,7 @@ __kernel void vcm_light_pass(
             }
             // 4. Light tracing: connect to the camera.
             Projection pr;
-            if (!(skip & SKIP_SPLAT) && project(&cam, p, &pr)) {
+            if (!(skip & SKIP_SPLAT) && project(&cam, p, &rng, &pr)) {
                 BsdfEval e = bsdf_eval(&m, h.ng, h.ns, -s.d, pr.to_camera, PART_ALL, false);
                 float3 side = dot(pr.to_camera, h.ng) > 0.0f ? h.ng : -h.ng;
                 if (e.pdf_fwd > 0.0f

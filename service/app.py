@@ -52,7 +52,6 @@ from service.models import (
 from service.scene_loader import LoadedScene, LoadUnavailable, SceneLoader, SceneRequest
 from service.upload import Unpacker, UploadError, scene_path
 from worker.image_io import error_colours, write_image
-from worker.integrators import camera_problem
 from worker.outputs import write_render
 from worker.scene import (
     MAX_SCENE_NAME,
@@ -361,9 +360,6 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
                    scene_loc: Callable[[SceneError], list[str | int]], response: Response) -> JobView:
         """The one way a job is made (JSON body or upload) from its loaded scene: check the
         pixels, store the job with the scene's notes, issue its batches."""
-        problem = camera_problem(settings, loaded.aperture_radius)
-        if problem:
-            raise _unprocessable(["body", "settings", "method"], problem)
         width, height = settings.resolution or loaded.resolution
         if width * height > MAX_SERVICE_PIXELS:
             raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),

@@ -49,7 +49,6 @@ class LoadedScene:
 
     scene_json: str
     resolution: tuple[int, int]
-    aperture_radius: float
     notes: tuple[str, ...] = ()  # what the scene holds that was accepted but ignored, one line each
 
 
@@ -81,7 +80,7 @@ def load_now(request: SceneRequest) -> LoadedScene:
     else:
         parsed, base_dir, root = parse_scene(request.scene), SCENES_DIR, SCENES_DIR
     text = inline_json(parsed, base_dir, root, budget)
-    return LoadedScene(text, parsed.camera.resolution, parsed.camera.aperture_radius, tuple(notes))
+    return LoadedScene(text, parsed.camera.resolution, tuple(notes))
 
 
 @functools.lru_cache(maxsize=64)

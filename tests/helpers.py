@@ -18,6 +18,7 @@ import numpy as np
 import redis
 from pydantic import BaseModel
 
+from kernels.contract import LUMINANCE
 from tests.analytic import camera_rays, spot_plane_scene
 from worker.engine import Engine
 from worker.image_io import read_image
@@ -222,3 +223,17 @@ def assert_same_material(ours: dict, theirs: dict, rtol: float = 0.01) -> None:
             assert value == theirs[name], (name, ours, theirs)
         else:
             np.testing.assert_allclose(value, theirs[name], rtol=rtol, atol=1e-3, err_msg=f"{name}: {ours} {theirs}")
+
+
+def block_luminance(img: np.ndarray) -> np.ndarray:
+    """Per 8 x 8 block of an (h, w, 3) image: the mean luminance."""
+    h, w, _ = img.shape
+    return img.reshape(h // 8, 8, w // 8, 8, 3).mean(axis=(1, 3)) @ LUMINANCE
+
+
+def mean_variance(runs: np.ndarray) -> np.ndarray:
+    """Per block, the variance of the mean of independent runs (axis 0): the runs' spread,
+    floored at the median block's relative spread (a spread from a few samples is small by
+    chance in some block of many)."""
+    mean, var = runs.mean(axis=0), runs.var(axis=0, ddof=1)
+    return np.maximum(var, np.median(var / mean ** 2) * mean ** 2) / len(runs)

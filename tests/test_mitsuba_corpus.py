@@ -19,9 +19,8 @@ import math
 import numpy as np
 import pytest
 
-from kernels.contract import LUMINANCE
 from tests.conftest import image, render
-from tests.helpers import assert_same_material, mitsuba_material, our_material
+from tests.helpers import assert_same_material, block_luminance, mean_variance, mitsuba_material, our_material
 from worker.metals import METALS
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SCENES_DIR, parse_scene
@@ -193,20 +192,6 @@ def test_image_mean_matches_mitsuba(make_engine, mi, name: str) -> None:
 
 RUNS = 6  # independent renders a side: the spread of a block between them is its noise
 BIAS = {"sppm": 0.03, "vcm": 0.06, "bpt": 0.02}
-
-
-def block_luminance(img: np.ndarray) -> np.ndarray:
-    """Per 8 x 8 block: the mean luminance."""
-    h, w, _ = img.shape
-    return img.reshape(h // 8, 8, w // 8, 8, 3).mean(axis=(1, 3)) @ LUMINANCE
-
-
-def mean_variance(runs: np.ndarray) -> np.ndarray:
-    """Per block, the variance of the mean of the runs: the runs' spread, floored at the
-    median block's relative spread (a spread from RUNS samples is small by chance in some
-    block of 64)."""
-    mean, var = runs.mean(axis=0), runs.var(axis=0, ddof=1)
-    return np.maximum(var, np.median(var / mean ** 2) * mean ** 2) / len(runs)
 
 
 @pytest.fixture(scope="module")

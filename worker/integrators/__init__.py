@@ -17,12 +17,4 @@ def integrator_for(settings: Settings) -> Integrator:
     return INTEGRATORS[settings.method](settings)
 
 
-def camera_problem(settings: Settings, aperture_radius: float) -> str | None:
-    """Why the method cannot render a camera with this lens, or None (checked when a job is
-    submitted and again on the device)."""
-    if INTEGRATORS[settings.method].pinhole_only and aperture_radius > 0.0:
-        return f"method {settings.method} needs a pinhole camera (the scene's camera has a lens)"
-    return None
-
-
-__all__ = ["INTEGRATORS", "Delta", "Integrator", "camera_problem", "integrator_for"]
+__all__ = ["INTEGRATORS", "Delta", "Integrator", "integrator_for"]

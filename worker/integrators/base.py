@@ -64,7 +64,6 @@ class Integrator(ABC, Generic[StateT]):
 
     name: ClassVar[str]
     program: ClassVar[str] = "photon_mapping"  # the OpenCL program it runs (kernels/program.py, PROGRAMS)
-    pinhole_only: ClassVar[bool] = False  # its kernels cannot trace a thin lens (jobs refused up front)
     # Per-pixel arrays fixed once per job by its first batch (first writer wins), e.g. R0.
     setup_arrays: ClassVar[tuple[str, ...]] = ()
     # The dataclass of per-pixel arrays `batch_inputs` returns (None: a batch reads nothing);

@@ -70,7 +70,6 @@ class ConnectMerge(Integrator[HybridState]):
 
     name = "vcm"
     program = "hybrid"
-    pinhole_only = True  # light tracing projects onto a pinhole camera (kernels/vcm_camera.cl)
     connects = True  # vertex connection: NEE, subpath connections (and light tracing, always on)
     merges = True  # vertex merging: the density estimate
     setup_arrays = ("R0",)

@@ -16,7 +16,6 @@ import pyopencl as cl
 
 from kernels.contract import SPLAT_FRACTION_BITS
 from kernels.program import f32, i32, u32, u64
-from worker.integrators import camera_problem
 from worker.integrators.base import BatchAborted, Delta, KeepGoing
 from worker.integrators.connect_merge import ConnectMerge, HybridInputs, pass_radius
 from worker.integrators.photon_mapping import PhotonMapping
@@ -32,9 +31,6 @@ class ConnectMergePasses:
     """Light pass, vertex grid, camera pass and pass sums for vcm, bpt and lt."""
 
     def __init__(self, integrator: ConnectMerge, device: Device) -> None:
-        problem = camera_problem(integrator.settings, float(device.arrays.camera[1, 3]))
-        if problem:
-            raise ValueError(problem)
         self.integrator = integrator
         self.settings = integrator.settings
         self.dev = device
