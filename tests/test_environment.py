@@ -1,8 +1,8 @@
 """The environment light (kernels/environment.cl): its sampling agrees with its own pdf and
 radiance lookup, its radiance is Mitsuba 3's envmap's, a convex diffuse object under a
-constant sky has radiance rho L everywhere, and a scene lit by an envmap from an EXR renders
-as Mitsuba renders the same XML file (image means within 2%, 8x8 blocks within the
-combined noise), for sppm, vcm and bpt.
+constant sky has radiance rho L everywhere (and a lossless mirror or glass ball L), and a
+scene lit by an envmap from an EXR renders as Mitsuba renders the same XML file (image
+means within 2%, 8x8 blocks within the combined noise), for sppm, vcm and bpt.
 """
 
 from __future__ import annotations
@@ -265,6 +265,22 @@ def test_convex_object_under_constant_sky(ctx: cl.Context, shape: str, method: s
     sky = img[near == 0.0]
     assert len(sky) > 100
     np.testing.assert_allclose(sky, np.broadcast_to(SKY, sky.shape), rtol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["sppm", "vcm", "bpt", "lt"])
+@pytest.mark.parametrize("material", [{"type": "mirror"}, {"type": "glass", "ior": 1.5}], ids=["mirror", "glass"])
+def test_lossless_object_under_constant_sky(ctx: cl.Context, material: dict, method: str) -> None:
+    """The sky seen through specular chains: a lossless mirror or glass ball under a constant
+    sky L sends L on along every chain (reflected and refracted shares add up to L), so each
+    of its pixels is L."""
+    data = {"camera": {"position": [2.5, 2.0, 3.5], "look_at": [0, 0, 0], "fov": 40, "resolution": [32, 32]},
+            "materials": {"m": material}, "shapes": CONVEX["sphere"],
+            "lights": [{"type": "environment", "radiance": SKY.tolist()}]}
+    engine = Engine(parse_scene(data), Path("."), Settings(method=method, photons_per_pass=1 << 12, seed=3), ctx=ctx)
+    img = image(engine, render(engine, 8))
+    ball = img[coverage(engine, "sphere") == 1.0]
+    assert len(ball) > 100
+    np.testing.assert_allclose(ball, np.broadcast_to(SKY, ball.shape), rtol=1e-3)
 
 
 # ---------------------------------------------------------- side by side with Mitsuba 3
