@@ -38,7 +38,8 @@
 6. (`--sky`, alone) `window-sky` (a closed room lit by the sky through a window: the
    environment light's photons mostly land on the room's outside): V_c (part 1) and parts 2
    and 3 against a Mitsuba path-traced reference (bench/reference/window-sky-<W>x<H>.exr,
-   made on first use, as bench/error_vs_time.py makes its references).
+   made on first use, as bench/error_vs_time.py makes its references); equal time also for
+   chains that always mutate (MIN_GAIN 1, as part 4).
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
@@ -442,16 +443,19 @@ def main() -> None:
 
 
 def compare(name: str, scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
-            v_c: float | None, prefix: str, paths_passes: int) -> tuple[dict, dict]:
-    """Parts 2 and 3 for one case: equal time (two seeds a sampler, charted) and equal paths."""
+            v_c: float | None, prefix: str, paths_passes: int,
+            variants: tuple[str, ...] = ("uniform", "adaptive")) -> tuple[dict, dict]:
+    """Parts 2 and 3 for one case: equal time (two seeds for each of `variants` of VARIANTS,
+    charted) and equal paths."""
     runs = curves(scene, res, ref, photons, budget,
-                  [(sampler, seed) for sampler in ("uniform", "adaptive") for seed in (SEED, SEED + 1)])
-    series = {sampler: runs[(sampler, SEED)][0] for sampler in ("uniform", "adaptive")}
-    splits: dict[str, dict] = {sampler: {**split(runs[(sampler, SEED)][1], runs[(sampler, SEED + 1)][1], ref),
-                        "passes": [runs[(sampler, seed)][2] for seed in (SEED, SEED + 1)]}
-              for sampler in ("uniform", "adaptive")}
+                  [(variant, seed) for variant in variants for seed in (SEED, SEED + 1)])
+    series = {variant: runs[(variant, SEED)][0] for variant in variants}
+    splits: dict[str, dict] = {variant: {**split(runs[(variant, SEED)][1], runs[(variant, SEED + 1)][1], ref),
+                                         "passes": [runs[(variant, seed)][2] for seed in (SEED, SEED + 1)]}
+                               for variant in variants}
     equal_time = {"resolution": list(res), "seeds": [SEED, SEED + 1], "split": splits,
-                  "uniform_over_adaptive": splits["uniform"]["error"] / splits["adaptive"]["error"], "curves": series}
+                  **{f"uniform_over_{v}": splits["uniform"]["error"] / splits[v]["error"] for v in variants[1:]},
+                  "curves": series}
     chart(name.replace(" ", "-"), series, v_c, prefix)
     print(name, splits, flush=True)
     same_paths = equal_paths(scene, res, ref, photons, paths_passes)
@@ -476,7 +480,7 @@ def sky(args: argparse.Namespace) -> None:
     v = visibility(scene, res, photons, passes)
     print(SKY_SCENE, v, flush=True)
     equal_time, same_paths = compare(SKY_SCENE, scene, res, ref_image, photons, budget, v["visible_fraction"],
-                                     prefix, 2 if args.smoke else args.equal_paths_passes)
+                                     prefix, 2 if args.smoke else args.equal_paths_passes, tuple(VARIANTS))
     write_json(f"{prefix}_{SKY_SCENE}", {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_cpu_seconds": budget,
                                          "photons_per_pass": photons, "smoke": args.smoke, "visibility": v,
                                          "equal_time": equal_time, "equal_paths": same_paths})
