@@ -34,10 +34,9 @@ class EnvMap:
         return np.einsum("jic,j->c", cell_means(self.texels), row_solid_angles(self.texels))
 
     def rows(self) -> np.ndarray:
-        """The map's rows of the emitter table, (n, 4) float32 (empty for a constant):
-        world-to-local rotation (w: W, H as int bits), samples, then the packed CDFs."""
-        if self.texels is None:
-            return np.zeros((0, 4), np.float32)
+        """The map's rows of the emitter table, (n, 4) float32: world-to-local rotation (w:
+        W, H as int bits), samples, then the packed CDFs (a map's only: a constant has none)."""
+        assert self.texels is not None
         h, w, _ = self.texels.shape
         head = np.zeros((3, 4), np.float32)
         head[:, :3] = self.to_world.T  # world-to-local rows: the rotation's inverse, its transpose
@@ -72,11 +71,9 @@ def cdfs(texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rows = weights.sum(axis=1)
     marginal = (np.cumsum(rows) / rows.sum()).astype(np.float32)
     marginal[-1] = 1.0
-    w = weights.shape[1]
     safe = np.where(rows[:, None] > 0.0, weights, 1.0)
     conditional = (np.cumsum(safe, axis=1) / safe.sum(axis=1, keepdims=True)).astype(np.float32)
     conditional[:, -1] = 1.0
-    assert conditional.shape[1] == w
     return marginal, conditional
 
 
