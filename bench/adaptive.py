@@ -35,19 +35,26 @@
    samples, T - trace (1 - 1 / gain) - build (1 - V_c). A time gain X lowers the error at
    most by sqrt(X) (all of it noise; SPPM's shrinking radius gives less), so 2x needs X >= 4.
 
+6. (`--sky`, alone) `window-sky` (a closed room lit by the sky through a window: the
+   environment light's photons mostly land on the room's outside): V_c (part 1) and parts 2
+   and 3 against a Mitsuba path-traced reference (bench/reference/window-sky-<W>x<H>.exr,
+   made on first use, as bench/error_vs_time.py makes its references); equal time also for
+   chains that always mutate (MIN_GAIN 1, as part 4).
+
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
 again; they add no new path, so when this is not well above V_c the chains cannot win.
 
     python -m bench.adaptive [--full] [--smoke] [--visibility-only] [--reference-seconds S] [--photons-per-pass P]
-        [--equal-paths-passes N] [--defaults] [--bound]
+        [--equal-paths-passes N] [--defaults] [--bound] [--sky]
 
 Error: the relative RMS of bench/error_vs_time.py against its cached references
 (bench/reference/<scene>-<W>x<H>.exr); the zoom levels get their own references (two
 long uniform SPPM runs, as bench/make_reference.py makes them) on first use. `--smoke`
 runs everything tiny (a few seconds a scene) to check the script, its figures mean nothing.
 Writes bench/out/adaptive.json and bench/out/adaptive_<scene>.png (with --smoke,
-adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json.
+adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json, part 6
+adaptive_window-sky.json and .png.
 Timing figures need a quiet machine.
 """
 
@@ -65,7 +72,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import BENCH_DIR, save_figure, write_json
-from bench.error_vs_time import REFERENCES, SCENES, reference_path, rel_rms, resolution
+from bench.error_vs_time import REFERENCES, SCENES, make_reference, reference_path, rel_rms, resolution
 from tests.analytic import patch_plane, patch_scene
 from worker import adaptive
 from worker.engine import Engine
@@ -75,8 +82,9 @@ from worker.scene import Scene, bundled_scene_path, load_scene_file
 from worker.settings import DEFAULTS, Settings
 
 BUNDLED = ("cornell-box", "cornell-caustics", "directional-caustic", "furnace", "gap", "glossy", "point-plane",
-           "smallppm")
+           "smallppm", "window-sky")
 ZOOM_SCENE = "directional-caustic"
+SKY_SCENE = "window-sky"
 ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0, 2.5, 1.25)  # degrees; 40 is the scene's own view
 CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere's centre meets the ground
 # Photons per pass, both samplers. SPPM's radius falls by pass, not by photon, so on a
@@ -378,12 +386,16 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="cases of parts 2 and 3 to run (default: all)")
     parser.add_argument("--defaults", action="store_true", help="part 4 alone: the service's defaults")
     parser.add_argument("--bound", action="store_true", help="part 5 alone: the most a sampler of V could gain")
+    parser.add_argument("--sky", action="store_true", help="part 6 alone: window-sky against a Mitsuba reference")
     args = parser.parse_args()
     if args.defaults:
         defaults(args.smoke)
         return
     if args.bound:
         bound(args.smoke)
+        return
+    if args.sky:
+        sky(args)
         return
     side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
     photons = args.photons_per_pass
@@ -424,22 +436,54 @@ def main() -> None:
             ref = read_image(path)[..., :3].astype(np.float64)
         else:
             ref = zoom_reference(fov, res, photons, ref_seconds, references)
-        runs = curves(scene, res, ref, photons, budget,
-                      [(sampler, seed) for sampler in ("uniform", "adaptive") for seed in (SEED, SEED + 1)])
-        series = {sampler: runs[(sampler, SEED)][0] for sampler in ("uniform", "adaptive")}
-        splits = {sampler: {**split(runs[(sampler, SEED)][1], runs[(sampler, SEED + 1)][1], ref),
-                            "passes": [runs[(sampler, seed)][2] for seed in (SEED, SEED + 1)]}
-                  for sampler in ("uniform", "adaptive")}
         v_c = report["visibility"].get(name, {}).get("visible_fraction")
-        report["equal_time"][name] = {"resolution": list(res), "seeds": [SEED, SEED + 1], "split": splits,
-                                      "uniform_over_adaptive": splits["uniform"]["error"] / splits["adaptive"]["error"],
-                                      "curves": series}
-        chart(name.replace(" ", "-"), series, v_c, prefix)
-        print(name, splits, flush=True)
-        # 3. Equal photon paths.
-        report["equal_paths"][name] = equal_paths(scene, res, ref, photons, args.equal_paths_passes)
-        print(name, "equal paths", report["equal_paths"][name], flush=True)
+        report["equal_time"][name], report["equal_paths"][name] = compare(
+            name, scene, res, ref, photons, budget, v_c, prefix, args.equal_paths_passes)
     write_json(prefix, report)
+
+
+def compare(name: str, scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
+            v_c: float | None, prefix: str, paths_passes: int,
+            variants: tuple[str, ...] = ("uniform", "adaptive")) -> tuple[dict, dict]:
+    """Parts 2 and 3 for one case: equal time (two seeds for each of `variants` of VARIANTS,
+    charted) and equal paths."""
+    runs = curves(scene, res, ref, photons, budget,
+                  [(variant, seed) for variant in variants for seed in (SEED, SEED + 1)])
+    series = {variant: runs[(variant, SEED)][0] for variant in variants}
+    splits: dict[str, dict] = {variant: {**split(runs[(variant, SEED)][1], runs[(variant, SEED + 1)][1], ref),
+                                         "passes": [runs[(variant, seed)][2] for seed in (SEED, SEED + 1)]}
+                               for variant in variants}
+    equal_time = {"resolution": list(res), "seeds": [SEED, SEED + 1], "split": splits,
+                  **{f"uniform_over_{v}": splits["uniform"]["error"] / splits[v]["error"] for v in variants[1:]},
+                  "curves": series}
+    chart(name.replace(" ", "-"), series, v_c, prefix)
+    print(name, splits, flush=True)
+    same_paths = equal_paths(scene, res, ref, photons, paths_passes)
+    print(name, "equal paths", same_paths, flush=True)
+    return equal_time, same_paths
+
+
+def sky(args: argparse.Namespace) -> None:
+    """Part 6 (module docstring): bench/out/adaptive_window-sky.json and its chart."""
+    scene = load_scene_file(bundled_scene_path(SKY_SCENE))[0]
+    side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
+    photons, prefix = args.photons_per_pass, "adaptive"
+    res = resolution(SKY_SCENE, side)
+    if args.smoke:  # a few seconds: the reference a short uniform run, nothing written to bench/reference
+        res, budget, photons, passes, prefix = (32, 24), 1.0, 1 << 12, 2, "adaptive-smoke"
+        ref = engine(scene, res, photons, seed=SEED + 2)
+        ref_image = ref.integrator.image(render(ref, passes=8)).reshape(res[1], res[0], 3)
+    else:
+        if not reference_path(SKY_SCENE, res).exists():
+            make_reference(SKY_SCENE, res, args.reference_seconds)
+        ref_image = read_image(reference_path(SKY_SCENE, res))[..., :3].astype(np.float64)
+    v = visibility(scene, res, photons, passes)
+    print(SKY_SCENE, v, flush=True)
+    equal_time, same_paths = compare(SKY_SCENE, scene, res, ref_image, photons, budget, v["visible_fraction"],
+                                     prefix, 2 if args.smoke else args.equal_paths_passes, tuple(VARIANTS))
+    write_json(f"{prefix}_{SKY_SCENE}", {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_cpu_seconds": budget,
+                                         "photons_per_pass": photons, "smoke": args.smoke, "visibility": v,
+                                         "equal_time": equal_time, "equal_paths": same_paths})
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Error against time on six scenes, every method measured in one run on this machine:
+"""Error against time on seven scenes, every method measured in one run on this machine:
 SPPM with the exact grid, SPPM with stochastic hashing, PPM (exact grid), SPPM with NEE,
 the hybrid integrator's bpt and vcm (one light subpath per pixel per pass), and the peer,
 Mitsuba 3 (`scalar_rgb`) path tracer and particle tracer, on the same scene converted
@@ -41,7 +41,7 @@ from worker.scene import bundled_scene_path, load_scene_file
 REFERENCES = BENCH_DIR / "reference"
 # scene -> how its reference is made: "path" (Mitsuba path tracing converges) or "sppm"
 SCENES = {"cornell-box": "path", "cornell-caustics": "path", "gap": "path",
-          "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm"}
+          "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm", "window-sky": "path"}
 OURS = {"sppm exact": ("sppm", "exact"), "sppm stochastic": ("sppm", "stochastic"), "ppm exact": ("ppm", "exact"),
         "sppm nee": ("sppm", "exact", "nee"), "bpt": ("bpt", "exact"), "vcm": ("vcm", "exact")}
 # (method, gather[, direct]); the hybrid methods trace one light subpath per pixel per pass

@@ -7,7 +7,8 @@ Fresnel falloff: close, not identical, so on the `glossy` scene the peer converg
 slightly different image. Every other material is the Mitsuba plugin that the importer
 (worker/mitsuba_scene.py) reads into it, with the same parameters. Units match ours:
 emission is radiance, point and spot `power` is flux (intensity = power / solid angle),
-directional `irradiance` is irradiance. Pixels are box-filtered, as SPPM averages them.
+directional `irradiance` is irradiance, an environment's map is radiance (Mitsuba's
+`envmap` reads a lat-long map as ours does). Pixels are box-filtered, as SPPM averages them.
 """
 
 from __future__ import annotations
@@ -20,10 +21,12 @@ from typing import Any, Literal
 
 import numpy as np
 
+from worker.env_light import env_map
 from worker.scene import (
     Conductor,
     Diffuse,
     DirectionalLight,
+    EnvironmentLight,
     Glass,
     Glossy,
     Mesh,
@@ -185,11 +188,25 @@ def scene_dict(scene: Scene, base_dir: Path, resolution: tuple[int, int], spp: i
                                 "to_world": T().look_at(origin=list(light.position),
                                                         target=list(np.array(light.position) + axis),
                                                         up=list(_frame(axis)))}
-        else:
-            assert isinstance(light, DirectionalLight)
+        elif isinstance(light, DirectionalLight):
             out[f"light{i}"] = {"type": "directional", "direction": list(light.direction),
                                 "irradiance": _rgb(light.irradiance)}
+        else:
+            assert isinstance(light, EnvironmentLight)
+            out[f"light{i}"] = _environment(scene, light, base_dir)
     return out
+
+
+def _environment(scene: Scene, light: EnvironmentLight, base_dir: Path) -> dict[str, Any]:
+    """`constant`, or an `envmap` of the map's radiance (scale applied) as a bitmap."""
+    mi = mitsuba()
+    sky = env_map(scene, light, base_dir, base_dir)
+    if sky.texels is None:
+        return {"type": "constant", "radiance": _rgb(sky.radiance)}
+    matrix = np.eye(4)
+    matrix[:3, :3] = sky.to_world
+    return {"type": "envmap", "bitmap": mi.Bitmap(sky.texels.astype(np.float32)),
+            "to_world": mi.ScalarTransform4f(matrix.tolist())}
 
 
 def render(scene: Scene, base_dir: Path, resolution: tuple[int, int], spp: int,

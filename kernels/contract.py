@@ -27,8 +27,8 @@ MATERIALS = {"diffuse": 0, "glossy": 1, "conductor": 2, "rough_conductor": 3, "g
 MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4}
 SURF_ROWS = 4
 TABLE_SIZE = 64
-# Emitter kinds: kernels/lights.cl.
-EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
+# Emitter kinds: kernels/lights.cl (the environment: kernels/environment.cl).
+EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4, "environment": 5}
 # Random-number domains: independent streams for eye paths, photon paths and the light
 # samples at the measurement points (kernels/rng.cl).
 RNG_DOMAINS = {"eye": 1, "photon": 2, "nee": 3, "light_path": 4, "camera_path": 5, "chain": 6}

@@ -351,7 +351,12 @@ __kernel void eye_pass(
     float last_pdf = 0.0f;  // the last bounce's BSDF pdf where its light was also sampled (0: none)
     for (int depth = 0; depth < max_bounces; ++depth) {  // a safety cap (kernels/contract.py)
         Hit h = intersect(&g, origin, d);
-        if (h.surf == SURF_NONE) break;
+        if (h.surf == SURF_NONE) {  // the environment's light, weighted as emission hit (lights.cl)
+            float p_light;
+            float3 le = env_escape(emitters, n_emitters, d, &p_light);
+            direct += thr * le * (last_pdf > 0.0f && p_light > 0.0f ? power_heuristic(last_pdf, p_light) : 1.0f);
+            break;
+        }
         float3 p = origin + h.t * d;
         travelled += h.t;
         Material m = load_material(surfaces, h.surf);

@@ -17,33 +17,29 @@
 //   point        delta          1 / (4 pi)          d^2 (delta position)   P / (4 pi) (intensity)
 //   spot         delta          1 / (2 pi (1-c))    d^2                    P / (2 pi (1-c))
 //   directional  1 / (pi R^2)   delta               1 (delta direction)    P / (pi R^2) (irradiance)
-// (directional: a disc of radius R facing the light's direction covers the scene). The
-// NEE estimate is then f cos li / (pick direct_pdf) for every kind.
+//   environment  1 / (pi R^2)   pdf(w)              pdf(w) (solid angle)   L(w) (radiance)
+// (directional, environment: a disc of radius R facing the light's direction covers the
+// scene; environment.cl). The NEE estimate is then f cos li / (pick direct_pdf) for every kind.
 //
 // Direct light at a measurement point x through its diffuse part (f = g h(wi) / pi,
 // bsdf.cl) is estimated per pass by one light sample and one cosine-weighted BSDF sample. Delta lights (point, spot,
 // directional) give L f cos / p with no MIS (a BSDF sample never hits them); area lights
-// are weighted by the power heuristic between the two techniques, whose pdfs in solid
-// angle at x are
-//     p_light = P_k / P * d^2 / (A_k cos_l) = pi sum(Le) d^2 / (P cos_l)
+// and the environment are weighted by the power heuristic between the two techniques,
+// whose pdfs in solid angle at x are
+//     p_light = P_k / P * d^2 / (A_k cos_l) = pi sum(Le) d^2 / (P cos_l)  (area)
+//     p_light = pick pdf(w)                                                (environment)
 //     p_bsdf  = cos_s / pi
 // (P_k = pi sum(Le) A_k the emitter's power, P the total: the light pdf of a direction
-// needs only the emission of the surface it hits). The photon pass then stores nothing at
+// needs only the emission of the surface it hits; a direction that leaves the scene finds
+// the environment: env_escape). The photon pass then stores nothing at
 // a photon's first hit, so direct light is counted once, while light reaching x through
 // specular surfaces (caustics) stays with the photons: a shadow ray stops at glass. At a
 // glossy vertex of an eye path (light_sample_parts) one light sample is weighted the same
 // way against the path's own next bounce, whose emission hit the eye pass weights by
 // emission_weight.
 
-// Index of the emitter whose CDF interval holds u (binary search).
-inline int pick_emitter(__global const float* cdf, int n, float u) {
-    int lo = 0, hi = n - 1;
-    while (lo < hi) {
-        int mid = (lo + hi) / 2;
-        if (cdf[mid] > u) hi = mid; else lo = mid + 1;
-    }
-    return lo;
-}
+// Index of the emitter whose CDF interval holds u.
+inline int pick_emitter(__global const float* cdf, int n, float u) { return cdf_search(cdf, n, u); }
 
 // A uniform point on an area emitter (a triangle or sphere record, rows r0..r2), its
 // outward normal and the emitter's area, from two uniform numbers: what the light sample,
@@ -80,7 +76,7 @@ typedef struct {
     float3 li;          // the table above
     float pick, direct_pdf, emission_pdf, cos_light;  // emission_pdf: position x direction, no pick
     bool delta;         // point, spot, directional: a BSDF sample never finds it
-    bool directional;   // the shadow ray goes on forever
+    bool directional;   // the shadow ray goes on forever (directional, environment)
 } DirectSample;
 
 // The emitters' total power P.
@@ -97,9 +93,16 @@ inline bool sample_direct(const SceneGeom* g, __global const float4* emitters, _
     float u1 = rng_float(rng), u2 = rng_float(rng);
     int kind = as_int(r0.w);
     s->pick = r3.w;
-    s->delta = kind != EMIT_TRIANGLE && kind != EMIT_SPHERE;
-    s->directional = kind == EMIT_DIRECTIONAL;
+    s->delta = kind != EMIT_TRIANGLE && kind != EMIT_SPHERE && kind != EMIT_ENVIRONMENT;
+    s->directional = kind == EMIT_DIRECTIONAL || kind == EMIT_ENVIRONMENT;
     s->cos_light = 1.0f;
+    if (kind == EMIT_ENVIRONMENT) {
+        s->wi = env_sample(emitters, k, u1, u2, &s->direct_pdf);
+        if (s->direct_pdf <= 0.0f) return false;
+        s->li = env_radiance(emitters, k, s->wi);
+        s->emission_pdf = s->direct_pdf / (PI_F * r1.w * r1.w);
+        return true;
+    }
     if (!s->delta) {
         EmitterPoint ep = sample_emitter_point(kind, r0, r1, r2, u1, u2);
         float3 y = ep.y, nl = ep.n;
@@ -169,19 +172,27 @@ inline float3 sample_light(const SceneGeom* g, __global const float4* emitters, 
     return gw * coat_in(m, cos_s) / PI_F * s.li * (cos_s * mis / pdf);
 }
 
-// The BSDF sample: a cosine-weighted ray from x that collects the emission it hits,
-// weighted by the power heuristic against sample_light (the only light it can find).
-inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* surfaces, float total_power,
-                                   float3 x, float3 n, float3 ns, float3 gw, const Material* m, Rng* rng) {
+// The BSDF sample: a cosine-weighted ray from x that collects the emission it hits (or the
+// environment's, if it leaves the scene), weighted by the power heuristic against
+// sample_light (the only light it can find).
+inline float3 sample_bsdf_emission(const SceneGeom* g, __global const float4* surfaces,
+                                   __global const float4* emitters, int n_emitters, float3 x, float3 n, float3 ns,
+                                   float3 gw, const Material* m, Rng* rng) {
     float3 wi = sample_cosine(ns, rng_float(rng), rng_float(rng));
     if (dot(wi, n) <= 0.0f) return (float3)(0.0f);
     Hit h = intersect(g, x + n * ray_eps(g, x), wi);
-    if (h.surf == SURF_NONE || dot(wi, h.ng) >= 0.0f) return (float3)(0.0f);  // emitters shine to their front
+    float cos_s = dot(wi, ns);
+    if (h.surf == SURF_NONE) {
+        float p_light;
+        float3 le = env_escape(emitters, n_emitters, wi, &p_light);
+        return p_light > 0.0f ? gw * coat_in(m, cos_s) * le * power_heuristic(cos_s / PI_F, p_light) : (float3)(0.0f);
+    }
+    if (dot(wi, h.ng) >= 0.0f) return (float3)(0.0f);  // emitters shine to their front
     float3 le = surface_emission(surfaces, h.surf);
     float sum_le = le.x + le.y + le.z;
     if (sum_le <= 0.0f) return (float3)(0.0f);
-    float cos_s = dot(wi, ns);
-    return gw * coat_in(m, cos_s) * le * emission_weight(le, total_power, cos_s / PI_F, h.t, -dot(wi, h.ng));
+    return gw * coat_in(m, cos_s) * le * emission_weight(le, total_power(emitters), cos_s / PI_F, h.t,
+                                                         -dot(wi, h.ng));
 }
 
 // Direct light at x through the diffuse part, by both samples (0 in a scene without emitters).
@@ -190,12 +201,12 @@ inline float3 direct_light(const SceneGeom* g, __global const float4* surfaces, 
                            const Material* m, Rng* rng) {
     if (n_emitters == 0) return (float3)(0.0f);
     return sample_light(g, emitters, cdf, n_emitters, x, n, ns, gw, m, rng)
-         + sample_bsdf_emission(g, surfaces, total_power(emitters), x, n, ns, gw, m, rng);
+         + sample_bsdf_emission(g, surfaces, emitters, n_emitters, x, n, ns, gw, m, rng);
 }
 
 // Direct light at x through the parts `mask` of m by one light sample, MIS-weighted (power
 // heuristic) against the path's own BSDF sample, whose emission hit the caller weights by
-// emission_weight. ng: the geometric normal as the shape defines it.
+// emission_weight (env_escape's p_light if the path leaves the scene). ng: the geometric normal as the shape defines it.
 inline float3 light_sample_parts(const SceneGeom* g, __global const float4* emitters, __global const float* cdf,
                                  int n_emitters, const Material* m, float3 x, float3 ng, float3 ns, float3 wo,
                                  int mask, bool radiance, Rng* rng) {

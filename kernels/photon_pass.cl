@@ -115,12 +115,17 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surfaces,
     } else if (kind == EMIT_SPOT) {
         o = r0.xyz;
         d = sample_cone(r1.xyz, r1.w, u1, u2);
-    } else {  // directional: a disc of radius r1.w facing r1.xyz covers the bounding sphere
+    } else if (kind == EMIT_DIRECTIONAL) {  // a disc of radius r1.w facing r1.xyz covers the bounding sphere
         float3 t, b;
         onb(r1.xyz, &t, &b);
         float rr = r1.w * sqrt(u1), phi = 2.0f * PI_F * u2;
         o = r0.xyz + rr * (cos(phi) * t + sin(phi) * b);
         d = r1.xyz;
+    } else {  // the environment: a direction by its distribution, from its disc (environment.cl)
+        EnvRay ray = env_emit(emitters, lo, u1, u2, u3, u4);
+        o = ray.o;
+        d = ray.d;
+        flux = ray.flux / r3.w;
     }
 
     for (int bounce = 0; bounce < max_bounces; ++bounce) {

@@ -4,6 +4,9 @@
 //   1. emission seen (area emitters, front side): weight 1 / (1 + p_A dVCM + p_A cos/pi dVC),
 //      p_A = pick / A the light sample's area pdf of that point (weight 1 on the first hit,
 //      and for `lt`, where no other technique samples the path);
+// where it leaves the scene, the environment's radiance, weighted 1 / (1 + pick pdf(w) dVCM +
+// pick pdf(w) / (pi R^2) dVC) (environment.cl; SmallVCM's background light, the quantities
+// as they stood at the last vertex);
 // and at every non-specular hit (light tracing alone, `lt`, stops there: its camera path
 // only collects emission seen directly or through specular surfaces):
 //   2. next-event estimation (next_event);
@@ -154,7 +157,15 @@ __kernel void vcm_camera_pass(
     int hit_any = 0;
     for (int depth = 0; depth < max_bounces; ++depth) {
         Hit h = intersect(&g, s.o, s.d);
-        if (h.surf == SURF_NONE) break;
+        if (h.surf == SURF_NONE) {  // 1. the environment seen: no distance or cosine (vcm_lights.cl)
+            float p_light;
+            float3 le = env_escape(emitters, n_emitters, s.d, &p_light);
+            if (p_light > 0.0f) {
+                float p_emit = p_light * env_position_pdf(emitters, n_emitters);
+                radiance += s.thr * le * (depth > 0 && connect ? 1.0f / (1.0f + p_light * s.dVCM + p_emit * s.dVC) : 1.0f);
+            }
+            break;
+        }
         hit_any = 1;
         float3 p = s.o + h.t * s.d;
         subpath_arrive(&s, &h, depth == 0 ? h.t + skipped : h.t);

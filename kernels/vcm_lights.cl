@@ -6,8 +6,9 @@
 // Initial MIS quantities of a light subpath (VCM tech report, Georgiev 2012, sec. 4),
 // p_direct = pick x (position pdf, or 1 for a delta position), p_emit = pick x position pdf
 // x direction pdf:  dVCM = p_direct / p_emit,  dVC = cos_l / p_emit (0 for delta lights),
-// dVM = dVC / eta_vcm (the caller's). Directional light puts no distance factor on its first
-// hit (`infinite`).
+// dVM = dVC / eta_vcm (the caller's). Directional and environment light put no distance
+// factor on their first hit (`infinite`), and take cos_l = 1 (SmallVCM's convention for
+// lights at infinity).
 
 typedef struct {
     float3 o, d;     // origin (off the emitter's surface) and direction
@@ -44,7 +45,7 @@ inline Emission sample_emission(const SceneGeom* g, __global const float4* emitt
         e.o = r0.xyz;
         e.d = sample_cone(r1.xyz, r1.w, u1, u2);
         e.dVCM = 2.0f * PI_F * (1.0f - r1.w);
-    } else {  // directional
+    } else if (kind == EMIT_DIRECTIONAL) {
         float3 t, b;
         onb(r1.xyz, &t, &b);
         float rr = r1.w * sqrt(u1), phi = 2.0f * PI_F * u2;
@@ -52,6 +53,14 @@ inline Emission sample_emission(const SceneGeom* g, __global const float4* emitt
         e.d = r1.xyz;
         e.dVCM = PI_F * r1.w * r1.w;
         e.infinite = true;
+    } else {  // the environment (environment.cl): p_direct = pick pdf(w), p_emit = pick pdf(w) / (pi R^2)
+        EnvRay ray = env_emit(emitters, k, u1, u2, u3, u4);
+        e.infinite = true;
+        e.o = ray.o;
+        e.d = ray.d;
+        e.flux = ray.flux / r3.w;
+        e.dVCM = PI_F * r1.w * r1.w;
+        e.dVC = e.dVCM / (r3.w * ray.pdf_w);  // cos_l = 1, as the directional light's
     }
     return e;
 }

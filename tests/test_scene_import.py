@@ -436,7 +436,9 @@ def test_unknown_plugin_names_element_and_line(tmp_path: Path) -> None:
 @pytest.mark.parametrize("body, needle, says", [
     ('<shape type="shapegroup"/>', "shapegroup", "needs an id"),
     ('<shape type="hair"/>', "hair", "unknown shape plugin"),
-    ('<emitter type="envmap"/>', "envmap", "unknown emitter plugin"),
+    ('<emitter type="sunsky"/>', "sunsky", "unknown emitter plugin"),
+    ('<emitter type="envmap"/>', "envmap", "needs a filename"),
+    ('<emitter type="constant"/>\n<emitter type="constant" id="second"/>', 'id="second"', "at most one environment"),
     ('<medium type="homogeneous"/>', "medium", "not supported"),
     ('<shape type="sphere"><float name="roughness" value="1"/></shape>', "roughness", "not supported"),
     ('<bsdf type="conductor" id="c"><string name="material" value="Cr"/></bsdf>', "Cr", "material"),

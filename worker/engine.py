@@ -65,7 +65,7 @@ class Device:
                          self.const(a.tri_adj), self.const(a.node_lo), self.const(a.node_hi), i32(len(a.node_lo)),
                          self.const(a.spheres), self.const(a.sphere_surf), i32(len(a.spheres)), f32(a.eps_floor),
                          self.const(a.surfaces)]
-        self.n_emitters = len(a.emitters) // 4 if a.emitters.any() else 0
+        self.n_emitters = len(a.emitter_cdf) if a.emitters.any() else 0
         self.emitter_args = [self.const(a.emitters), self.const(a.emitter_cdf), i32(self.n_emitters)]
         self.camera = self.const(a.camera)
         self._sums = self.buffer(self._sums_bytes)

@@ -29,12 +29,14 @@ from worker.scene import (
     MAX_INCLUDE_DEPTH,
     MAX_TRIANGLES,
     MAX_XML_DEPTH,
+    ROTATION_TOLERANCE,
     LoadBudget,
     Scene,
     SceneError,
     collector_paused,
     parse_scene,
     read_mesh,
+    read_texture,
 )
 from worker.serialized import header_counts, read_serialized
 from worker.spectra import Kind
@@ -343,6 +345,7 @@ class Converter:
     materials: dict[str, dict] = field(default_factory=dict)
     shapes: list[dict] = field(default_factory=list)
     lights: list[dict] = field(default_factory=list)
+    textures: dict[str, dict] = field(default_factory=dict)  # images (an envmap's), inline
     camera: dict | None = None
     budget: LoadBudget = field(default_factory=LoadBudget)  # of the whole load, includes and meshes too
     triangles: int = 0  # so far, every shape's, against MAX_TRIANGLES before the JSON grows past it
@@ -1022,13 +1025,37 @@ class Converter:
             direction = m[:3, :3] @ (d if d is not None else np.array([0.0, 0.0, 1.0]))
             light = {"type": "directional", "direction": direction.tolist(),
                      "irradiance": list(p.color("irradiance", 1.0, "emission"))}
+        elif kind == "constant":
+            light = {"type": "environment", "radiance": list(p.color("radiance", 1.0, "emission"))}
+        elif kind == "envmap":
+            light = self._envmap(p)
         elif kind == "area":
             raise _error(node, "an area emitter belongs inside a shape")
         else:
-            raise _error(node, f"unknown emitter plugin {kind!r} (have: point, spot, directional, area in a shape)")
+            raise _error(node, f"unknown emitter plugin {kind!r} (have: point, spot, directional, constant, envmap, "
+                               "area in a shape)")
         p.done()
         self.origin[f"lights.{len(self.lights)}"] = node
         self.lights.append(light)
+
+    def _envmap(self, p: Props) -> dict:
+        """An envmap: its image read now (found as meshes are, inside the root) and carried
+        inline among the scene's textures; its to_world a rotation (Mitsuba maps directions
+        by the inverse without normalising: a scale would bend its sky)."""
+        filename = p.string("filename")
+        if filename is None:
+            raise _error(p.owner, "an envmap needs a filename")
+        named = p.node_of("filename")
+        path = self.resolve(named, filename)
+        pixels = read_texture(path, self.budget, named.file.name, named.where())
+        where = p.node_of("to_world")
+        r = p.transform()[:3, :3]
+        if not np.allclose(r @ r.T, np.eye(3), atol=ROTATION_TOLERANCE):
+            raise _error(where, "an envmap's to_world must be a rotation (no scale or shear)")
+        p.ignore("mis_compensation", "it changes how the map is sampled, not the image")
+        name = p.owner.attrs.get("id", "envmap")
+        self.textures[name] = {"type": "bitmap", "pixels": pixels.model_dump()}
+        return {"type": "environment", "map": name, "scale": p.number("scale", 1.0), "to_world": r.tolist()}
 
     # -------------------------------------------------------------- result
     def result(self, top: Node) -> dict:
@@ -1038,7 +1065,8 @@ class Converter:
             if node.tag in ("emitter", "texture", "shape") and name not in self.referenced:
                 self.note(node, node, f"id {name!r}", "defined but never referenced")
         return {"description": f"converted from {top.file.name} (Mitsuba 3)", "camera": self.camera,
-                "materials": self.materials, "shapes": self.shapes, "lights": self.lights}
+                "materials": self.materials, "shapes": self.shapes, "lights": self.lights,
+                **({"textures": self.textures} if self.textures else {})}
 
 
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

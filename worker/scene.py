@@ -445,7 +445,52 @@ class DirectionalLight(_Model):
     _direction = field_validator("direction")(_nonzero_direction)
 
 
-Light = Annotated[PointLight | SpotLight | DirectionalLight, Field(discriminator="type")]
+# A rotation (or a reflection): three orthonormal rows. Tolerance: what six decimal places keep.
+Rotation = tuple[Vec3, Vec3, Vec3]
+IDENTITY_ROTATION: Rotation = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+ROTATION_TOLERANCE = 1e-5
+MIN_ENV_SIZE = (3, 2)  # an environment map's rows and columns at least (as Mitsuba's envmap)
+
+
+def check_env_pixels(pixels: Pixels, field: str) -> None:
+    """An environment map's image: at least MIN_ENV_SIZE, no negative sample."""
+    rows, columns = pixels.height, pixels.width
+    if rows < MIN_ENV_SIZE[0] or columns < MIN_ENV_SIZE[1]:
+        raise SceneError(field, f"an environment map needs at least {MIN_ENV_SIZE[1]}x{MIN_ENV_SIZE[0]} pixels, "
+                                f"not {columns}x{rows}")
+    if (pixels.array < 0).any():
+        raise SceneError(field, "an environment map's samples must not be negative")
+
+
+class EnvironmentLight(_Model):
+    """Light arriving from infinitely far in every direction: a constant `radiance`, or a
+    latitude-longitude `map` (the name of a bitmap among the scene's textures, read as Mitsuba's
+    envmap reads it: its rows from the local +y pole down to -y, its columns around y), times
+    `scale`. `to_world` turns the map's local frame into the scene's (Mitsuba's envmap
+    `to_world`, its linear part)."""
+
+    type: Literal["environment"]
+    radiance: Power | None = None
+    map: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS)] | None = None
+    scale: NonNeg = 1.0
+    to_world: Rotation = IDENTITY_ROTATION
+
+    @model_validator(mode="after")
+    def _check(self) -> EnvironmentLight:
+        if (self.radiance is None) == (self.map is None):
+            raise ValueError("give either radiance or map")
+        return self
+
+    @field_validator("to_world")
+    @classmethod
+    def _rotation(cls, rows: Rotation) -> Rotation:
+        m = np.array(rows, np.float64)
+        if not np.allclose(m @ m.T, np.eye(3), atol=ROTATION_TOLERANCE):
+            raise ValueError("must be a rotation: orthonormal rows (no scale or shear)")
+        return rows
+
+
+Light = Annotated[PointLight | SpotLight | DirectionalLight | EnvironmentLight, Field(discriminator="type")]
 
 
 # ------------------------------------------------------------------------------ scene
@@ -469,7 +514,25 @@ class Scene(_Model):
         for i, shape in enumerate(self.shapes):
             if shape.material not in self.materials:
                 raise SceneError(f"shapes.{i}.material", f"unknown material {shape.material!r}")
+        self._check_environment()
         return self
+
+    def _check_environment(self) -> None:
+        """At most one environment light; its map a bitmap of `textures` with non-negative
+        samples, at least MIN_ENV_SIZE."""
+        found = [i for i, light in enumerate(self.lights) if isinstance(light, EnvironmentLight)]
+        if len(found) > 1:
+            raise SceneError(f"lights.{found[1]}", "a scene has at most one environment light")
+        for i in found:
+            light = self.lights[i]
+            assert isinstance(light, EnvironmentLight)
+            if light.map is None:
+                continue
+            texture = self.textures.get(light.map)
+            if not isinstance(texture, Bitmap):
+                raise SceneError(f"lights.{i}.map", f"{light.map!r} is not a bitmap of the scene's textures")
+            if texture.pixels is not None:  # (a file is checked once it is read)
+                check_env_pixels(texture.pixels, f"textures.{light.map}.pixels")
 
 
 # ------------------------------------------------------------------------ triangulation
@@ -665,7 +728,7 @@ _UNION_TAGS = {
     "materials": {"diffuse", "mirror", "glass", "rough_glass", "thin_glass", "glossy", "conductor", "rough_conductor",
                   "plastic", "rough_plastic"},
     "shapes": {"sphere", "quad", "mesh"},
-    "lights": {"point", "spot", "directional"},
+    "lights": {"point", "spot", "directional", "environment"},
     "textures": {"bitmap", "checkerboard"},
 }
 

@@ -11,9 +11,11 @@ import numpy as np
 from kernels.contract import EMITTERS
 from worker.adjacency import triangle_neighbours
 from worker.bvh import build_bvh
+from worker.env_light import env_map
 from worker.scene import (
     SCENES_DIR,
     DirectionalLight,
+    EnvironmentLight,
     PointLight,
     Scene,
     Sphere,
@@ -22,8 +24,8 @@ from worker.scene import (
 )
 from worker.surfaces import int_bits, surface_records
 
-EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL = (
-    EMITTERS[k] for k in ("triangle", "sphere", "point", "spot", "directional"))
+EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT = (
+    EMITTERS[k] for k in ("triangle", "sphere", "point", "spot", "directional", "environment"))
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,7 @@ class SceneArrays:
     spheres: np.ndarray  # (S, 4) float32 centre + radius
     sphere_surf: np.ndarray  # (S,) int32
     surfaces: np.ndarray  # (SURF_ROWS * shapes + table rows, 4) float32 (worker/surfaces.py)
-    emitters: np.ndarray  # (4 * E, 4) float32 rows, see kernels/photon_pass.cl
+    emitters: np.ndarray  # (4 * E + map rows, 4) float32 rows, see kernels/lights.cl, environment.cl
     emitter_cdf: np.ndarray  # (E,) float32, last entry exactly 1
     camera: np.ndarray  # (4, 4) float32, see CameraDesc in kernels/eye_pass.cl
     pixel_angle: float  # pixel footprint per unit distance along the view axis
@@ -89,10 +91,11 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     spheres = np.array([[*s.center, s.radius] for s in sphere_list], np.float32).reshape(-1, 4)
     sphere_surf = np.array(sphere_idx, np.int32)
 
-    # Bounding sphere of everything: directional lights emit from a disc that covers it.
+    # Bounding sphere of everything: directional and environment lights emit from a disc that covers it.
+    placed = [light for light in scene.lights if isinstance(light, PointLight | SpotLight)]
     points = [tris.reshape(-1, 3)]
     points += [np.array([np.subtract(s.center, s.radius), np.add(s.center, s.radius)]) for s in sphere_list]
-    points += [np.array([light.position]) for light in scene.lights if not isinstance(light, DirectionalLight)]
+    points += [np.array([light.position]) for light in placed]
     points += [np.array([scene.camera.position])]
     allp = np.concatenate([p.reshape(-1, 3) for p in points])
     lo, hi = allp.min(axis=0), allp.max(axis=0)
@@ -105,7 +108,7 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
     # offset is relative beyond).
     reach = [np.abs(tris).max(initial=0.0), np.abs(scene.camera.position).max(), np.abs(scene.camera.look_at).max()]
     reach += [abs(float(np.linalg.norm(s.center)) - s.radius) for s in scene.shapes if isinstance(s, Sphere)]
-    reach += [np.abs(light.position).max() for light in scene.lights if not isinstance(light, DirectionalLight)]
+    reach += [np.abs(light.position).max() for light in placed]
     extent = float(max(reach))
     eps_floor = min(1.0, extent) if extent > 0.0 else 1.0
 
@@ -156,11 +159,20 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
             cos_cone = math.cos(math.radians(light.cone_angle))
             add(EMIT_SPOT, tuple(light.position), (*axis, cos_cone), (0, 0, 0, 0), power)
             radiances.append(delta_radiance(float(power.mean()) / (2.0 * math.pi * (1.0 - cos_cone)), light.position))
-        else:
+        elif isinstance(light, DirectionalLight):
             axis = np.array(light.direction) / np.linalg.norm(light.direction)
             power = np.array(light.irradiance, np.float64) * math.pi * bound_radius ** 2
             add(EMIT_DIRECTIONAL, tuple(centre - axis * bound_radius), (*axis, bound_radius), (0, 0, 0, 0), power)
             radiances.append(float(np.mean(light.irradiance)) / math.pi)
+    # The environment, last (kernels/environment.cl): its power as a directional light's over
+    # the same disc, from every direction; its radiance scale its mean radiance.
+    sky = next((env_map(scene, light, base_dir, root) for light in scene.lights
+                if isinstance(light, EnvironmentLight)), None)
+    if sky is not None:
+        integral = sky.integral()
+        add(EMIT_ENVIRONMENT, tuple(centre), (*sky.radiance, bound_radius), (0, 0, 0, 0),
+            math.pi * bound_radius ** 2 * integral)
+        radiances.append(float(integral.mean()) / (4.0 * math.pi))
     radiance_scale = max((r for r in radiances if r > 0.0), default=1.0)
 
     weights = np.array([p.sum() for p in powers], np.float64)
@@ -175,6 +187,9 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         cdf[-1] = 1.0
     else:
         cdf = np.ones(1, np.float32)
+    if sky is not None and keep[-1] and sky.texels is not None:  # the map's rows follow the records
+        emitters[-2, 0] = int_bits([len(emitters)])[0]
+        emitters = np.concatenate([emitters, sky.rows()])
 
     cam = scene.camera
     pos = np.array(cam.position, np.float64)
