@@ -237,3 +237,15 @@ def mean_variance(runs: np.ndarray) -> np.ndarray:
     chance in some block of many)."""
     mean, var = runs.mean(axis=0), runs.var(axis=0, ddof=1)
     return np.maximum(var, np.median(var / mean ** 2) * mean ** 2) / len(runs)
+
+
+def assert_matches_block_by_block(mine: np.ndarray, theirs: np.ndarray, mean_rtol: float, bias: float) -> None:
+    """Independent renders of one scene by us and by a peer, (runs, h, w, 3) a side: image
+    means per channel within `mean_rtol`, and every 8 x 8 block's luminance within 5 combined
+    standard errors of the two means plus `bias` of the block."""
+    np.testing.assert_allclose(mine.mean(axis=(0, 1, 2)), theirs.mean(axis=(0, 1, 2)), rtol=mean_rtol)
+    a = np.array([block_luminance(x) for x in mine])
+    b = np.array([block_luminance(x) for x in theirs])
+    bound = 5.0 * np.sqrt(mean_variance(a) + mean_variance(b)) + bias * b.mean(axis=0)
+    excess = np.abs(a.mean(axis=0) - b.mean(axis=0)) / bound
+    assert excess.max() <= 1.0, (excess.max(), np.unravel_index(np.argmax(excess), excess.shape))

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.mitsuba_peer import beckmann_alpha
 from tests.conftest import image, render
-from tests.helpers import SENSOR, block_luminance, mean_variance, xml
+from tests.helpers import SENSOR, assert_matches_block_by_block, xml
 from worker.engine import Engine
 from worker.error_estimate import LUMINANCE
 from worker.meshes import MeshError, load_mesh
@@ -119,12 +119,7 @@ def test_thin_lens_in_every_method_matches_mitsuba(ctx, mitsuba_thin_lens: np.nd
         engine = Engine(scene, base, Settings(method=method, seed=40 + s), ctx=ctx)
         ours.append(image(engine, render(engine, 256 if method == "lt" else 64)))  # lt: the noisiest
     mine = np.array(ours)
-    np.testing.assert_allclose(mine.mean(axis=(0, 1, 2)), mitsuba_thin_lens.mean(axis=(0, 1, 2)), rtol=0.01)
-    a = np.array([block_luminance(x) for x in mine])
-    b = np.array([block_luminance(x) for x in mitsuba_thin_lens])
-    bound = 5.0 * np.sqrt(mean_variance(a) + mean_variance(b)) + 0.03 * b.mean(axis=0)
-    excess = np.abs(a.mean(axis=0) - b.mean(axis=0)) / bound
-    assert excess.max() <= 1.0, (excess.max(), np.unravel_index(np.argmax(excess), excess.shape))
+    assert_matches_block_by_block(mine, mitsuba_thin_lens, 0.01, 0.03)
 
 
 def test_scenes_use_what_they_claim() -> None:
