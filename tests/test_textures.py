@@ -1,7 +1,8 @@
 """Textures in every method: a checkerboard on point-plane's plane gives, cell by cell, the
 cell's albedo times the closed form (tests/analytic.py); texture lookups (wrap modes,
-bilinear and nearest filtering, the shapes' UVs) against the same arithmetic in NumPy; and
-texture references in our JSON checked like every other field.
+bilinear and nearest filtering, to_uv, checkerboards) and the shapes' texture coordinates
+against Mitsuba 3's own, from one XML file; and texture references in our JSON checked like
+every other field.
 """
 
 from __future__ import annotations
@@ -11,11 +12,17 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pyopencl as cl
 import pytest
 
+from kernels.contract import build_options
+from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import PLANE_H, PLANE_I, camera_rays
 from tests.conftest import image, render
+from tests.test_images import write_image
+from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SceneError, bundled_scene_path, parse_scene
+from worker.surfaces import used_textures
 
 METHODS = ("sppm", "vcm", "bpt")
 COLOR0, COLOR1 = (0.8, 0.5, 0.2), (0.15, 0.35, 0.7)
@@ -101,3 +108,144 @@ def test_bad_colour_names_the_field(albedo: object, field: str) -> None:
     with pytest.raises(SceneError) as err:
         parse_scene(data)
     assert err.value.field == field, err.value
+
+
+# ------------------------------------------------------------------ lookups against Mitsuba 3
+PROBE = """
+__kernel void probe_texture(SCENE_PARAMS, int tex, __global const float2* uv, __global float4* out) {
+    int i = get_global_id(0);
+    SceneGeom g = SCENE_GEOM;
+    out[i] = (float4)(texture_eval(&g, tex, uv[i]), 0.0f);
+}
+
+__kernel void probe_uv(SCENE_PARAMS, __global const float4* origins, __global const float4* dirs,
+                       __global float4* out) {
+    int i = get_global_id(0);
+    SceneGeom g = SCENE_GEOM;
+    float3 o = origins[i].xyz, d = dirs[i].xyz;
+    Hit h = intersect(&g, o, d);
+    float2 uv = h.surf == SURF_NONE ? (float2)(0.0f) : prim_uv(&g, hit_prim(&h), o + h.t * d);
+    out[i] = (float4)(uv, h.t, (float)h.surf);
+}
+"""
+# Texture elements as Mitsuba reads them (by id in the scene below, alone for Mitsuba's own lookup).
+TEXTURES = {
+    "repeat": '<texture type="bitmap" id="repeat"><string name="filename" value="pattern.png"/>'
+              '<transform name="to_uv"><scale x="2" y="3"/><translate x="0.3" y="-0.2"/></transform></texture>',
+    "mirror": '<texture type="bitmap" id="mirror"><string name="filename" value="pattern.png"/>'
+              '<string name="wrap_mode" value="mirror"/><string name="filter_type" value="nearest"/>'
+              '<transform name="to_uv"><scale value="3"/></transform></texture>',
+    "clamp": '<texture type="bitmap" id="clamp"><string name="filename" value="pattern.png"/>'
+             '<string name="wrap_mode" value="clamp"/><boolean name="raw" value="true"/>'
+             '<transform name="to_uv"><scale value="2"/><translate x="-0.5" y="-0.5"/></transform></texture>',
+    "checks": '<texture type="checkerboard" id="checks"><rgb name="color0" value="0.9, 0.6, 0.1"/>'
+              '<rgb name="color1" value="0.1, 0.3, 0.8"/>'
+              '<transform name="to_uv"><scale x="4" y="3"/><translate x="0.1"/></transform></texture>',
+}
+TEXTURED_SCENE = """<scene version="3.0.0">
+    <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/>
+        </transform><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+    </sensor>
+    {textures}
+    <bsdf type="diffuse" id="a"><ref name="reflectance" id="repeat"/></bsdf>
+    <bsdf type="plastic" id="b"><ref name="diffuse_reflectance" id="mirror"/></bsdf>
+    <bsdf type="diffuse" id="c"><ref name="reflectance" id="clamp"/></bsdf>
+    <bsdf type="roughconductor" id="d"><ref name="specular_reflectance" id="checks"/></bsdf>
+    <shape type="rectangle"><transform name="to_world"><translate x="-1.2" y="1.2"/></transform><ref id="a"/></shape>
+    <shape type="rectangle"><transform name="to_world"><rotate z="1" angle="30"/><translate x="1.2" y="1.2"/>
+        </transform><boolean name="flip_normals" value="true"/><ref id="c"/></shape>
+    <shape type="sphere"><point name="center" x="-1.2" y="-1.2" z="0"/><float name="radius" value="0.9"/>
+        <ref id="b"/></shape>
+    <shape type="obj"><string name="filename" value="quad.obj"/>
+        <transform name="to_world"><translate x="1.2" y="-1.2"/></transform><ref id="d"/></shape>
+</scene>"""
+# Two triangles with their own texture coordinates (not a quad's (s, t)).
+QUAD_OBJ = """v -1 -1 0
+v 1 -1 0.2
+v 1 1 0
+v -1 1 -0.2
+vt 0.1 0.2
+vt 0.9 0.1
+vt 0.7 0.8
+vt 0.2 0.95
+f 1/1 2/2 3/3
+f 1/1 3/3 4/4
+"""
+
+
+@pytest.fixture()
+def mi():
+    import mitsuba
+
+    mitsuba.set_variant("scalar_rgb")
+    mitsuba.set_log_level(mitsuba.LogLevel.Error)
+    return mitsuba
+
+
+def textured_scene(folder: Path) -> Path:
+    """TEXTURED_SCENE with its image (7 x 5, sRGB 8-bit, random colours) and mesh beside it."""
+    rng = np.random.default_rng(3)
+    write_image(folder / "pattern.png", (rng.random((5, 7, 3)) * 255).astype(np.uint8), "uint8")
+    (folder / "quad.obj").write_text(QUAD_OBJ)
+    path = folder / "textured.xml"
+    path.write_text(TEXTURED_SCENE.format(textures="\n    ".join(TEXTURES.values())))
+    return path
+
+
+def _probe(eng) -> cl.Program:
+    source = PREAMBLE + "\n".join((KERNEL_DIR / name).read_text() for name in SOURCES) + PROBE
+    return cl.Program(eng.device.ctx, source).build(options=["-cl-mad-enable", *build_options(eng.integrator.sums)])
+
+
+def test_lookups_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
+    """Each texture (wrap modes, filters, to_uv, raw, checkerboard) at random (u, v) in [-2, 3]^2,
+    ours against Mitsuba's own `eval` of the same element."""
+    eng = make_engine(textured_scene(tmp_path), photons_per_pass=1 << 10)
+    dev, program = eng.device, _probe(eng)
+    uv = np.random.default_rng(4).uniform(-2.0, 3.0, (512, 2)).astype(np.float32)
+    order = used_textures(parse_scene(convert_mitsuba(tmp_path / "textured.xml")))
+    for name, element in TEXTURES.items():
+        alone = element.replace("pattern.png", str(tmp_path / "pattern.png"))
+        texture = mi.load_string(alone.replace("<texture ", '<texture version="3.0.0" ', 1))
+        si = mi.SurfaceInteraction3f()
+        theirs = []
+        for u, v in uv:
+            si.uv = mi.Point2f(float(u), float(v))
+            theirs.append(list(texture.eval(si)))
+        ours = np.empty((len(uv), 4), np.float32)
+        out = dev.buffer(ours.nbytes)
+        program.probe_texture(dev.queue, (len(uv),), None, *dev.geometry, *dev.emitter_args,
+                              np.int32(order.index(name)), dev.const(uv), out)
+        cl.enqueue_copy(dev.queue, ours, out)
+        np.testing.assert_allclose(ours[:, :3], np.array(theirs), atol=2e-4, err_msg=name)
+
+
+def test_surface_uvs_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
+    """Rays at the four shapes (a rectangle, a flipped and turned rectangle, a sphere, an OBJ
+    mesh with its own texture coordinates): the (u, v) at our hit is Mitsuba's at its hit."""
+    path = textured_scene(tmp_path)
+    eng = make_engine(path, photons_per_pass=1 << 10)
+    dev, program = eng.device, _probe(eng)
+    rng = np.random.default_rng(5)
+    n = 2000
+    origins = np.column_stack([rng.uniform(-2.3, 2.3, (n, 2)), np.full(n, 5.0), np.zeros(n)]).astype(np.float32)
+    dirs = np.column_stack([rng.uniform(-0.05, 0.05, (n, 2)), -np.ones(n), np.zeros(n)])
+    dirs[:, :3] /= np.linalg.norm(dirs[:, :3], axis=1, keepdims=True)
+    dirs = dirs.astype(np.float32)
+    ours = np.empty((n, 4), np.float32)
+    out = dev.buffer(ours.nbytes)
+    program.probe_uv(dev.queue, (n,), None, *dev.geometry, *dev.emitter_args, dev.const(origins), dev.const(dirs), out)
+    cl.enqueue_copy(dev.queue, ours, out)
+    scene = mi.load_file(str(path))
+    hits = 0
+    for i in range(n):
+        ray = mi.Ray3f(mi.Point3f(*map(float, origins[i, :3])), mi.Vector3f(*map(float, dirs[i, :3])))
+        si = scene.ray_intersect(ray)
+        if not si.is_valid():
+            assert ours[i, 3] < 0, i
+            continue
+        hits += 1
+        assert abs(ours[i, 2] - si.t) < 1e-4, (i, ours[i], si.t)
+        u, v = si.uv
+        np.testing.assert_allclose(ours[i, :2], [u, v], atol=2e-5, err_msg=str(i))
+    assert hits > n // 2, hits
