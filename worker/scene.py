@@ -409,7 +409,7 @@ class Quad(_Shape):
     corner: Vec3
     edge1: Vec3
     edge2: Vec3
-    uvs: tuple[Uv, Uv, Uv, Uv] = QUAD_UVS
+    uvs: tuple[Uv, Uv, Uv, Uv] | None = None  # None: QUAD_UVS
 
 
 class Mesh(_Shape):
@@ -686,7 +686,7 @@ def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget
         if isinstance(shape, Quad):
             c, e1, e2 = (np.array(x, dtype=np.float64) for x in (shape.corner, shape.edge1, shape.edge2))
             tris = np.array([[c, c + e1, c + e1 + e2], [c, c + e1 + e2, c + e2]])
-            uvs = np.array(shape.uvs, np.float64)[[[0, 1, 2], [0, 2, 3]]]
+            uvs = np.array(shape.uvs or QUAD_UVS, np.float64)[[[0, 1, 2], [0, 2, 3]]]
         else:
             mesh = _mesh_data(shape, f"shapes.{i}", base_dir, root, budget)
             tris = mesh.vertices[mesh.triangles]
