@@ -20,6 +20,7 @@ from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import PLANE_H, PLANE_I, camera_rays
 from tests.conftest import image, render
 from tests.test_images import write_image
+from tests.test_mitsuba_corpus import BIAS, block_luminance, mean_variance
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SceneError, bundled_scene_path, parse_scene
 from worker.surfaces import used_textures
@@ -249,3 +250,117 @@ def test_surface_uvs_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
         u, v = si.uv
         np.testing.assert_allclose(ours[i, :2], [u, v], atol=2e-5, err_msg=str(i))
     assert hits > n // 2, hits
+
+
+# ------------------------------------------------------------------ side by side with Mitsuba 3
+ROOM = """<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="-1"/></integrator>
+    <sensor type="perspective">
+        <float name="fov" value="62"/>
+        <transform name="to_world"><lookat origin="0, 0.1, 0.95" target="0, -0.45, -0.6" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="64"/><integer name="height" value="64"/>
+            <rfilter type="box"/></film>
+    </sensor>
+    <texture type="bitmap" id="tiles"><string name="filename" value="tiles.png"/>
+        <transform name="to_uv"><scale value="3"/></transform></texture>
+    <bsdf type="twosided" id="white"><bsdf type="diffuse"><rgb name="reflectance" value="0.7"/></bsdf></bsdf>
+    <bsdf type="diffuse" id="floor"><ref name="reflectance" id="tiles"/></bsdf>
+    <bsdf type="plastic" id="ball">
+        <texture type="checkerboard" name="diffuse_reflectance"><rgb name="color0" value="0.8, 0.7, 0.1"/>
+            <rgb name="color1" value="0.1, 0.2, 0.7"/>
+            <transform name="to_uv"><scale x="8" y="4"/></transform></texture>
+        <float name="int_ior" value="1.5"/>
+    </bsdf>
+    <bsdf type="twosided" id="panel"><bsdf type="diffuse">  <!-- its back is lit: twosided, as ours -->
+        <texture type="bitmap" name="reflectance"><string name="filename" value="tiles.png"/>
+            <string name="filter_type" value="nearest"/><string name="wrap_mode" value="mirror"/></texture>
+    </bsdf></bsdf>
+    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><translate y="-1"/></transform>
+        <ref id="floor"/></shape>
+    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="90"/><translate y="1"/></transform>
+        <ref id="white"/></shape>
+    <shape type="rectangle"><transform name="to_world"><translate z="-1"/></transform><ref id="white"/></shape>
+    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="90"/><translate x="-1"/></transform>
+        <ref id="white"/></shape>
+    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="-90"/><translate x="1"/></transform>
+        <ref id="white"/></shape>
+    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="180"/><translate z="1"/></transform>
+        <ref id="white"/></shape>
+    <shape type="rectangle">
+        <transform name="to_world"><scale x="0.25" y="0.25"/><rotate x="1" angle="90"/><translate y="0.99"/></transform>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>
+        <emitter type="area"><rgb name="radiance" value="12"/></emitter>
+    </shape>
+    <shape type="sphere"><point name="center" x="-0.45" y="-0.68" z="-0.4"/><float name="radius" value="0.32"/>
+        <ref id="ball"/></shape>
+    <shape type="obj"><string name="filename" value="panel.obj"/>
+        <transform name="to_world"><scale value="0.35"/><rotate y="1" angle="-25"/>
+            <translate x="0.45" y="-0.62" z="-0.55"/></transform><ref id="panel"/></shape>
+</scene>"""
+
+
+def textured_room(folder: Path) -> Path:
+    """ROOM with its image (a 4 x 4 sRGB tiling of random colours, a white grout line in
+    each tile) and its mesh (QUAD_OBJ: texture coordinates of its own) beside it."""
+    rng = np.random.default_rng(8)
+    tiles = np.repeat(np.repeat(rng.random((4, 4, 3)) * 0.9, 8, axis=0), 8, axis=1)
+    tiles[::8, :] = tiles[:, ::8] = 0.95
+    write_image(folder / "tiles.png", (tiles * 255).round().astype(np.uint8), "uint8")
+    (folder / "panel.obj").write_text(QUAD_OBJ)
+    path = folder / "room.xml"
+    path.write_text(ROOM)
+    return path
+
+
+SIDE_RUNS = 4  # independent renders a side: the spread of a block between them is its noise
+
+
+@pytest.fixture(scope="module")
+def room_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("textured-room")
+    textured_room(folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def mitsuba_room(room_folder: Path) -> np.ndarray:
+    """SIDE_RUNS independent Mitsuba renders of the textured room (1024 spp each)."""
+    import mitsuba
+
+    mitsuba.set_variant("scalar_rgb")
+    path = str(room_folder / "room.xml")
+    return np.array([np.array(mitsuba.render(mitsuba.load_file(path), spp=1024, seed=s), np.float64)[..., :3]
+                     for s in range(SIDE_RUNS)])
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_textured_room_matches_mitsuba_block_by_block(make_engine, room_folder: Path, mitsuba_room: np.ndarray,
+                                                      method: str) -> None:
+    """A room with a bitmap-textured floor (bilinear, repeated), a plastic ball with a
+    checkerboard diffuse base and an OBJ panel with its own texture coordinates (nearest,
+    mirrored), by Mitsuba's path tracer and by us (32 passes), SIDE_RUNS renders each: image
+    means per channel within 2%, every 8 x 8 block's luminance within 5 combined standard
+    errors of the two means plus the method's BIAS (tests/test_mitsuba_corpus.py)."""
+    ours = []
+    for s in range(SIDE_RUNS):
+        engine = make_engine(room_folder / "room.xml", method=method, seed=200 + s)
+        ours.append(image(engine, render(engine, 32)))
+    mine = np.array(ours)
+    np.testing.assert_allclose(mine.mean(axis=(0, 1, 2)), mitsuba_room.mean(axis=(0, 1, 2)), rtol=0.02)
+    a = np.array([block_luminance(x) for x in mine])
+    b = np.array([block_luminance(x) for x in mitsuba_room])
+    bound = 5.0 * np.sqrt(mean_variance(a) + mean_variance(b)) + BIAS[method] * b.mean(axis=0)
+    excess = np.abs(a.mean(axis=0) - b.mean(axis=0)) / bound
+    assert excess.max() <= 1.0, (excess.max(), np.unravel_index(np.argmax(excess), excess.shape))
+
+
+def test_client_sends_a_scenes_images(tmp_path: Path) -> None:
+    """`photonfarm submit` uploads the images beside a scene, as its meshes (the service reads
+    only what the scene names, inside the upload)."""
+    from service.client import scene_folder_files
+
+    write_image(tmp_path / "wood.png", np.zeros((2, 2, 3), np.uint8), "uint8")
+    scene = checker_plane()
+    scene["textures"]["wood"] = {"type": "bitmap", "file": "wood.png"}
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    assert [name for name, _ in scene_folder_files(tmp_path / "scene.json")] == ["scene.json", "wood.png"]
