@@ -28,10 +28,12 @@ MATERIALS = {"diffuse": 0, "glossy": 1, "conductor": 2, "rough_conductor": 3, "g
 MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4, "textured": 8}
 SURF_ROWS = 5
 TABLE_SIZE = 64
-# Textures (kernels/textures.cl): a record of TEX_ROWS rows per texture, its kind and wrap mode.
+# Textures (kernels/textures.cl): a record of TEX_ROWS rows per texture; its flags: the kind,
+# the wrap mode shifted by 2, and the TEXTURE_FLAGS bits.
 TEXTURE_KINDS = {"bitmap": 0, "checkerboard": 1}
 WRAP_MODES = {"repeat": 0, "mirror": 1, "clamp": 2}
-TEX_ROWS = 4
+TEXTURE_FLAGS = {"nearest": 16, "grey": 32}
+TEX_ROWS = 3
 # Emitter kinds: kernels/lights.cl.
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4}
 # Random-number domains: independent streams for eye paths, photon paths and the light
@@ -162,6 +164,7 @@ def build_options(layout: SumLayout) -> list[str]:
         "TABLE_SIZE": TABLE_SIZE,
         **{f"TEX_{name.upper()}": code for name, code in TEXTURE_KINDS.items()},
         **{f"WRAP_{name.upper()}": code for name, code in WRAP_MODES.items()},
+        **{f"TEX_{name.upper()}": bit for name, bit in TEXTURE_FLAGS.items()},
         "TEX_ROWS": TEX_ROWS,
         **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
         **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},

@@ -1,15 +1,17 @@
 // Textures: colours and roughnesses that vary over a surface, looked up at a hit's texture
 // coordinates (u, v). Every texture of a scene lives in two buffers (worker/surfaces.py,
 // texture_table): TEX_ROWS float4 rows a texture in tex_info,
-//   row 0: kind TEX_*, offset of its first value in tex_texels, width, height (int bits)
+//   row 0: flags (kind TEX_* | wrap mode WRAP_* << 2 | TEX_NEAREST | TEX_GREY), offset of its
+//          first value in tex_texels, width, height (int bits)
 //   row 1, 2: to_uv, the affine map to the texture's own coordinates: u' = row1.xyz . (u, v, 1),
 //             v' = row2.xyz . (u, v, 1)
-//   row 3: wrap mode WRAP_*, 1 for nearest filtering (0: bilinear), channels (1 or 3) (int bits)
-// and the values, linear and in [0, 1], in tex_texels: a bitmap's rows from the image's top
-// row (v' = 0) down, `channels` values a texel; a checkerboard's two colours as two rgb texels.
+// and the values, linear and in [0, 1], as half floats in tex_texels: a bitmap's rows from
+// the image's top row (v' = 0) down, a texel 4 halves (rgb and a pad: one aligned load) or
+// 1 (TEX_GREY); a checkerboard's two colours as two texels.
 // Lookups follow Mitsuba 3's bitmap and checkerboard textures: bilinear between the texel
 // centres at (u' width - 1/2, v' height - 1/2), nearest the texel at floor(u' width, v' height),
-// and a checkerboard of unit cells, colour 0 where floor(u') + floor(v') is even.
+// the wrap mode applied to the texel indices; and a checkerboard of unit cells, colour 0 where
+// floor(u') + floor(v') is even.
 //
 // Surface coordinates (the shapes' own parameterisations): a triangle's from its corners'
 // (tex_uv: a mesh's own, a quad's (s, t), else (0, 0), (1, 0), (0, 1)) by its barycentrics at
@@ -29,50 +31,68 @@ inline float2 prim_uv(const SceneGeom* g, int prim, float3 p) {
     }
     // Barycentrics of p in the triangle's plane (the normal equations of p - v0 = b1 e1 + b2 e2).
     float3 e1 = g->tri_e1[prim].xyz, e2 = g->tri_e2[prim].xyz, w = p - g->tri_v0[prim].xyz;
-    float d11 = dot(e1, e1), d12 = dot(e1, e2), d22 = dot(e2, e2), w1 = dot(w, e1), w2 = dot(w, e2);
+    float d11 = dot3(e1, e1), d12 = dot3(e1, e2), d22 = dot3(e2, e2), w1 = dot3(w, e1), w2 = dot3(w, e2);
     float inv = 1.0f / (d11 * d22 - d12 * d12);
     float b1 = (d22 * w1 - d12 * w2) * inv, b2 = (d11 * w2 - d12 * w1) * inv;
     __global const float2* c = g->tex_uv + 3 * prim;
     return (1.0f - b1 - b2) * c[0] + b1 * c[1] + b2 * c[2];
 }
 
-// Texel index i of a row or column of n under a wrap mode.
-inline int wrap_index(int i, int n, int mode) {
-    if (mode == WRAP_CLAMP) return clamp(i, 0, n - 1);
+// A texture coordinate reduced to one period of its wrap mode, in [0, 1] (repeat: [0, 1)):
+// the texel indices it then gives, each clamped to [0, n - 1], are the wrap mode's indices
+// of the unreduced one (a mirrored period is the texels in reverse order, so the fold at an
+// integer coordinate meets the index fold between texels n - 1 and n).
+inline float wrap_coordinate(float x, int mode) {
+    if (mode == WRAP_CLAMP) return clamp(x, 0.0f, 1.0f);
     if (mode == WRAP_MIRROR) {
-        int m = i % (2 * n);
-        m = m < 0 ? m + 2 * n : m;
-        return m < n ? m : 2 * n - 1 - m;
+        float t = x - 2.0f * floor(0.5f * x);  // [0, 2)
+        return t > 1.0f ? 2.0f - t : t;
     }
-    int m = i % n;
-    return m < 0 ? m + n : m;
+    return x - floor(x);
 }
 
-// floor(x) as an int, x kept within int range (far texture coordinates repeat all the same).
-inline int floor_int(float x) { return (int)floor(clamp(x, -1.0e9f, 1.0e9f)); }
-
-inline float3 texel(__global const float* texels, int4 head, int channels, int x, int y) {
-    __global const float* t = texels + head.y + (y * head.z + x) * channels;
-    return channels == 1 ? (float3)(t[0]) : (float3)(t[0], t[1], t[2]);
+inline float3 texel(__global const half* texels, int at, bool grey) {
+    if (grey) return (float3)(vload_half(at, texels));
+    return vload_half4(0, texels + at).xyz;
 }
 
 inline float3 texture_eval(const SceneGeom* g, int tex, float2 uv) {
     __global const float4* r = g->tex_info + TEX_ROWS * tex;
-    int4 head = as_int4(r[0]), mode = as_int4(r[3]);
-    float3 h = (float3)(uv, 1.0f);
-    float u = dot(r[1].xyz, h), v = dot(r[2].xyz, h);
-    if (head.x == TEX_CHECKERBOARD) return texel(g->tex_texels, head, 3, (floor_int(u) + floor_int(v)) & 1, 0);
-    int w = head.z, ht = head.w;
-    if (mode.y) return texel(g->tex_texels, head, mode.z, wrap_index(floor_int(u * w), w, mode.x),
-                             wrap_index(floor_int(v * ht), ht, mode.x));
-    float x = u * w - 0.5f, y = v * ht - 0.5f;
-    int x0 = floor_int(x), y0 = floor_int(y);
-    float fx = x - floor(x), fy = y - floor(y);
-    int xa = wrap_index(x0, w, mode.x), xb = wrap_index(x0 + 1, w, mode.x);
-    int ya = wrap_index(y0, ht, mode.x), yb = wrap_index(y0 + 1, ht, mode.x);
-    float3 top = mix(texel(g->tex_texels, head, mode.z, xa, ya), texel(g->tex_texels, head, mode.z, xb, ya), fx);
-    float3 bottom = mix(texel(g->tex_texels, head, mode.z, xa, yb), texel(g->tex_texels, head, mode.z, xb, yb), fx);
-    return mix(top, bottom, fy);
+    int4 head = as_int4(r[0]);
+    float4 ru = r[1], rv = r[2];
+    float u = ru.x * uv.x + ru.y * uv.y + ru.z, v = rv.x * uv.x + rv.y * uv.y + rv.z;
+    int flags = head.x, w = head.z, h = head.w;
+    bool grey = flags & TEX_GREY;
+    int step = grey ? 1 : 4;
+    if ((flags & 3) == TEX_CHECKERBOARD) {
+        int parity = ((int)floor(u - 2.0f * floor(0.5f * u)) + (int)floor(v - 2.0f * floor(0.5f * v))) & 1;
+        return texel(g->tex_texels, head.y + parity * step, grey);
+    }
+    int mode = (flags >> 2) & 3;
+    float x = wrap_coordinate(u, mode) * (float)w, y = wrap_coordinate(v, mode) * (float)h;
+    if (flags & TEX_NEAREST) {
+        int i = min((int)x, w - 1), j = min((int)y, h - 1);
+        return texel(g->tex_texels, head.y + (j * w + i) * step, grey);
+    }
+    x -= 0.5f;
+    y -= 0.5f;
+    float fx = floor(x), fy = floor(y), ax = x - fx, ay = y - fy;
+    int x0 = (int)fx, y0 = (int)fy, x1 = x0 + 1, y1 = y0 + 1;
+    if (mode == WRAP_REPEAT) {  // indices -1 and n are the far ends' texels
+        x0 = x0 < 0 ? w - 1 : x0;
+        y0 = y0 < 0 ? h - 1 : y0;
+        x1 = x1 == w ? 0 : x1;
+        y1 = y1 == h ? 0 : y1;
+    } else {
+        x0 = max(x0, 0);
+        y0 = max(y0, 0);
+        x1 = min(x1, w - 1);
+        y1 = min(y1, h - 1);
+    }
+    int row0 = head.y + y0 * w * step, row1 = head.y + y1 * w * step;
+    float3 top = mix(texel(g->tex_texels, row0 + x0 * step, grey), texel(g->tex_texels, row0 + x1 * step, grey), ax);
+    float3 bottom = mix(texel(g->tex_texels, row1 + x0 * step, grey), texel(g->tex_texels, row1 + x1 * step, grey), ax);
+    return mix(top, bottom, ay);
 }
 
 // Surface `surf`'s material at point p of primitive `prim` (hit_prim): its record, with the

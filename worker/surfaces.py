@@ -17,7 +17,16 @@ import math
 
 import numpy as np
 
-from kernels.contract import MATERIAL_FLAGS, MATERIALS, SURF_ROWS, TABLE_SIZE, TEX_ROWS, TEXTURE_KINDS, WRAP_MODES
+from kernels.contract import (
+    MATERIAL_FLAGS,
+    MATERIALS,
+    SURF_ROWS,
+    TABLE_SIZE,
+    TEX_ROWS,
+    TEXTURE_FLAGS,
+    TEXTURE_KINDS,
+    WRAP_MODES,
+)
 from worker.scene import (
     Bitmap,
     Conductor,
@@ -142,7 +151,8 @@ def texture_texels(scene: Scene, name: str) -> np.ndarray:
 
 def texture_table(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """The used textures on the device (kernels/textures.cl): (TEX_ROWS * textures, 4) float32
-    records and every texture's texels in one float32 array."""
+    records and every texture's texels in one float16 array (an rgb texel padded to 4 halves,
+    each texture starting at a multiple of 4)."""
     names = used_textures(scene)
     records = np.zeros((TEX_ROWS * len(names), 4), np.float32)
     texels: list[np.ndarray] = []
@@ -150,16 +160,18 @@ def texture_table(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     for i, name in enumerate(names):
         texture, values = scene.textures[name], texture_texels(scene, name)
         height, width, channels = values.shape
-        rows = records[TEX_ROWS * i:TEX_ROWS * (i + 1)]
-        rows[0] = int_bits([TEXTURE_KINDS[texture.type], offset, width, height])
-        rows[1, :3], rows[2, :3] = texture.to_uv
+        flags = TEXTURE_KINDS[texture.type] | (TEXTURE_FLAGS["grey"] if channels == 1 else 0)
         if isinstance(texture, Bitmap):
-            rows[3] = int_bits([WRAP_MODES[texture.wrap_mode], int(texture.filter == "nearest"), channels, 0])
-        else:
-            rows[3] = int_bits([WRAP_MODES["repeat"], 0, channels, 0])
-        texels.append(values.ravel())
-        offset += values.size
-    return records, np.concatenate(texels) if texels else np.zeros(0, np.float32)
+            flags |= WRAP_MODES[texture.wrap_mode] << 2
+            flags |= TEXTURE_FLAGS["nearest"] if texture.filter == "nearest" else 0
+        rows = records[TEX_ROWS * i:TEX_ROWS * (i + 1)]
+        rows[0] = int_bits([flags, offset, width, height])
+        rows[1, :3], rows[2, :3] = texture.to_uv
+        halves = values.reshape(-1, channels) if channels == 1 else np.pad(values.reshape(-1, 3), ((0, 0), (0, 1)))
+        halves = np.pad(halves.ravel(), (0, -halves.size % 4)).astype(np.float16)
+        texels.append(halves)
+        offset += halves.size
+    return records, np.concatenate(texels) if texels else np.zeros(0, np.float16)
 
 
 def _mean(scene: Scene, value: tuple[float, float, float] | TextureRef) -> float:
