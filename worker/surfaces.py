@@ -1,6 +1,6 @@
 """Surface records: each shape's material and emission as the kernels read them
 (kernels/materials.cl, its row layout), and the constants a plastic coat needs, computed
-here once per scene.
+here once per scene; and the scene's textures as the kernels read them (kernels/textures.cl).
 
 Plastics follow Mitsuba 3's definitions: the diffuse base is divided by 1 - R_int, R_int the
 coat's internal diffuse reflectance, 2 * integral of F(mu, 1/eta) mu dmu over [0, 1] for a
