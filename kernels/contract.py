@@ -20,13 +20,20 @@ from dataclasses import dataclass
 import numpy as np
 
 # Materials (surface record type), their flags and the record's size: kernels/materials.cl.
-# `mirror` is a conductor without a Fresnel term (MF_NO_FRESNEL); TABLE_SIZE: the cosines a
-# rough plastic's coat transmittance is tabulated at, evenly over [0, 1] (as Mitsuba 3's).
+# `mirror` is a conductor without a Fresnel term (MF_NO_FRESNEL); MF_TEXTURED: the record's
+# textures row names a texture (kernels/textures.cl); TABLE_SIZE: the cosines a rough
+# plastic's coat transmittance is tabulated at, evenly over [0, 1] (as Mitsuba 3's).
 MATERIALS = {"diffuse": 0, "glossy": 1, "conductor": 2, "rough_conductor": 3, "glass": 4, "thin_glass": 5,
              "plastic": 6, "rough_plastic": 7, "rough_glass": 8}
-MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4}
-SURF_ROWS = 4
+MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4, "textured": 8}
+SURF_ROWS = 5
 TABLE_SIZE = 64
+# Textures (kernels/textures.cl): a record of TEX_ROWS rows per texture; its flags: the kind,
+# the wrap mode shifted by 2, and the TEXTURE_FLAGS bits.
+TEXTURE_KINDS = {"bitmap": 0, "checkerboard": 1}
+WRAP_MODES = {"repeat": 0, "mirror": 1, "clamp": 2}
+TEXTURE_FLAGS = {"nearest": 16, "grey": 32}
+TEX_ROWS = 3
 # Emitter kinds: kernels/lights.cl (the environment: kernels/environment.cl).
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4, "environment": 5}
 # Random-number domains: independent streams for eye paths, photon paths and the light
@@ -155,6 +162,10 @@ def build_options(layout: SumLayout) -> list[str]:
         **{f"MF_{name.upper()}": f"{bit}u" for name, bit in MATERIAL_FLAGS.items()},
         "SURF_ROWS": SURF_ROWS,
         "TABLE_SIZE": TABLE_SIZE,
+        **{f"TEX_{name.upper()}": code for name, code in TEXTURE_KINDS.items()},
+        **{f"WRAP_{name.upper()}": code for name, code in WRAP_MODES.items()},
+        **{f"TEX_{name.upper()}": bit for name, bit in TEXTURE_FLAGS.items()},
+        "TEX_ROWS": TEX_ROWS,
         **{f"EMIT_{name.upper()}": code for name, code in EMITTERS.items()},
         **{f"DOMAIN_{name.upper()}": f"{code}UL" for name, code in RNG_DOMAINS.items()},
         "K1": repr(K1),

@@ -359,7 +359,7 @@ __kernel void eye_pass(
         }
         float3 p = origin + h.t * d;
         travelled += h.t;
-        Material m = load_material(surfaces, h.surf);
+        Material m = hit_material(&g, surfaces, &h, p);
         float3 le = surface_emission(surfaces, h.surf);
         if (dot(d, h.ng) < 0.0f) {  // emitters shine from their front side
             float w = last_pdf > 0.0f && any(le > 0.0f) ? emission_weight(le, power, last_pdf, h.t, -dot(d, h.ng)) : 1.0f;

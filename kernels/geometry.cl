@@ -14,6 +14,7 @@ typedef struct {
     bool smooth;  // ns is interpolated (ns == ng bit for bit otherwise)
     int surf;     // surface record index, SURF_NONE on a miss
     int tri;      // the triangle hit, or -1 (a sphere, or a miss)
+    int sphere;   // the sphere hit, or -1 (a triangle, or a miss)
 } Hit;
 
 inline double sphere_distance(float4 sph, float3 o, float3 d, double tmin, double tmax) {
@@ -95,6 +96,9 @@ typedef struct {
     int n_nodes;
     int n_spheres;
     float eps_floor;                 // the scene's coordinate scale, at most 1 (ray_eps)
+    __global const float4* tex_info;    // texture records (textures.cl)
+    __global const half* tex_texels;    // their texels
+    __global const float2* tex_uv;      // 3 rows per triangle: corner texture coordinates (textured scenes only)
 } SceneGeom;
 
 // Ray offset: 1e-5 of the magnitude of the coordinates it is added to (some 80 float32 ulps),
@@ -124,9 +128,10 @@ inline void triangle_corners(const SceneGeom* g, int tri, float3 a[3]) {
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes, \
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres, float eps_floor, \
     __global const float4* surfaces, \
+    __global const float4* tex_info, __global const half* tex_texels, __global const float2* tex_uv, \
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
 #define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, tri_adj, node_lo, node_hi, spheres, sphere_surf, n_nodes, \
-                    n_spheres, eps_floor}
+                    n_spheres, eps_floor, tex_info, tex_texels, tex_uv}
 
 // No point of the sphere lies within tmax of o: a bounded query skips it (smallppm's walls
 // are spheres of radius 1e5, so the distance is taken in double).
@@ -141,6 +146,7 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
     h.t = tmax;
     h.surf = SURF_NONE;
     h.tri = -1;
+    h.sphere = -1;
     float tmin = 0.0f;
     int best_sphere = -1, best_tri = -1;
     bool bounded = tmax < INFINITY;
@@ -193,6 +199,7 @@ inline Hit intersect_within(const SceneGeom* g, float3 o, float3 d, float tmax) 
         h.ns = h.ng;
         h.smooth = false;
         h.surf = g->sphere_surf[best_sphere];
+        h.sphere = best_sphere;
     }
     return h;
 }

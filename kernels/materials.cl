@@ -10,6 +10,8 @@
 //          reflectance R_int, specular sampling weight); w: MF_* flags (int bits)
 //   row 3: conductors: k rgb; dielectrics: transmission tint; plastics: specular
 //          reflectance; w: rough_plastic's row of its transmittance table (int bits)
+//   row 4: the textures (textures.cl) of row 0's colour, row 3's colour and the roughness,
+//          -1 where it is constant (int bits); read only under MF_TEXTURED
 // ior is interior / exterior. Tables follow the records in the same buffer: TABLE_SIZE
 // floats over cos in [0, 1], 4 to a row.
 // The type codes MAT_* and flags MF_* come from kernels/contract.py as build options.

@@ -132,7 +132,7 @@ inline void trace_photon(const SceneGeom* g, __global const float4* surfaces,
         Hit h = intersect(g, o, d);
         if (h.surf == SURF_NONE) return;
         float3 p = o + h.t * d;
-        Material m = load_material(surfaces, h.surf);
+        Material m = hit_material(g, surfaces, &h, p);
         if ((material_parts(&m) & PART_DIFFUSE) && (bounce > 0 || !skip_first_hit)) {
             // Stored with the share h(wi) the diffuse part takes of it (bsdf.cl).
             float3 n = dot(d, h.ng) < 0.0f ? h.ng : -h.ng;

@@ -20,8 +20,8 @@ from kernels.contract import SumLayout, build_options
 KERNEL_DIR = Path(__file__).resolve().parent
 WORK_GROUP = 64  # work items a work group (Program.launch)
 # Order matters: later files use what earlier ones define.
-SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "bsdf.cl", "environment.cl", "lights.cl", "eye_pass.cl",
-           "spatial_hash.cl", "visibility.cl", "photon_pass.cl", "photon_chains.cl")
+SOURCES = ("rng.cl", "sums.cl", "geometry.cl", "materials.cl", "textures.cl", "bsdf.cl", "environment.cl", "lights.cl",
+           "eye_pass.cl", "spatial_hash.cl", "visibility.cl", "photon_pass.cl", "photon_chains.cl")
 PREAMBLE = ("#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n"
             "#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable\n")
 KERNEL_NAMES = ("eye_pass", "photon_pass", "hash_select", "hash_store", "grid_count", "grid_scan",

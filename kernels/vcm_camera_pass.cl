@@ -65,7 +65,7 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
         float3 dir = to / dist;
         BsdfEval ex = camera_bsdf(x, dir);
         if (ex.pdf_fwd <= 0.0f) continue;
-        Material my = load_material(surfaces, y.surf);
+        Material my = surface_material(g, surfaces, y.surf, y.prim, y.pos);
         BsdfEval ey = bsdf_eval(&my, y.ng, y.ns, y.wo, -dir, PART_ALL, false);
         if (ey.pdf_fwd <= 0.0f) continue;
         float3 y_side = dot(y.ng, dir) < 0.0f ? y.ng : -y.ng;  // y's normal on x's side
@@ -169,7 +169,7 @@ __kernel void vcm_camera_pass(
         hit_any = 1;
         float3 p = s.o + h.t * s.d;
         subpath_arrive(&s, &h, depth == 0 ? h.t + skipped : h.t);
-        CameraVertex x = {p, -s.d, h.ng, dot(s.d, h.ng) < 0.0f ? h.ng : -h.ng, h.ns, load_material(surfaces, h.surf)};
+        CameraVertex x = {p, -s.d, h.ng, dot(s.d, h.ng) < 0.0f ? h.ng : -h.ng, h.ns, hit_material(&g, surfaces, &h, p)};
         float3 le = surface_emission(surfaces, h.surf);
 
         // 1. Emission seen.

@@ -19,15 +19,15 @@
 
 typedef struct {
     float3 pos, thr, wo, ng, ns;  // wo: back along the light path
-    int surf;
+    int surf, prim;               // prim: where its textures are looked up (textures.cl, hit_prim)
     float dVCM, dVC, dVM;
 } LightVertex;
 
 inline LightVertex load_light_vertex(__global const float4* lv_pos, __global const float4* lv_thr,
                                      __global const float4* lv_wo, __global const float4* lv_ng,
                                      __global const float4* lv_ns, uint i) {
-    float4 p = lv_pos[i], t = lv_thr[i], w = lv_wo[i], n = lv_ng[i];
-    LightVertex v = {p.xyz, t.xyz, w.xyz, n.xyz, lv_ns[i].xyz, as_int(p.w), t.w, w.w, n.w};
+    float4 p = lv_pos[i], t = lv_thr[i], w = lv_wo[i], n = lv_ng[i], s = lv_ns[i];
+    LightVertex v = {p.xyz, t.xyz, w.xyz, n.xyz, s.xyz, as_int(p.w), as_int(s.w), t.w, w.w, n.w};
     return v;
 }
 
@@ -74,7 +74,7 @@ __kernel void vcm_light_pass(
         float3 p = s.o + h.t * s.d;
         // 2. The quantities in the area measure at the hit.
         subpath_arrive(&s, &h, bounce > 0 || !em.infinite ? h.t : 0.0f);
-        Material m = load_material(surfaces, h.surf);
+        Material m = hit_material(&g, surfaces, &h, p);
         if (!is_delta(&m)) {
             float3 arriving = h.smooth ? s.thr * shading_arrival(s.d, h.ng, h.ns) : s.thr;
             // 3. Store the vertex.
@@ -85,7 +85,7 @@ __kernel void vcm_light_pass(
                     lv_thr[slot] = (float4)(arriving, s.dVCM);
                     lv_wo[slot] = (float4)(-s.d, s.dVC);
                     lv_ng[slot] = (float4)(h.ng, s.dVM);
-                    lv_ns[slot] = (float4)(h.ns, 0.0f);
+                    lv_ns[slot] = (float4)(h.ns, as_float(hit_prim(&h)));
                     lv_key[slot] = ((ulong)path << 12) | (ulong)bounce;
                     lv_prev[slot] = prev;
                     prev = (int)slot;

@@ -18,11 +18,12 @@ from tqdm import tqdm
 
 from service.models import MAX_BODY_BYTES
 from service.upload import MAX_UPLOAD_FILES
+from worker.images import IMAGE_SUFFIXES
 from worker.outputs import check_writable
 from worker.scene import SceneError, scene_file
 from worker.store.policy import FINAL
 
-UPLOAD_SUFFIXES = (".json", ".xml", ".obj", ".ply", ".serialized", ".spd")  # what a scene may name
+UPLOAD_SUFFIXES = (".json", ".xml", ".obj", ".ply", ".serialized", ".spd", *IMAGE_SUFFIXES)  # what a scene may name
 
 
 class ClientError(Exception):
@@ -64,11 +65,13 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _names_files(scene: dict[str, Any]) -> bool:
-    return any(isinstance(shape, dict) and "file" in shape for shape in scene.get("shapes") or [])
+    textures = scene.get("textures")
+    parts = [*(scene.get("shapes") or []), *(textures.values() if isinstance(textures, dict) else [])]
+    return any(isinstance(part, dict) and "file" in part for part in parts)
 
 
 def scene_folder_files(scene_file: Path) -> list[tuple[str, Path]]:
-    """The files sent with a scene file: every scene, mesh or spectrum file (UPLOAD_SUFFIXES) in
+    """The files sent with a scene file: every scene, mesh, spectrum or image file (UPLOAD_SUFFIXES) in
     its folder and below, by path relative to it, within the service's upload limits. The
     service reads only what the scene names, and only inside this upload."""
     folder = scene_file.resolve().parent

@@ -21,11 +21,13 @@ ball that glows and reflects as the walls do (a sphere emitter).
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 
 from worker.engine import Engine
+from worker.scene import bundled_scene_path
 
 FURNACE_RHO, FURNACE_PHI, FURNACE_R = 0.5, 4.0 * math.pi, 1.0
 
@@ -119,6 +121,7 @@ def shadowed_plane(eng: Engine, rho: float, power: float, light: tuple[float, fl
 SPOT = {"rho": 0.5, "power": 10.0, "height": 1.0, "cone_degrees": 40.0}
 SHADOW = {"rho": 0.5, "power": 4.0 * math.pi, "light": (0.0, 2.0, 0.0), "centre": (0.0, 1.0, 0.0), "radius": 0.3}
 PATCH = {"rho": 0.5, "power": 10.0, "height": 1.0}
+CHECKER = {"rho0": 0.8, "rho1": 0.1, "cell": 1.0}
 
 
 def closed_sphere_scene(albedo: tuple[float, float, float], power: float = FURNACE_PHI) -> dict:
@@ -212,6 +215,28 @@ def patch_scene(fov: float, resolution: tuple[int, int] = (24, 24)) -> dict:
                     "material": "plane"}],
         "lights": [{"type": "point", "position": [0, PATCH["height"], 0], "power": [PATCH["power"]] * 3}],
     }
+
+
+def checker_plane_scene(resolution: tuple[int, int] = (64, 64)) -> dict:
+    """point-plane with its plane a grey checkerboard (CHECKER: albedos rho0 and rho1, cells
+    of `cell` units; the quad's (s, t) run along z and x over 20 units from -10)."""
+    data = json.loads(bundled_scene_path("point-plane").read_text())
+    k = 20.0 / CHECKER["cell"]
+    data["textures"] = {"checks": {"type": "checkerboard", "color0": [CHECKER["rho0"]] * 3,
+                                   "color1": [CHECKER["rho1"]] * 3, "to_uv": [[k, 0.0, 0.0], [0.0, k, 0.0]]}}
+    data["materials"]["plane"] = {"type": "diffuse", "albedo": {"texture": "checks"}}
+    data["camera"]["resolution"] = list(resolution)
+    return data
+
+
+def checker_plane(eng: Engine, rho0: float, rho1: float, cell: float, sub: int = 8) -> np.ndarray:
+    """L per pixel for checker_plane_scene: point-plane's L = rho I h / (pi d^3) with rho the
+    albedo of the cell each point lies in (rho0 where the cell indices along z and x add to
+    an even number)."""
+    x, z, pixel_mean = _plane_hits(eng, sub)
+    odd = (np.floor((z + 10.0) / cell) + np.floor((x + 10.0) / cell)) % 2
+    d2 = PLANE_H ** 2 + x ** 2 + z ** 2
+    return pixel_mean(np.where(odd == 0, rho0, rho1) * PLANE_I * PLANE_H / (math.pi * d2 ** 1.5))
 
 
 def patch_plane(eng: Engine) -> np.ndarray:

@@ -2,7 +2,9 @@
 error at edge pixels within 10 points of nominal from 16 to 256 passes, and stay
 calibrated at smooth pixels, on a spot light's cone edge and a hard shadow (both analytic,
 tests/analytic.py). Before the discontinuity bias (worker/error_estimate.py) the edge
-coverage fell to 76-80% here; the issue saw 27% with its own edge definition."""
+coverage fell to 76-80% here; the issue saw 27% with its own edge definition. A texture's
+edges (a checkerboard of albedos 0.8 and 0.1, issue 48) are discontinuities too: there the
+bounds cover the error within 5 points of nominal at edge and at smooth pixels."""
 
 from __future__ import annotations
 
@@ -12,14 +14,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.analytic import SHADOW, SPOT, edge_pixels, shadow_scene, shadowed_plane, spot_plane, spot_plane_scene
+from tests.analytic import (
+    CHECKER,
+    SHADOW,
+    SPOT,
+    checker_plane,
+    checker_plane_scene,
+    edge_pixels,
+    shadow_scene,
+    shadowed_plane,
+    spot_plane,
+    spot_plane_scene,
+)
 from worker.error_estimate import estimate
 from worker.render_loop import render
 
 CASES = {
     "spot cone edge": (spot_plane_scene, lambda eng: spot_plane(eng, **SPOT)),
     "hard shadow": (shadow_scene, lambda eng: shadowed_plane(eng, **SHADOW)),
+    "texture edge": (checker_plane_scene, lambda eng: checker_plane(eng, **CHECKER)),
 }
+EDGE_SLACK = {"texture edge": 0.05}  # how far below (or above) 90% edge coverage may be; else 10 points below
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -41,5 +56,8 @@ def test_ninety_percent_bounds_cover_edge_pixels_from_16_to_256_passes(make_engi
     render(eng, passes=256, progress=observe)
     assert len(coverage) == 3
     for passes, (at_edges, smooth) in coverage.items():
-        assert at_edges >= 0.80, (passes, coverage)
+        if case in EDGE_SLACK:
+            assert abs(at_edges - 0.9) <= EDGE_SLACK[case], (passes, coverage)
+        else:
+            assert at_edges >= 0.80, (passes, coverage)
         assert abs(smooth - 0.9) <= 0.05, (passes, coverage)

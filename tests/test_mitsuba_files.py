@@ -154,8 +154,11 @@ def test_unreferenced_named_objects_are_noted(mi, tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("body, needle, says", [
-    ('<texture type="checkerboard" id="t"/><bsdf type="diffuse" id="d"><ref name="reflectance" id="t"/></bsdf>',
-     'name="reflectance"', "texture plugin 'checkerboard' is not supported"),
+    ('<texture type="checkerboard" id="t"/><bsdf type="roughplastic" id="p"><ref name="alpha" id="t"/></bsdf>',
+     'name="alpha"', "a texture for 'alpha' is not supported on a roughplastic bsdf"),
+    ('<texture type="checkerboard" id="t"/><shape type="cube"><bsdf type="diffuse"><ref name="reflectance" id="t"/>'
+     '</bsdf></shape>', 'type="cube"', "its texture coordinates are not converted"),
+    ('<bsdf type="mask" id="m"><float name="opacity" value="0.5"/></bsdf>', 'type="mask"', "mask (opacity) is not"),
     ('<shape type="sphere"><medium type="homogeneous" name="interior"/></shape>', "homogeneous",
      "participating media"),
     ('<medium type="homogeneous" id="fog"/>', "fog", "participating media"),

@@ -440,7 +440,7 @@ def test_unknown_plugin_names_element_and_line(tmp_path: Path) -> None:
     ('<bsdf type="roughconductor" id="c"><float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.3"/></bsdf>',
      "alpha_u", "anisotropic"),
     ('<emitter type="spot"><float name="cutoff_angle" value="30"/></emitter>', "spot", "no falloff"),
-    ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance"/></bsdf>', "bitmap", "not supported"),
+    ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance"/></bsdf>', "bitmap", "needs a filename"),
     ('<shape type="sphere"><float name="radius" value="$nope"/></shape>', "$nope", "undefined parameter"),
     ('<shape type="sphere"><ref id="missing"/></shape>', "missing", "no object with id"),
 ])

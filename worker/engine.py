@@ -64,7 +64,8 @@ class Device:
         self.geometry = [self.const(a.tri_v0), self.const(a.tri_e1), self.const(a.tri_e2), self.const(a.tri_nrm),
                          self.const(a.tri_adj), self.const(a.node_lo), self.const(a.node_hi), i32(len(a.node_lo)),
                          self.const(a.spheres), self.const(a.sphere_surf), i32(len(a.spheres)), f32(a.eps_floor),
-                         self.const(a.surfaces)]
+                         self.const(a.surfaces), self.const(a.tex_info), self.const(a.tex_texels),
+                         self.const(a.tex_uv)]
         self.n_emitters = len(a.emitter_cdf) if a.emitters.any() else 0
         self.emitter_args = [self.const(a.emitters), self.const(a.emitter_cdf), i32(self.n_emitters)]
         self.camera = self.const(a.camera)

@@ -32,6 +32,7 @@ class MeshData:
     vertices: np.ndarray  # (V, 3) float64
     triangles: np.ndarray  # (T, 3) int64, indices into vertices
     normals: np.ndarray | None  # (V, 3) float64 per-vertex shading normals, or None (flat)
+    uvs: np.ndarray | None = None  # (V, 2) float64 per-vertex texture coordinates, or None
 
 
 _OBJ_FACE = re.compile(rb"^[ \t]*f[ \t][^\n]*", re.MULTILINE)
@@ -85,7 +86,8 @@ def _triangulate(faces: object) -> np.ndarray:
     return np.asarray(triangulate_quads(f), np.int64).reshape(-1, 3)
 
 
-def check_mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None) -> MeshData:
+def check_mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None,
+               uvs: np.ndarray | None = None) -> MeshData:
     """Shapes, index range and finiteness of a mesh, from a file or given inline."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(triangles)
@@ -105,7 +107,23 @@ def check_mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray 
             raise MeshError(f"{len(n)} normals for {len(v)} vertices")
         if not np.all(np.isfinite(n)):
             raise MeshError("non-finite normal")
-    return MeshData(v, f, n)
+    t = None
+    if uvs is not None:
+        t = np.asarray(uvs, np.float64)
+        if t.shape != (len(v), 2):
+            raise MeshError(f"{len(t)} texture coordinates for {len(v)} vertices")
+        if not np.all(np.isfinite(t)):
+            raise MeshError("non-finite texture coordinate")
+    return MeshData(v, f, n, t)
+
+
+def _uvs(part: dict, flip: bool) -> np.ndarray | None:
+    """A parsed part's per-vertex texture coordinates, or None if it has none for every vertex."""
+    uv = getattr(part.get("visual"), "uv", None)
+    if uv is None or len(uv) != len(part["vertices"]):
+        return None
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    return np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]) if flip else uv
 
 
 def load_mesh(path: Path, data: bytes | None = None) -> MeshData:
@@ -130,4 +148,6 @@ def load_mesh(path: Path, data: bytes | None = None) -> MeshData:
     triangles = np.concatenate([_triangulate(p["faces"]) + o for p, o in zip(parts, offsets, strict=True)])
     have_normals = all(p.get("vertex_normals") is not None for p in parts)
     normals = np.concatenate([np.asarray(p["vertex_normals"], np.float64) for p in parts]) if have_normals else None
-    return check_mesh(vertices, triangles, normals)
+    uvs = [_uvs(p, flip=suffix == ".obj") for p in parts]
+    every = [u for u in uvs if u is not None]
+    return check_mesh(vertices, triangles, normals, np.concatenate(every) if len(every) == len(parts) else None)

@@ -23,6 +23,7 @@ from xml.parsers import expat
 import numpy as np
 
 from worker import spectra
+from worker.images import IMAGE_SUFFIXES
 from worker.meshes import MeshData, MeshError
 from worker.metals import METALS
 from worker.scene import (
@@ -343,9 +344,9 @@ class Converter:
     root: Path
     params: dict[str, str]
     materials: dict[str, dict] = field(default_factory=dict)
+    textures: dict[str, dict] = field(default_factory=dict)  # bitmaps (an envmap's too, its pixels inline) and checkerboards
     shapes: list[dict] = field(default_factory=list)
     lights: list[dict] = field(default_factory=list)
-    textures: dict[str, dict] = field(default_factory=dict)  # images (an envmap's), inline
     camera: dict | None = None
     budget: LoadBudget = field(default_factory=LoadBudget)  # of the whole load, includes and meshes too
     triangles: int = 0  # so far, every shape's, against MAX_TRIANGLES before the JSON grows past it
@@ -472,7 +473,7 @@ class Converter:
             elif child.tag == "emitter":
                 self.light(child)
             elif child.tag == "texture" and "id" in child.attrs:
-                self.define(child)  # refused where it is used (textures are outside the subset)
+                self.define(child)  # converted where a bsdf refers to it
             elif child.tag in RENDER_SETTING_TAGS:
                 self.note(child, child, f"<{child.tag}>", "render settings belong to the job")
             elif child.tag in UNSUPPORTED:
@@ -673,23 +674,95 @@ class Converter:
             "thindielectric": self._thindielectric, "plastic": self._plastic,
             "roughplastic": self._roughplastic,
         }
+        if kind == "mask":
+            raise _error(node, "mask (opacity) is not supported: the surface would have to be skipped where "
+                               "the mask is clear")
         if kind not in convert:
             raise _error(node, f"unknown bsdf plugin {kind!r} (have: {', '.join(['twosided', *convert])})")
+        out = convert[kind](p)
         for obj in p.objects:
             target = self.deref(obj) if obj.tag == "ref" else obj
             if target.tag == "texture":
-                raise _error(obj, f"texture plugin {target.attrs.get('type', '')!r} is not supported "
-                                  "(constant colours only)")
+                raise _error(obj, f"a texture for {obj.attrs.get('name', '')!r} is not supported on a {kind} bsdf")
             raise _error(obj, f"<{obj.tag}> is not supported in a {kind} bsdf")
-        out = convert[kind](p)
         p.done()
         return out
 
-    def _albedo(self, p: Props, name: str, default: float) -> list[float]:
+    def _albedo(self, p: Props, name: str, default: float) -> list[float] | dict:
+        """A colour in [0, 1] (rgb, float or spectrum) or a texture (a reference to it)."""
+        texture = self._texture_of(p, name)
+        if texture is not None:
+            return texture
         rgb = p.color(name, default)
         if not all(0.0 <= c <= 1.0 for c in rgb):
             raise _error(p.node_of(name), f"{name} must lie in [0, 1]")
         return list(rgb)
+
+    # -------------------------------------------------------------- textures
+    def _texture_of(self, p: Props, name: str) -> dict | None:
+        """Property `name` of p given as a texture (<texture name> or <ref name id>): taken
+        from p's objects, converted, and returned as our reference to it; None if it is not one."""
+        for obj in p.objects:
+            if obj.attrs.get("name") == name and obj.tag in ("texture", "ref"):
+                if name in p.values:
+                    raise _error(obj, f"property {name!r} given twice")
+                p.objects.remove(obj)
+                return {"texture": self.texture(obj)}
+        return None
+
+    def texture(self, obj: Node) -> str:
+        """Convert a <texture> (nested, or top-level and referenced); returns our name."""
+        node = self.deref(obj) if obj.tag == "ref" else obj
+        if node.tag != "texture":
+            raise _error(obj, f"{obj.attrs.get('id')!r} is not a texture")
+        name = node.attrs.get("id") or f"{node.file.stem}-line{node.line}"
+        if self.origin.get(f"textures.{name}") is node:  # met again through another reference
+            return name
+        kind = node.attrs.get("type")
+        p = Props(node, self)
+        # Mitsuba's to_uv is a 4x4 transform applied to (u, v, 0, 1).
+        m = p.transform("to_uv")
+        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+            raise _error(p.node_of("to_uv"), "a projective to_uv is not supported")
+        to_uv = np.array([[m[0, 0], m[0, 1], m[0, 3]], [m[1, 0], m[1, 1], m[1, 3]]])
+        if kind == "bitmap":
+            out = self._bitmap(p, node)
+        elif kind == "checkerboard":
+            colors = [p.color(c, d) for c, d in (("color0", 0.4), ("color1", 0.2))]
+            for c, rgb in zip(("color0", "color1"), colors, strict=True):
+                if not all(0.0 <= x <= 1.0 for x in rgb):
+                    raise _error(p.node_of(c), f"{c} must lie in [0, 1]")
+            to_uv = 2.0 * to_uv  # Mitsuba's cells are half a unit of (u, v), ours one
+            out = {"type": "checkerboard", "color0": list(colors[0]), "color1": list(colors[1])}
+        else:
+            raise _error(node, f"unknown texture plugin {kind!r} (have: bitmap, checkerboard)")
+        for inner in p.objects:
+            raise _error(inner, f"<{inner.tag}> is not supported in a texture")
+        p.done()
+        out["to_uv"] = to_uv.tolist()
+        self.textures[name] = out
+        self.origin[f"textures.{name}"] = node
+        return name
+
+    def _bitmap(self, p: Props, node: Node) -> dict:
+        """A bitmap's image, read now (found as meshes are) and carried inline."""
+        filename = p.string("filename")
+        if filename is None:
+            raise _error(node, "a bitmap needs a filename")
+        named = p.node_of("filename")
+        path = self.resolve(named, filename)
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            raise _error(named, f"{filename!r} is not one of {', '.join(IMAGE_SUFFIXES)}")
+        pixels = read_texture(path, self.budget, named.file.name, named.where())
+        filter_type, wrap = p.string("filter_type", "bilinear"), p.string("wrap_mode", "repeat")
+        if filter_type not in ("bilinear", "nearest"):
+            raise _error(p.node_of("filter_type"), "filter_type must be bilinear or nearest")
+        if wrap not in ("repeat", "mirror", "clamp"):
+            raise _error(p.node_of("wrap_mode"), "wrap_mode must be repeat, mirror or clamp")
+        p.ignore("format", "texel storage precision: ours are float32")
+        p.ignore("accel", "a lookup shortcut of Mitsuba's")
+        return {"type": "bitmap", "pixels": pixels.model_dump(), "raw": p.boolean("raw", False),
+                "filter": filter_type, "wrap_mode": wrap}
 
     def _diffuse(self, p: Props) -> dict:
         return {"type": "diffuse", "albedo": self._albedo(p, "reflectance", 0.5)}
@@ -720,12 +793,17 @@ class Converter:
         out["eta"], out["k"] = list(eta), list(p.color("k", 1.0, "unbounded"))
         return out
 
-    def _microfacet(self, p: Props) -> dict:
-        """Mitsuba's isotropic microfacet distribution: `alpha` (default 0.1) and
+    def _microfacet(self, p: Props, textured: bool = False) -> dict:
+        """Mitsuba's isotropic microfacet distribution: `alpha` (default 0.1; a texture where
+        `textured`, as Mitsuba's roughconductor and roughdielectric take one) and
         `distribution` (beckmann, default, or ggx); `sample_visible` is sampling only."""
         distribution = p.string("distribution", "beckmann")
         if distribution not in ("beckmann", "ggx"):
             raise _error(p.node_of("distribution"), "distribution must be beckmann or ggx")
+        texture = self._texture_of(p, "alpha") if textured else None
+        if texture is not None:
+            p.boolean("sample_visible", True)
+            return {"alpha": texture, "distribution": distribution}
         given = [name for name in ("alpha", "alpha_u", "alpha_v") if name in p.values]
         if given not in ([], ["alpha"], ["alpha_u", "alpha_v"]):
             raise _error(p.node_of(given[-1]), "give alpha, or both alpha_u and alpha_v (as Mitsuba requires)")
@@ -743,7 +821,7 @@ class Converter:
         return {"type": "conductor", **metal}
 
     def _roughconductor(self, p: Props) -> dict:
-        return {"type": "rough_conductor", **self._metal(p), **self._microfacet(p)}
+        return {"type": "rough_conductor", **self._metal(p), **self._microfacet(p, textured=True)}
 
     def _ior(self, p: Props, name: str, default: str) -> float:
         node = p.values.get(name)
@@ -778,7 +856,7 @@ class Converter:
         out = {"type": "rough_glass", "ior": self._relative_ior(p, "bk7"),
                "albedo": self._albedo(p, "specular_reflectance", 1.0),
                "transmittance": self._albedo(p, "specular_transmittance", 1.0)}
-        return {**out, **self._microfacet(p)}
+        return {**out, **self._microfacet(p, textured=True)}
 
     def _thindielectric(self, p: Props) -> dict:
         return {"type": "thin_glass", "ior": self._relative_ior(p, "bk7"),
@@ -839,6 +917,8 @@ class Converter:
         if material is None:  # Mitsuba's default bsdf
             material = "default-diffuse"
             self.materials.setdefault(material, {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]})
+        if any(isinstance(v, dict) for v in self.materials[material].values()):
+            self._check_uvs(node, kind, m)
         # Its geometry, counted against the triangle limit as the scene grows.
         flip = p.boolean("flip_normals", False)
         shape = builders[kind](p, m, flip)
@@ -869,21 +949,39 @@ class Converter:
             self.shape(child, m)
 
     @staticmethod
-    def _mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None, flip: bool) -> dict:
+    def _check_uvs(node: Node, kind: str | None, m: np.ndarray) -> None:
+        """A textured shape's texture coordinates must be Mitsuba's: ours hold a rectangle's,
+        a mesh's and an unrotated sphere's (about the world's axes)."""
+        if kind in ("cube", "disk", "cylinder"):
+            raise _error(node, f"a textured bsdf on a {kind}: its texture coordinates are not converted "
+                               "(textures apply to rectangles, spheres and meshes)")
+        if kind == "sphere":
+            r = m[:3, :3] / np.linalg.norm(m[:3, 0])
+            if not np.allclose(r, np.eye(3), atol=1e-9):
+                raise _error(node, "a textured sphere's to_world may not rotate (its texture coordinates "
+                                   "are taken about the world's axes)")
+
+    @staticmethod
+    def _mesh(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None, flip: bool,
+              uvs: np.ndarray | None = None) -> dict:
         if flip:
             triangles = triangles[:, ::-1]
         out = {"type": "mesh", "vertices": vertices, "triangles": triangles}
         if normals is not None:
             out["normals"] = -normals if flip else normals
+        if uvs is not None:
+            out["uvs"] = uvs
         return out
 
     def _rectangle(self, p: Props, m: np.ndarray, flip: bool) -> dict:
+        """Mitsuba's rectangle [-1, 1]^2 with texture coordinates ((x + 1) / 2, (y + 1) / 2)."""
         corner, c1, c2 = _apply(m, np.array([[-1.0, -1, 0], [1, -1, 0], [-1, 1, 0]]))
         e1, e2 = c1 - corner, c2 - corner
         normal = np.linalg.inv(m[:3, :3]).T @ np.array([0, 0, -1.0 if flip else 1.0])  # Mitsuba's front side
+        out = {"type": "quad", "corner": corner.tolist(), "edge1": e1.tolist(), "edge2": e2.tolist()}
         if np.dot(np.cross(e1, e2), normal) < 0:
-            e1, e2 = e2, e1
-        return {"type": "quad", "corner": corner.tolist(), "edge1": e1.tolist(), "edge2": e2.tolist()}
+            out.update(edge1=e2.tolist(), edge2=e1.tolist(), uvs=[[0.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, 0.0]])
+        return out
 
     def _cube(self, p: Props, m: np.ndarray, flip: bool) -> dict:
         corners = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
@@ -926,8 +1024,8 @@ class Converter:
         path = self.resolve(p.node_of("filename"), filename)
         face_normals = p.boolean("face_normals", False)
         kind = p.owner.attrs["type"]
-        if kind == "obj":
-            p.boolean("flip_tex_coords", True)  # texture coordinates: not used
+        # Ours read an OBJ's texture coordinates with v turned to 1 - v, as Mitsuba's default.
+        flip_v = kind == "obj" and not p.boolean("flip_tex_coords", True)
         named = p.node_of("filename")
         try:
             if kind == "serialized":
@@ -949,7 +1047,10 @@ class Converter:
             normals = _vertex_normals(world, tris)
         if np.linalg.det(m[:3, :3]) < 0:
             tris = tris[:, ::-1]
-        return self._mesh(world, tris, normals, flip)
+        uvs = mesh.uvs
+        if uvs is not None and flip_v:
+            uvs = np.column_stack([uvs[:, 0], 1.0 - uvs[:, 1]])
+        return self._mesh(world, tris, normals, flip, uvs)
 
     def _serialized(self, path: Path, index: int, named: Node) -> tuple[MeshData, bool]:
         """Shape `index` of a serialized file and whether it asks for face normals, read
@@ -1054,6 +1155,8 @@ class Converter:
             raise _error(where, "an envmap's to_world must be a rotation (no scale or shear)")
         p.ignore("mis_compensation", "it changes how the map is sampled, not the image")
         name = p.owner.attrs.get("id", "envmap")
+        while name in self.textures:  # an unnamed envmap beside a texture of that name
+            name += "_"
         self.textures[name] = {"type": "bitmap", "pixels": pixels.model_dump()}
         return {"type": "environment", "map": name, "scale": p.number("scale", 1.0), "to_world": r.tolist()}
 

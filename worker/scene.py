@@ -24,9 +24,11 @@ import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
+    Discriminator,
     Field,
     GetCoreSchemaHandler,
     StrictInt,
+    Tag,
     ValidationError,
     ValidatorFunctionWrapHandler,
     field_validator,
@@ -83,18 +85,20 @@ def _rows_out(rows: np.ndarray, info: core_schema.SerializationInfo) -> np.ndarr
 
 @dataclass(frozen=True)
 class _Rows:
-    """A pydantic annotation: a mesh's rows of three (vertices, normals, triangles) held as an
-    (n, 3) NumPy array of `dtype`. A value is accepted exactly when pydantic accepts it as
-    `rows` (the list-of-triples type the array stands for), with the same errors: a list of
-    triples of `scalars` (what JSON gives) or an array of `kinds` is checked vectorised, and
-    anything else, or anything that fails that check, goes to pydantic's validator of `rows`,
-    which names the bad element. JSON output is the list of rows."""
+    """A pydantic annotation: a mesh's rows of `width` values (vertices, normals, triangles: 3;
+    texture coordinates: 2) held as an (n, width) NumPy array of `dtype`. A value is accepted
+    exactly when pydantic accepts it as `rows` (the list-of-rows type the array stands for),
+    with the same errors: a list of rows of `scalars` (what JSON gives) or an array of
+    `kinds` is checked vectorised, and anything else, or anything that fails that check, goes
+    to pydantic's validator of `rows`, which names the bad element. JSON output is the list
+    of rows."""
 
     rows: Any
     dtype: type[np.generic]
     scalars: frozenset[type]  # Python types `rows` accepts as elements with no conversion
     kinds: str  # NumPy dtype kinds an array may come in
     valid: Callable[[np.ndarray], bool]  # every element meets the element type's constraints
+    width: int = 3  # values a row
 
     def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> CoreSchema:
         return core_schema.no_info_wrap_validator_function(
@@ -107,24 +111,24 @@ class _Rows:
             return fast
         rows = handler(value.tolist() if isinstance(value, np.ndarray) else value)
         try:
-            return np.array(rows, self.dtype).reshape(-1, 3)
+            return np.array(rows, self.dtype).reshape(-1, self.width)
         except OverflowError:  # an index past int64, which no vertex has: -1 is as far out of range
             return np.array([[i if abs(i) < 2**63 else -1 for i in row] for row in rows], self.dtype)
 
     def _fast(self, value: Any) -> np.ndarray | None:
         """`value` as an array if it is surely valid; None to leave it to pydantic."""
         if isinstance(value, list):
-            if not (set(map(type, value)) <= {list, tuple} and set(map(len, value)) <= {3}
+            if not (set(map(type, value)) <= {list, tuple} and set(map(len, value)) <= {self.width}
                     and set(map(type, chain.from_iterable(value))) <= self.scalars):
                 return None
             try:
                 value = np.array(value, self.dtype)
             except OverflowError:
                 return None
-        elif not (isinstance(value, np.ndarray) and value.ndim == 2 and value.shape[1] == 3
+        elif not (isinstance(value, np.ndarray) and value.ndim == 2 and value.shape[1] == self.width
                   and value.dtype.kind in self.kinds and np.can_cast(value.dtype, self.dtype)):
             return None
-        rows = np.ascontiguousarray(value, self.dtype).reshape(-1, 3)
+        rows = np.ascontiguousarray(value, self.dtype).reshape(-1, self.width)
         return rows if self.valid(rows) else None
 
 
@@ -133,6 +137,8 @@ Vec3Rows = Annotated[np.ndarray, _Rows(list[Vec3], np.float64, frozenset({float,
                                        lambda a: bool(np.all(np.abs(a) <= MAX_COORD)))]
 IndexRows = Annotated[np.ndarray, _Rows(list[tuple[StrictInt, StrictInt, StrictInt]], np.int64, frozenset({int}),
                                         "iu", lambda a: True)]
+UvRows = Annotated[np.ndarray, _Rows(list[tuple[Coord, Coord]], np.float64, frozenset({float, int}), "fiu",
+                                     lambda a: bool(np.all(np.abs(a) <= MAX_COORD)), width=2)]
 
 
 class SceneError(ValueError):
@@ -211,20 +217,43 @@ class Camera(_Model):
 
 
 # -------------------------------------------------------------------------- materials
+class TextureRef(_Model):
+    """One of the scene's `textures`, by name, where a colour or a roughness is accepted: the
+    value is the texture's at the hit's UV."""
+
+    texture: Annotated[str, Field(min_length=1, max_length=MAX_PATH_CHARS)]
+
+
+# Tags of the constant-or-texture unions: a value is a texture reference when it is an object.
+CONSTANT, REFERENCE = "constant", "texture_ref"
+
+
+def _constant_or_reference(value: object) -> str:
+    return REFERENCE if isinstance(value, dict | TextureRef) else CONSTANT
+
+
+Colour = Annotated[Annotated[Albedo, Tag(CONSTANT)] | Annotated[TextureRef, Tag(REFERENCE)],
+                   Discriminator(_constant_or_reference)]
+
+
 class Diffuse(_Model):
     type: Literal["diffuse"]
-    albedo: Albedo
+    albedo: Colour
 
 
 class Mirror(_Model):
     type: Literal["mirror"]
-    albedo: Albedo = (1.0, 1.0, 1.0)
+    albedo: Colour = (1.0, 1.0, 1.0)
 
 
 Ior = Annotated[float, Field(strict=True, ge=1.0, le=3.0, allow_inf_nan=False)]  # interior / exterior
 # Microfacet roughness (the distribution's alpha): below 0.001 a lobe is a mirror in all but
 # the float32 arithmetic of its pdf.
 Roughness = Annotated[float, Field(strict=True, ge=0.001, le=1.0, allow_inf_nan=False)]
+# A roughness that may vary over the surface (where Mitsuba allows a texture): a texture's
+# values are clamped to Roughness's range.
+VaryingRoughness = Annotated[Annotated[Roughness, Tag(CONSTANT)] | Annotated[TextureRef, Tag(REFERENCE)],
+                             Discriminator(_constant_or_reference)]
 Distribution = Literal["beckmann", "ggx"]
 EtaPart = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=False)]
 KPart = Annotated[float, Field(strict=True, ge=0.0, le=100.0, allow_inf_nan=False)]
@@ -235,8 +264,8 @@ class Glass(_Model):
 
     type: Literal["glass"]
     ior: Ior = 1.5
-    albedo: Albedo = (1.0, 1.0, 1.0)  # tint of reflection (and of refraction unless `transmittance`)
-    transmittance: Albedo | None = None
+    albedo: Colour = (1.0, 1.0, 1.0)  # tint of reflection (and of refraction unless `transmittance`)
+    transmittance: Colour | None = None
 
 
 class RoughGlass(Glass):
@@ -244,7 +273,7 @@ class RoughGlass(Glass):
     `alpha`."""
 
     type: Literal["rough_glass"]  # type: ignore[assignment]
-    alpha: Roughness = 0.1
+    alpha: VaryingRoughness = 0.1
     distribution: Distribution = "beckmann"
 
 
@@ -254,15 +283,15 @@ class ThinGlass(_Model):
 
     type: Literal["thin_glass"]
     ior: Ior = 1.5
-    albedo: Albedo = (1.0, 1.0, 1.0)
-    transmittance: Albedo = (1.0, 1.0, 1.0)
+    albedo: Colour = (1.0, 1.0, 1.0)
+    transmittance: Colour = (1.0, 1.0, 1.0)
 
 
 class Glossy(_Model):
     """Modified Phong lobe f = albedo (n+2)/(2 pi) cos^n(angle to the mirror direction)."""
 
     type: Literal["glossy"]
-    albedo: Albedo
+    albedo: Colour
     exponent: Annotated[float, Field(strict=True, ge=1.0, le=100_000.0, allow_inf_nan=False)]
 
 
@@ -270,7 +299,7 @@ class _Metal(_Model):
     """A conductor's complex index of refraction eta + i k per rgb channel (relative to the
     exterior); without them the surface reflects `specular` at every angle (no Fresnel term)."""
 
-    specular: Albedo = (1.0, 1.0, 1.0)
+    specular: Colour = (1.0, 1.0, 1.0)
     eta: tuple[EtaPart, EtaPart, EtaPart] | None = None
     k: tuple[KPart, KPart, KPart] | None = None
 
@@ -287,7 +316,7 @@ class Conductor(_Metal):
 
 class RoughConductor(_Metal):
     type: Literal["rough_conductor"]
-    alpha: Roughness = 0.1
+    alpha: VaryingRoughness = 0.1
     distribution: Distribution = "beckmann"
 
 
@@ -296,8 +325,8 @@ class Plastic(_Model):
     accounts for the colour shift of light scattered inside the coat."""
 
     type: Literal["plastic"]
-    albedo: Albedo = (0.5, 0.5, 0.5)
-    specular: Albedo = (1.0, 1.0, 1.0)
+    albedo: Colour = (0.5, 0.5, 0.5)
+    specular: Colour = (1.0, 1.0, 1.0)
     ior: Ior = 1.49
     nonlinear: bool = False
 
@@ -367,13 +396,20 @@ class Sphere(_Shape):
     radius: Annotated[float, Field(strict=True, gt=0.0, le=MAX_COORD, allow_inf_nan=False)]
 
 
+Uv = tuple[Coord, Coord]
+QUAD_UVS: tuple[Uv, Uv, Uv, Uv] = ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))
+
+
 class Quad(_Shape):
-    """Parallelogram corner + s*edge1 + t*edge2, s,t in [0,1]; front side along edge1 x edge2."""
+    """Parallelogram corner + s*edge1 + t*edge2, s,t in [0,1]; front side along edge1 x edge2.
+    `uvs`: the texture coordinates of corner, corner + edge1, corner + edge1 + edge2 and
+    corner + edge2 (default (s, t)), bilinear between them."""
 
     type: Literal["quad"]
     corner: Vec3
     edge1: Vec3
     edge2: Vec3
+    uvs: tuple[Uv, Uv, Uv, Uv] | None = None  # None: QUAD_UVS
 
 
 class Mesh(_Shape):
@@ -384,6 +420,7 @@ class Mesh(_Shape):
     vertices: Vec3Rows | None = None  # (V, 3) float64
     triangles: IndexRows | None = None  # (T, 3) int64
     normals: Vec3Rows | None = None  # (V, 3) float64
+    uvs: UvRows | None = None  # (V, 2) float64 texture coordinates; without them a triangle's are (b1, b2)
     file: FileName | None = None
 
     @model_validator(mode="after")
@@ -392,6 +429,8 @@ class Mesh(_Shape):
             raise ValueError("give either file or both vertices and triangles")
         if self.normals is not None and (self.vertices is None or len(self.normals) != len(self.vertices)):
             raise ValueError("normals need inline vertices, one normal per vertex")
+        if self.uvs is not None and (self.vertices is None or len(self.uvs) != len(self.vertices)):
+            raise ValueError("uvs need inline vertices, one uv per vertex")
         if self.triangles is not None and len(self.triangles) > MAX_TRIANGLES:
             raise ValueError(f"more than {MAX_TRIANGLES} triangles")
         if self.vertices is not None and self.triangles is not None and len(self.triangles):
@@ -511,6 +550,10 @@ class Scene(_Model):
                 if texels > LOAD_LIMITS["texels"]:
                     raise SceneError(f"textures.{name}.pixels", f"the scene's images hold more than "
                                                                  f"{LOAD_LIMITS['texels']} samples")
+        for name, material in self.materials.items():
+            for key, value in material:
+                if isinstance(value, TextureRef) and value.texture not in self.textures:
+                    raise SceneError(f"materials.{name}.{key}.texture", f"unknown texture {value.texture!r}")
         for i, shape in enumerate(self.shapes):
             if shape.material not in self.materials:
                 raise SceneError(f"shapes.{i}.material", f"unknown material {shape.material!r}")
@@ -538,10 +581,12 @@ class Scene(_Model):
 # ------------------------------------------------------------------------ triangulation
 @dataclass(frozen=True)
 class ShapeGeometry:
-    """A shape as triangles, with per-corner shading normals where the mesh has them."""
+    """A shape as triangles, with per-corner shading normals where the mesh has them and
+    per-corner texture coordinates."""
 
     triangles: np.ndarray  # (n, 3, 3) float64
     normals: np.ndarray | None  # (n, 3, 3) float64, unit length, or None (flat)
+    uvs: np.ndarray | None = None  # (n, 3, 2) float64, or None: (0, 0), (1, 0), (0, 1) (barycentric)
 
 
 @contextmanager
@@ -577,6 +622,8 @@ def inline_meshes(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget:
             entry["triangles"] = np.arange(3 * len(geo.triangles)).reshape(-1, 3).tolist()
             if geo.normals is not None:
                 entry["normals"] = geo.normals.reshape(-1, 3).tolist()
+            if geo.uvs is not None:
+                entry["uvs"] = geo.uvs.reshape(-1, 2).tolist()
     root = root.resolve()
     for name, texture in scene.textures.items():
         if isinstance(texture, Bitmap) and texture.file is not None:
@@ -642,7 +689,7 @@ def _mesh_data(shape: Mesh, field: str, base_dir: Path, root: Path, budget: Load
     if shape.file is None:
         assert shape.vertices is not None and shape.triangles is not None  # Mesh._check: one source or the other
         try:
-            return check_mesh(shape.vertices, shape.triangles, shape.normals)
+            return check_mesh(shape.vertices, shape.triangles, shape.normals, shape.uvs)
         except MeshError as exc:
             raise SceneError(field, str(exc)) from None
     path = scene_path(shape.file, f"{field}.file", base_dir, root, MESH_SUFFIXES, "mesh")
@@ -698,14 +745,16 @@ def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget
         if isinstance(shape, Sphere):
             out.append(None)
             continue
-        normals = None
+        normals = uvs = None
         if isinstance(shape, Quad):
             c, e1, e2 = (np.array(x, dtype=np.float64) for x in (shape.corner, shape.edge1, shape.edge2))
             tris = np.array([[c, c + e1, c + e1 + e2], [c, c + e1 + e2, c + e2]])
+            uvs = np.array(shape.uvs or QUAD_UVS, np.float64)[[[0, 1, 2], [0, 2, 3]]]
         else:
             mesh = _mesh_data(shape, f"shapes.{i}", base_dir, root, budget)
             tris = mesh.vertices[mesh.triangles]
             normals = _corner_normals(mesh) if shading else None
+            uvs = mesh.uvs[mesh.triangles] if mesh.uvs is not None else None
         total += len(tris)
         if total > MAX_TRIANGLES:
             raise SceneError(f"shapes.{i}", f"scene has more than {MAX_TRIANGLES} triangles")
@@ -715,7 +764,7 @@ def shape_geometry(scene: Scene, base_dir: Path, root: Path = SCENES_DIR, budget
             area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1).sum()
             if not area > 0.0:
                 raise SceneError(f"shapes.{i}.emission", "an emitting shape must have non-zero area")
-        out.append(ShapeGeometry(tris, normals))
+        out.append(ShapeGeometry(tris, normals, uvs))
     return out
 
 
@@ -750,6 +799,7 @@ def parse_scene(data: object) -> Scene:
         # A discriminated union puts the tag after the list index or dict key: drop it.
         if len(loc) >= 3 and loc[0] in _UNION_TAGS and loc[2] in _UNION_TAGS[loc[0]]:
             del loc[2]
+        loc = loc[:2] + [p for p in loc[2:] if p not in (CONSTANT, REFERENCE)]  # a colour's tag too
         raise SceneError(_field_path(tuple(loc)), err["msg"]) from None
     return scene
 

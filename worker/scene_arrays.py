@@ -22,7 +22,7 @@ from worker.scene import (
     SpotLight,
     shape_geometry,
 )
-from worker.surfaces import int_bits, surface_records
+from worker.surfaces import int_bits, surface_records, texture_table
 
 EMIT_TRIANGLE, EMIT_SPHERE, EMIT_POINT, EMIT_SPOT, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT = (
     EMITTERS[k] for k in ("triangle", "sphere", "point", "spot", "directional", "environment"))
@@ -42,6 +42,9 @@ class SceneArrays:
     spheres: np.ndarray  # (S, 4) float32 centre + radius
     sphere_surf: np.ndarray  # (S,) int32
     surfaces: np.ndarray  # (SURF_ROWS * shapes + table rows, 4) float32 (worker/surfaces.py)
+    tex_info: np.ndarray  # (TEX_ROWS * textures, 4) float32 texture records (kernels/textures.cl)
+    tex_texels: np.ndarray  # (texel values,) float16, every texture's
+    tex_uv: np.ndarray  # (3 T, 2) float32 corner texture coordinates; empty if no material is textured
     emitters: np.ndarray  # (4 * E + map rows, 4) float32 rows, see kernels/lights.cl, environment.cl
     emitter_cdf: np.ndarray  # (E,) float32, last entry exactly 1
     camera: np.ndarray  # (4, 4) float32, see CameraDesc in kernels/eye_pass.cl
@@ -85,6 +88,16 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         tri_e1[:, 3] = smooth
         tri_nrm = np.zeros((3 * len(tris), 4), np.float32)
         tri_nrm[:, :3] = corner.reshape(-1, 3)
+
+    # Texture coordinates, per corner, where a texture is looked up at all: a mesh's own, a
+    # quad's (s, t), else the barycentric (b1, b2) (as Mitsuba 3 for a mesh without them).
+    tex_info, tex_texels = texture_table(scene)
+    tex_uv = np.zeros((0, 2), np.float32)
+    if len(tex_info) and len(tris):
+        barycentric = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+        corner_uv = np.concatenate([np.broadcast_to(barycentric, (len(g.triangles), 3, 2)) if g.uvs is None else g.uvs
+                                    for g in geometry if g is not None])[order]
+        tex_uv = corner_uv.reshape(-1, 2).astype(np.float32)
 
     sphere_idx = [i for i, s in enumerate(scene.shapes) if isinstance(s, Sphere)]
     sphere_list = [s for s in scene.shapes if isinstance(s, Sphere)]
@@ -214,7 +227,8 @@ def compile_scene(scene: Scene, base_dir: Path, resolution: tuple[int, int] | No
         width=width, height=height, tri_v0=tri_v0, tri_e1=tri_e1, tri_e2=tri_e2, tri_nrm=tri_nrm,
         tri_adj=tri_adj,
         node_lo=node_lo, node_hi=node_hi, spheres=spheres, sphere_surf=sphere_surf,
-        surfaces=surface_records(scene), emitters=emitters, emitter_cdf=cdf,
+        surfaces=surface_records(scene), tex_info=tex_info, tex_texels=tex_texels, tex_uv=tex_uv,
+        emitters=emitters, emitter_cdf=cdf,
         camera=camera, pixel_angle=2.0 * tan_y / height,
         scene_diagonal=float(np.linalg.norm(hi - lo)), eps_floor=eps_floor, radiance_scale=radiance_scale,
     )

@@ -108,12 +108,12 @@ def read_serialized(data: bytes, index: int = 0) -> SerializedShape:
         raise MeshError(f"shape {index} holds fewer bytes than its {nv} vertices and {nt} triangles need")
     arrays: dict[str, np.ndarray | None] = {}
     for name, k in need.items():
-        arrays[name] = np.frombuffer(raw, real, nv * k, pos).reshape(-1, 3) if k == 3 else None
+        arrays[name] = np.frombuffer(raw, real, nv * k, pos).reshape(-1, k) if name != "colors" and k else None
         pos += nv * k * width
     triangles = np.frombuffer(raw, index_type, nt * 3, pos).reshape(-1, 3)
     positions = arrays["positions"]
     assert positions is not None
-    mesh = check_mesh(positions, triangles, arrays["normals"])
+    mesh = check_mesh(positions, triangles, arrays["normals"], arrays["texcoords"])
     return SerializedShape(mesh, bool(flags & FACE_NORMALS))
 
 

@@ -1,6 +1,6 @@
 """Surface records: each shape's material and emission as the kernels read them
 (kernels/materials.cl, its row layout), and the constants a plastic coat needs, computed
-here once per scene.
+here once per scene; and the scene's textures as the kernels read them (kernels/textures.cl).
 
 Plastics follow Mitsuba 3's definitions: the diffuse base is divided by 1 - R_int, R_int the
 coat's internal diffuse reflectance, 2 * integral of F(mu, 1/eta) mu dmu over [0, 1] for a
@@ -17,8 +17,18 @@ import math
 
 import numpy as np
 
-from kernels.contract import MATERIAL_FLAGS, MATERIALS, SURF_ROWS, TABLE_SIZE
+from kernels.contract import (
+    MATERIAL_FLAGS,
+    MATERIALS,
+    SURF_ROWS,
+    TABLE_SIZE,
+    TEX_ROWS,
+    TEXTURE_FLAGS,
+    TEXTURE_KINDS,
+    WRAP_MODES,
+)
 from worker.scene import (
+    Bitmap,
     Conductor,
     Glass,
     Glossy,
@@ -28,6 +38,7 @@ from worker.scene import (
     RoughGlass,
     RoughPlastic,
     Scene,
+    TextureRef,
     ThinGlass,
 )
 
@@ -117,42 +128,108 @@ def coat_constants(material: Plastic) -> tuple[float, np.ndarray | None]:
     return float(np.mean(internal * np.maximum(mu, 1e-6)) * 2.0), table
 
 
+def used_textures(scene: Scene) -> list[str]:
+    """The names of the textures the scene's materials refer to, in the order of their
+    records (texture_table)."""
+    names = {value.texture for material in scene.materials.values() for _, value in material
+             if isinstance(value, TextureRef)}
+    return [name for name in scene.textures if name in names]
+
+
+def texture_texels(scene: Scene, name: str) -> np.ndarray:
+    """A texture's values, (height, width, 1 or 3) linear float32 clamped to [0, 1] (texture
+    values are reflectances or roughnesses); a checkerboard's are its two colours, (1, 2, 3)."""
+    texture = scene.textures[name]
+    if isinstance(texture, Bitmap):
+        assert texture.pixels is not None  # files are inlined when the scene is loaded
+        values = texture.pixels.linear(texture.raw)
+        values = values[..., :1] if values.shape[2] <= 2 else values[..., :3]  # alpha is not a colour
+    else:
+        values = np.array([[texture.color0, texture.color1]], np.float32)
+    return np.clip(values, 0.0, 1.0).astype(np.float32)
+
+
+def texture_table(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The used textures on the device (kernels/textures.cl): (TEX_ROWS * textures, 4) float32
+    records and every texture's texels in one float16 array (an rgb texel padded to 4 halves,
+    each texture starting at a multiple of 4)."""
+    names = used_textures(scene)
+    records = np.zeros((TEX_ROWS * len(names), 4), np.float32)
+    texels: list[np.ndarray] = []
+    offset = 0
+    for i, name in enumerate(names):
+        texture, values = scene.textures[name], texture_texels(scene, name)
+        height, width, channels = values.shape
+        flags = TEXTURE_KINDS[texture.type] | (TEXTURE_FLAGS["grey"] if channels == 1 else 0)
+        if isinstance(texture, Bitmap):
+            flags |= WRAP_MODES[texture.wrap_mode] << 2
+            flags |= TEXTURE_FLAGS["nearest"] if texture.filter == "nearest" else 0
+        rows = records[TEX_ROWS * i:TEX_ROWS * (i + 1)]
+        rows[0] = int_bits([flags, offset, width, height])
+        rows[1, :3], rows[2, :3] = texture.to_uv
+        halves = values.reshape(-1, channels) if channels == 1 else np.pad(values.reshape(-1, 3), ((0, 0), (0, 1)))
+        halves = np.pad(halves.ravel(), (0, -halves.size % 4)).astype(np.float16)
+        texels.append(halves)
+        offset += halves.size
+    return records, np.concatenate(texels) if texels else np.zeros(0, np.float16)
+
+
+def _mean(scene: Scene, value: tuple[float, float, float] | TextureRef) -> float:
+    """The mean of a colour over its channels (a texture's: over its texels too)."""
+    return float(np.mean(texture_texels(scene, value.texture) if isinstance(value, TextureRef) else value))
+
+
 def surface_records(scene: Scene) -> np.ndarray:
     """(SURF_ROWS * shapes + table rows, 4) float32: every shape's record, then the tables."""
     records = np.zeros((SURF_ROWS * len(scene.shapes), 4), np.float32)
     tables: list[np.ndarray] = []
+    texture_index = {name: i for i, name in enumerate(used_textures(scene))}
+
+    def colour(value: tuple[float, float, float] | TextureRef) -> tuple[float, float, float]:
+        return (0.0, 0.0, 0.0) if isinstance(value, TextureRef) else value
+
+    def scalar(value: float | TextureRef) -> float:
+        return 0.0 if isinstance(value, TextureRef) else value
+
     for i, shape in enumerate(scene.shapes):
         material = scene.materials[shape.material]
         rows = records[SURF_ROWS * i:SURF_ROWS * (i + 1)]
         rows[1, :3] = shape.emission or (0.0, 0.0, 0.0)
         flags = 0
+        # The textures row: the texture of row 0's colour, row 3's colour and the roughness.
+        slots: list[object] = [None, None, None]
         if isinstance(material, Mirror | Conductor | RoughConductor):
             kind = "rough_conductor" if isinstance(material, RoughConductor) else "conductor"
-            rows[0, :3] = material.albedo if isinstance(material, Mirror) else material.specular
+            slots[0] = material.albedo if isinstance(material, Mirror) else material.specular
+            rows[0, :3] = colour(material.albedo if isinstance(material, Mirror) else material.specular)
             eta, k = (None, None) if isinstance(material, Mirror) else (material.eta, material.k)
             if eta is None or k is None:
                 flags |= MATERIAL_FLAGS["no_fresnel"]
             else:
                 rows[2, :3], rows[3, :3] = eta, k
             if isinstance(material, RoughConductor):
-                rows[1, 3] = material.alpha
+                rows[1, 3] = scalar(material.alpha)
+                slots[2] = material.alpha
                 flags |= MATERIAL_FLAGS["beckmann"] if material.distribution == "beckmann" else 0
         elif isinstance(material, Glass | ThinGlass):
             kind = "thin_glass" if isinstance(material, ThinGlass) else "rough_glass" if isinstance(
                 material, RoughGlass) else "glass"
             if isinstance(material, RoughGlass):
-                rows[1, 3] = material.alpha
+                rows[1, 3] = scalar(material.alpha)
+                slots[2] = material.alpha
                 flags |= MATERIAL_FLAGS["beckmann"] if material.distribution == "beckmann" else 0
-            rows[0, :3] = material.albedo
+            transmittance = material.albedo if material.transmittance is None else material.transmittance
+            rows[0, :3], rows[3, :3] = colour(material.albedo), colour(transmittance)
+            slots[0], slots[1] = material.albedo, transmittance
             rows[2, 0] = material.ior
-            rows[3, :3] = material.albedo if material.transmittance is None else material.transmittance
         elif isinstance(material, Plastic):
             kind = "rough_plastic" if isinstance(material, RoughPlastic) else "plastic"
             internal, table = coat_constants(material)
-            d_mean, s_mean = float(np.mean(material.albedo)), float(np.mean(material.specular))
-            rows[0, :3] = material.albedo
+            # The specular sampling weight from the colours' means (textures: over their texels), as Mitsuba 3's.
+            d_mean, s_mean = _mean(scene, material.albedo), _mean(scene, material.specular)
+            rows[0, :3], rows[3, :3] = colour(material.albedo), colour(material.specular)
+            slots[0], slots[1] = material.albedo, material.specular
             rows[2, :3] = (material.ior, internal, s_mean / (d_mean + s_mean) if d_mean + s_mean > 0 else 0.5)
-            rows[3, :3] = material.specular
             flags |= MATERIAL_FLAGS["nonlinear"] if material.nonlinear else 0
             if isinstance(material, RoughPlastic):
                 rows[1, 3] = material.alpha
@@ -162,11 +239,17 @@ def surface_records(scene: Scene) -> np.ndarray:
                 tables.append(table.astype(np.float32).reshape(-1, 4))
         elif isinstance(material, Glossy):
             kind = "glossy"
-            rows[0, :3] = material.albedo
+            rows[0, :3] = colour(material.albedo)
+            slots[0] = material.albedo
             rows[1, 3] = material.exponent
         else:
             kind = "diffuse"
-            rows[0, :3] = material.albedo
+            rows[0, :3] = colour(material.albedo)
+            slots[0] = material.albedo
+        textures = [texture_index[v.texture] if isinstance(v, TextureRef) else -1 for v in slots]
+        if max(textures) >= 0:
+            flags |= MATERIAL_FLAGS["textured"]
+        rows[4] = int_bits([*textures, -1])
         rows[0, 3] = int_bits([MATERIALS[kind]])[0]
         rows[2, 3] = int_bits([flags])[0]
     return np.concatenate([records, *tables]) if tables else records

@@ -1,0 +1,116 @@
+// Textures: colours and roughnesses that vary over a surface, looked up at a hit's texture
+// coordinates (u, v). Every texture of a scene lives in two buffers (worker/surfaces.py,
+// texture_table): TEX_ROWS float4 rows a texture in tex_info,
+//   row 0: flags (kind TEX_* | wrap mode WRAP_* << 2 | TEX_NEAREST | TEX_GREY), offset of its
+//          first value in tex_texels, width, height (int bits)
+//   row 1, 2: to_uv, the affine map to the texture's own coordinates: u' = row1.xyz . (u, v, 1),
+//             v' = row2.xyz . (u, v, 1)
+// and the values, linear and in [0, 1], as half floats in tex_texels: a bitmap's rows from
+// the image's top row (v' = 0) down, a texel 4 halves (rgb and a pad: one aligned load) or
+// 1 (TEX_GREY); a checkerboard's two colours as two texels.
+// Lookups follow Mitsuba 3's bitmap and checkerboard textures: bilinear between the texel
+// centres at (u' width - 1/2, v' height - 1/2), nearest the texel at floor(u' width, v' height),
+// the wrap mode applied to the texel indices; and a checkerboard of unit cells, colour 0 where
+// floor(u') + floor(v') is even.
+//
+// Surface coordinates (the shapes' own parameterisations): a triangle's from its corners'
+// (tex_uv: a mesh's own, a quad's (s, t), else (0, 0), (1, 0), (0, 1)) by its barycentrics at
+// the point; a sphere's (phi / 2 pi, theta / pi) about its centre, phi in [0, 2 pi) from +x
+// towards +y, theta from +z (Mitsuba 3's sphere).
+
+// A surface point's primitive as one int: the triangle's index, or -2 - the sphere's.
+inline int hit_prim(const Hit* h) { return h->tri >= 0 ? h->tri : -2 - h->sphere; }
+
+inline float2 prim_uv(const SceneGeom* g, int prim, float3 p) {
+    if (prim < 0) {
+        float4 s = g->spheres[-2 - prim];
+        float3 l = (p - s.xyz) / s.w;
+        float phi = atan2(l.y, l.x);
+        if (phi < 0.0f) phi += 2.0f * PI_F;
+        return (float2)(phi / (2.0f * PI_F), acos(clamp(l.z, -1.0f, 1.0f)) / PI_F);
+    }
+    // Barycentrics of p in the triangle's plane (the normal equations of p - v0 = b1 e1 + b2 e2).
+    float3 e1 = g->tri_e1[prim].xyz, e2 = g->tri_e2[prim].xyz, w = p - g->tri_v0[prim].xyz;
+    float d11 = dot3(e1, e1), d12 = dot3(e1, e2), d22 = dot3(e2, e2), w1 = dot3(w, e1), w2 = dot3(w, e2);
+    float inv = 1.0f / (d11 * d22 - d12 * d12);
+    float b1 = (d22 * w1 - d12 * w2) * inv, b2 = (d11 * w2 - d12 * w1) * inv;
+    __global const float2* c = g->tex_uv + 3 * prim;
+    return (1.0f - b1 - b2) * c[0] + b1 * c[1] + b2 * c[2];
+}
+
+// A texture coordinate reduced to one period of its wrap mode, in [0, 1] (repeat: [0, 1)):
+// the texel indices it then gives, each clamped to [0, n - 1], are the wrap mode's indices
+// of the unreduced one (a mirrored period is the texels in reverse order, so the fold at an
+// integer coordinate meets the index fold between texels n - 1 and n).
+inline float wrap_coordinate(float x, int mode) {
+    if (mode == WRAP_CLAMP) return clamp(x, 0.0f, 1.0f);
+    if (mode == WRAP_MIRROR) {
+        float t = x - 2.0f * floor(0.5f * x);  // [0, 2)
+        return t > 1.0f ? 2.0f - t : t;
+    }
+    return x - floor(x);
+}
+
+inline float3 texel(__global const half* texels, int at, bool grey) {
+    if (grey) return (float3)(vload_half(at, texels));
+    return vload_half4(0, texels + at).xyz;
+}
+
+inline float3 texture_eval(const SceneGeom* g, int tex, float2 uv) {
+    __global const float4* r = g->tex_info + TEX_ROWS * tex;
+    int4 head = as_int4(r[0]);
+    float4 ru = r[1], rv = r[2];
+    float u = ru.x * uv.x + ru.y * uv.y + ru.z, v = rv.x * uv.x + rv.y * uv.y + rv.z;
+    int flags = head.x, w = head.z, h = head.w;
+    bool grey = flags & TEX_GREY;
+    int step = grey ? 1 : 4;
+    if ((flags & 3) == TEX_CHECKERBOARD) {
+        int parity = ((int)floor(u - 2.0f * floor(0.5f * u)) + (int)floor(v - 2.0f * floor(0.5f * v))) & 1;
+        return texel(g->tex_texels, head.y + parity * step, grey);
+    }
+    int mode = (flags >> 2) & 3;
+    float x = wrap_coordinate(u, mode) * (float)w, y = wrap_coordinate(v, mode) * (float)h;
+    if (flags & TEX_NEAREST) {
+        int i = min((int)x, w - 1), j = min((int)y, h - 1);
+        return texel(g->tex_texels, head.y + (j * w + i) * step, grey);
+    }
+    x -= 0.5f;
+    y -= 0.5f;
+    float fx = floor(x), fy = floor(y), ax = x - fx, ay = y - fy;
+    int x0 = (int)fx, y0 = (int)fy, x1 = x0 + 1, y1 = y0 + 1;
+    if (mode == WRAP_REPEAT) {  // indices -1 and n are the far ends' texels
+        x0 = x0 < 0 ? w - 1 : x0;
+        y0 = y0 < 0 ? h - 1 : y0;
+        x1 = x1 == w ? 0 : x1;
+        y1 = y1 == h ? 0 : y1;
+    } else {
+        x0 = max(x0, 0);
+        y0 = max(y0, 0);
+        x1 = min(x1, w - 1);
+        y1 = min(y1, h - 1);
+    }
+    int row0 = head.y + y0 * w * step, row1 = head.y + y1 * w * step;
+    float3 top = mix(texel(g->tex_texels, row0 + x0 * step, grey), texel(g->tex_texels, row0 + x1 * step, grey), ax);
+    float3 bottom = mix(texel(g->tex_texels, row1 + x0 * step, grey), texel(g->tex_texels, row1 + x1 * step, grey), ax);
+    return mix(top, bottom, ay);
+}
+
+// Surface `surf`'s material at point p of primitive `prim` (hit_prim): its record, with the
+// textured values looked up there. A record without textures is loaded as it is.
+inline Material surface_material(const SceneGeom* g, __global const float4* surfaces, int surf, int prim, float3 p) {
+    Material m = load_material(surfaces, surf);
+    if (!(m.flags & MF_TEXTURED)) return m;
+    int4 t = as_int4(surfaces[SURF_ROWS * surf + 4]);
+    float2 uv = prim_uv(g, prim, p);
+    if (t.x >= 0) m.base = texture_eval(g, t.x, uv);
+    if (t.y >= 0) m.second = texture_eval(g, t.y, uv);
+    if (t.z >= 0) {
+        float3 a = texture_eval(g, t.z, uv);
+        m.rough = clamp((a.x + a.y + a.z) / 3.0f, 0.001f, 1.0f);  // Roughness's range (worker/scene.py)
+    }
+    return m;
+}
+
+inline Material hit_material(const SceneGeom* g, __global const float4* surfaces, const Hit* h, float3 p) {
+    return surface_material(g, surfaces, h->surf, hit_prim(h), p);
+}
