@@ -21,7 +21,7 @@ from kernels.contract import build_options
 from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import camera_rays
 from tests.conftest import image, render
-from tests.helpers import assert_matches_block_by_block
+from tests.helpers import PEER_BIAS, assert_matches_block_by_block
 from tests.test_bsdf_consistency import grid_directions
 from worker.engine import Engine
 from worker.images import Pixels
@@ -316,7 +316,6 @@ SKY_XML = """<?xml version="1.0"?>
 </scene>
 """
 RUNS = 6  # independent renders a side (tests/test_mitsuba_corpus.py's block check)
-BIAS = {"sppm": 0.03, "vcm": 0.06, "bpt": 0.02}
 
 
 @pytest.fixture(scope="module")
@@ -373,4 +372,4 @@ def test_envmap_matches_mitsuba_block_by_block(ctx: cl.Context, sky_xml: Path, m
     mine = np.array([image(e, render(e, 32)) for e in (
         Engine(scene, base, Settings(method=method, photons_per_pass=1 << 16, seed=200 + s), ctx=ctx)
         for s in range(RUNS))])
-    assert_matches_block_by_block(mine, mitsuba_sky, 0.02, BIAS[method])
+    assert_matches_block_by_block(mine, mitsuba_sky, 0.02, PEER_BIAS[method])

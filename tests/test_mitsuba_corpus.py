@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import image, render
-from tests.helpers import assert_matches_block_by_block, assert_same_material, mitsuba_material, our_material
+from tests.helpers import PEER_BIAS, assert_matches_block_by_block, assert_same_material, mitsuba_material, our_material
 from worker.metals import METALS
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SCENES_DIR, parse_scene
@@ -191,7 +191,6 @@ def test_image_mean_matches_mitsuba(make_engine, mi, name: str) -> None:
 
 
 RUNS = 6  # independent renders a side: the spread of a block between them is its noise
-BIAS = {"sppm": 0.03, "vcm": 0.06, "bpt": 0.02}
 
 
 @pytest.fixture(scope="module")
@@ -209,7 +208,7 @@ def mitsuba_materials() -> np.ndarray:
 def test_materials_match_mitsuba_block_by_block(make_engine, mitsuba_materials: np.ndarray, method: str) -> None:
     """materials.xml (every bsdf plugin we read) by Mitsuba's path tracer and by us, RUNS
     independent renders each (ours 32 passes): image means per channel within 2%, and every
-    8 x 8 block's luminance within 5 combined standard errors of the two means plus BIAS of
+    8 x 8 block's luminance within 5 combined standard errors of the two means plus PEER_BIAS of
     the block: 2% for bpt, which is unbiased; 3% for sppm and 6% for vcm, whose radius after
     32 passes still carries light into the contact shadows under the balls and blurs the
     caustic beneath the glass one."""
@@ -218,4 +217,4 @@ def test_materials_match_mitsuba_block_by_block(make_engine, mitsuba_materials: 
         engine = make_engine(CORPUS / "materials.xml", method=method, seed=100 + s)
         ours.append(image(engine, render(engine, 32)))
     mine = np.array(ours)
-    assert_matches_block_by_block(mine, mitsuba_materials, 0.02, BIAS[method])
+    assert_matches_block_by_block(mine, mitsuba_materials, 0.02, PEER_BIAS[method])

@@ -19,8 +19,8 @@ from kernels.contract import build_options
 from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import PLANE_H, PLANE_I, camera_rays
 from tests.conftest import image, render
+from tests.helpers import PEER_BIAS, assert_matches_block_by_block
 from tests.test_images import write_image
-from tests.test_mitsuba_corpus import BIAS, block_luminance, mean_variance
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SceneError, bundled_scene_path, parse_scene
 from worker.surfaces import used_textures
@@ -202,7 +202,7 @@ def test_lookups_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
     """Each texture (wrap modes, filters, to_uv, raw, checkerboard) at random (u, v) in [-2, 3]^2,
     ours against Mitsuba's own `eval` of the same element."""
     eng = make_engine(textured_scene(tmp_path), photons_per_pass=1 << 10)
-    dev, program = eng.device, _probe(eng)
+    dev, probe = eng.device, cl.Kernel(_probe(eng), "probe_texture")
     uv = np.random.default_rng(4).uniform(-2.0, 3.0, (512, 2)).astype(np.float32)
     order = used_textures(parse_scene(convert_mitsuba(tmp_path / "textured.xml")))
     for name, element in TEXTURES.items():
@@ -215,8 +215,8 @@ def test_lookups_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
             theirs.append(list(texture.eval(si)))
         ours = np.empty((len(uv), 4), np.float32)
         out = dev.buffer(ours.nbytes)
-        program.probe_texture(dev.queue, (len(uv),), None, *dev.geometry, *dev.emitter_args,
-                              np.int32(order.index(name)), dev.const(uv), out)
+        probe(dev.queue, (len(uv),), None, *dev.geometry, *dev.emitter_args,
+              np.int32(order.index(name)), dev.const(uv), out)
         cl.enqueue_copy(dev.queue, ours, out)
         # Our texels are half floats: each within 2^-12 of its value, a part in 4096.
         np.testing.assert_allclose(ours[:, :3], np.array(theirs), rtol=1e-3, atol=1e-5, err_msg=name)
@@ -341,18 +341,12 @@ def test_textured_room_matches_mitsuba_block_by_block(make_engine, room_folder: 
     checkerboard diffuse base and an OBJ panel with its own texture coordinates (nearest,
     mirrored), by Mitsuba's path tracer and by us (32 passes), SIDE_RUNS renders each: image
     means per channel within 2%, every 8 x 8 block's luminance within 5 combined standard
-    errors of the two means plus the method's BIAS (tests/test_mitsuba_corpus.py)."""
+    errors of the two means plus the method's PEER_BIAS (tests/helpers.py)."""
     ours = []
     for s in range(SIDE_RUNS):
         engine = make_engine(room_folder / "room.xml", method=method, seed=200 + s)
         ours.append(image(engine, render(engine, 32)))
-    mine = np.array(ours)
-    np.testing.assert_allclose(mine.mean(axis=(0, 1, 2)), mitsuba_room.mean(axis=(0, 1, 2)), rtol=0.02)
-    a = np.array([block_luminance(x) for x in mine])
-    b = np.array([block_luminance(x) for x in mitsuba_room])
-    bound = 5.0 * np.sqrt(mean_variance(a) + mean_variance(b)) + BIAS[method] * b.mean(axis=0)
-    excess = np.abs(a.mean(axis=0) - b.mean(axis=0)) / bound
-    assert excess.max() <= 1.0, (excess.max(), np.unravel_index(np.argmax(excess), excess.shape))
+    assert_matches_block_by_block(np.array(ours), mitsuba_room, 0.02, PEER_BIAS[method])
 
 
 def test_client_sends_a_scenes_images(tmp_path: Path) -> None:

@@ -344,7 +344,7 @@ class Converter:
     root: Path
     params: dict[str, str]
     materials: dict[str, dict] = field(default_factory=dict)
-    textures: dict[str, dict] = field(default_factory=dict)  # bitmaps (an envmap's too, its pixels inline) and checkerboards
+    textures: dict[str, dict] = field(default_factory=dict)  # bitmaps (an envmap's too) and checkerboards
     shapes: list[dict] = field(default_factory=list)
     lights: list[dict] = field(default_factory=list)
     camera: dict | None = None
