@@ -98,14 +98,14 @@ def test_sampling_matches_value_and_pdfs(ctx, program, name: str, cos_o: float, 
 
     samples = np.empty((SAMPLES, 4), np.float32)
     out = cl.Buffer(ctx, mf.WRITE_ONLY, samples.nbytes)
-    program.probe_sample(queue, (SAMPLES,), None, surfaces, wo, flag, out)
+    cl.Kernel(program, "probe_sample")(queue, (SAMPLES,), None, surfaces, wo, flag, out)
     cl.enqueue_copy(queue, samples, out)
 
     dirs, cell = grid_directions()
     values = np.empty_like(dirs)
     dbuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=dirs)
     vbuf = cl.Buffer(ctx, mf.WRITE_ONLY, values.nbytes)
-    program.probe_eval(queue, (len(dirs),), None, surfaces, wo, flag, dbuf, vbuf)
+    cl.Kernel(program, "probe_eval")(queue, (len(dirs),), None, surfaces, wo, flag, dbuf, vbuf)
     cl.enqueue_copy(queue, values, vbuf)
     queue.finish()
 

@@ -55,8 +55,9 @@ def fresnel(cos_i: np.ndarray, eta: float) -> np.ndarray:
     total internal reflection)."""
     sin2_t = (1.0 - cos_i ** 2) / eta ** 2
     cos_t = np.sqrt(np.clip(1.0 - sin2_t, 0.0, None))
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    with np.errstate(invalid="ignore"):  # 0 / 0 at grazing total internal reflection, replaced below
+        rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+        rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
     return np.where(sin2_t >= 1.0, 1.0, 0.5 * (rs ** 2 + rp ** 2))
 
 
