@@ -109,7 +109,7 @@ def read_image(path: Path) -> np.ndarray:
         if max(spec.width, spec.height) > MAX_IMAGE_SIDE:
             raise ImageError(f"{spec.width}x{spec.height} pixels: a side is over {MAX_IMAGE_SIDE}")
         base = str(spec.format)
-        sample = _OIIO_TYPES.get(base, "float32" if base in ("double",) else "uint16")
+        sample = _OIIO_TYPES.get(base, "float32" if base == "double" else "uint16")
         oiio_type = {"uint8": "uint8", "uint16": "uint16", "float16": "half", "float32": "float"}[sample]
         pixels = image.read_image(0, 0, 0, spec.nchannels, oiio_type)
         if pixels is None:

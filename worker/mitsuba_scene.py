@@ -23,7 +23,7 @@ from xml.parsers import expat
 import numpy as np
 
 from worker import spectra
-from worker.images import IMAGE_SUFFIXES
+from worker.images import IMAGE_SUFFIXES, Pixels
 from worker.meshes import MeshData, MeshError
 from worker.metals import METALS
 from worker.scene import (
@@ -746,23 +746,28 @@ class Converter:
 
     def _bitmap(self, p: Props, node: Node) -> dict:
         """A bitmap's image, read now (found as meshes are) and carried inline."""
-        filename = p.string("filename")
-        if filename is None:
-            raise _error(node, "a bitmap needs a filename")
-        named = p.node_of("filename")
-        path = self.resolve(named, filename)
-        if path.suffix.lower() not in IMAGE_SUFFIXES:
-            raise _error(named, f"{filename!r} is not one of {', '.join(IMAGE_SUFFIXES)}")
-        pixels = read_texture(path, self.budget, named.file.name, named.where())
+        pixels = self._image(p, node, "a bitmap")
         filter_type, wrap = p.string("filter_type", "bilinear"), p.string("wrap_mode", "repeat")
         if filter_type not in ("bilinear", "nearest"):
             raise _error(p.node_of("filter_type"), "filter_type must be bilinear or nearest")
         if wrap not in ("repeat", "mirror", "clamp"):
             raise _error(p.node_of("wrap_mode"), "wrap_mode must be repeat, mirror or clamp")
-        p.ignore("format", "texel storage precision: ours are float32")
+        p.ignore("format", "texel storage precision: ours are half floats")
         p.ignore("accel", "a lookup shortcut of Mitsuba's")
         return {"type": "bitmap", "pixels": pixels.model_dump(), "raw": p.boolean("raw", False),
                 "filter": filter_type, "wrap_mode": wrap}
+
+    def _image(self, p: Props, node: Node, plugin: str) -> Pixels:
+        """The image file a plugin's `filename` names, found as meshes are (inside the root),
+        read within the load budget."""
+        filename = p.string("filename")
+        if filename is None:
+            raise _error(node, f"{plugin} needs a filename")
+        named = p.node_of("filename")
+        path = self.resolve(named, filename)
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            raise _error(named, f"{filename!r} is not one of {', '.join(IMAGE_SUFFIXES)}")
+        return read_texture(path, self.budget, named.file.name, named.where())
 
     def _diffuse(self, p: Props) -> dict:
         return {"type": "diffuse", "albedo": self._albedo(p, "reflectance", 0.5)}
@@ -1143,12 +1148,7 @@ class Converter:
         """An envmap: its image read now (found as meshes are, inside the root) and carried
         inline among the scene's textures; its to_world a rotation (Mitsuba maps directions
         by the inverse without normalising: a scale would bend its sky)."""
-        filename = p.string("filename")
-        if filename is None:
-            raise _error(p.owner, "an envmap needs a filename")
-        named = p.node_of("filename")
-        path = self.resolve(named, filename)
-        pixels = read_texture(path, self.budget, named.file.name, named.where())
+        pixels = self._image(p, p.owner, "an envmap")
         where = p.node_of("to_world")
         r = p.transform()[:3, :3]
         if not np.allclose(r @ r.T, np.eye(3), atol=ROTATION_TOLERANCE):
