@@ -26,7 +26,10 @@
 //                 (wi.h + wo.h / eta)^2), eta = n(wi's side) / n(wo's side), h the
 //                 generalised half vector wo + eta wi; the choice between them is F(wo.h).
 //   PART_DELTA    mirror reflection (conductor, plastic's coat) and a smooth dielectric's
-//                 reflection and refraction (glass, thin_glass).
+//                 reflection and refraction (glass, thin_glass); and the null part of a
+//                 masked surface (Mitsuba 3's mask of opacity a): f = a f_lobes + (1 - a)
+//                 delta(wi = -wo) / |cos|, the null part taken with probability 1 - a and
+//                 passing the path straight on with weight 1, as if the surface were not there.
 // Refraction in `radiance` mode (camera and eye paths) divides f by eta^2, the radiance a
 // ray gains entering a denser medium; photons and light subpaths carry flux (importance
 // mode) and do not. Every path that starts and ends outside an object crosses its surface in
@@ -56,8 +59,8 @@ typedef struct {
     bool delta;     // a delta part: pdfs undefined, weights use the delta rules
 } BsdfSample;
 
-// The parts a material has.
-inline int material_parts(const Material* m) {
+// The parts of a material's own lobes (the null part aside).
+inline int lobe_parts(const Material* m) {
     switch (m->type) {
         case MAT_DIFFUSE: return PART_DIFFUSE;
         case MAT_GLOSSY:
@@ -69,7 +72,17 @@ inline int material_parts(const Material* m) {
     }
 }
 
+// The parts a material has.
+inline int material_parts(const Material* m) { return lobe_parts(m) | ((m->flags & MF_MASKED) ? PART_DELTA : 0); }
+
 inline bool is_delta(const Material* m) { return material_parts(m) == PART_DELTA; }
+
+// The probability of the null part among the parts in `mask`: 1 - opacity, or 1 where the
+// mask allows none of the lobes.
+inline float null_choice(const Material* m, int mask) {
+    if (!(m->flags & MF_MASKED) || !(mask & PART_DELTA)) return 0.0f;
+    return (lobe_parts(m) & mask) ? 1.0f - m->opacity : 1.0f;
+}
 
 // The coat's share of what arrives at cos (1 - F for plastic, T for rough_plastic): h above.
 inline float coat_in(const Material* m, float c) {
@@ -79,29 +92,35 @@ inline float coat_in(const Material* m, float c) {
     return 1.0f - fresnel_dielectric(clamp(c, 0.0f, 1.0f), m->eta.x, &ct);
 }
 
-// g(wo) of the diffuse part (above), at cos_o about n.
+// g(wo) of the diffuse part (above), at cos_o about n; the opacity included.
 inline float3 diffuse_out(const Material* m, float co) {
-    if (m->type == MAT_DIFFUSE) return m->base;
+    if (m->type == MAT_DIFFUSE) return m->opacity * m->base;
     float3 inner = (m->flags & MF_NONLINEAR) ? m->base * m->eta.y : (float3)(m->eta.y);
-    return m->base / (1.0f - inner) * (coat_in(m, co) / (m->eta.x * m->eta.x));
+    return m->base / (1.0f - inner) * (m->opacity * coat_in(m, co) / (m->eta.x * m->eta.x));
 }
 
-// The probability of each part for a path arriving from cos_o, over the parts in `mask`
-// (diffuse, glossy, delta); all 0 if the mask allows none the material has.
 inline float3 part_on(int parts) {
     return (float3)((parts & PART_DIFFUSE) ? 1.0f : 0.0f, (parts & PART_GLOSSY) ? 1.0f : 0.0f,
                     (parts & PART_DELTA) ? 1.0f : 0.0f);
 }
 
-inline float3 part_choice(const Material* m, float co, int mask) {
+// The probability of each of the lobes' parts for a path arriving from cos_o, over the parts
+// in `mask` (diffuse, glossy, delta); all 0 if the mask allows none the lobes have.
+inline float3 lobe_choice(const Material* m, float co, int mask) {
     float3 p = (float3)(1.0f);
     if (m->type == MAT_PLASTIC || m->type == MAT_ROUGH_PLASTIC) {
         float base = coat_in(m, co), w = m->eta.z;
         p = (float3)(base * (1.0f - w), (1.0f - base) * w, (1.0f - base) * w);
     }
-    p *= part_on(material_parts(m) & mask);
+    p *= part_on(lobe_parts(m) & mask);
     float sum = p.x + p.y + p.z;
     return sum > 0.0f ? p / sum : (float3)(0.0f);
+}
+
+// The same over all the material's parts: the null part's share is delta's.
+inline float3 part_choice(const Material* m, float co, int mask) {
+    float pn = null_choice(m, mask);
+    return lobe_choice(m, co, mask) * (1.0f - pn) + (float3)(0.0f, 0.0f, pn);
 }
 
 // The glossy part's value and its pdf of wi given wo (n about which both have positive
@@ -172,7 +191,13 @@ inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, fl
     BsdfEval e = {(float3)(0.0f), 0.0f, 0.0f};
     if (m->type == MAT_ROUGH_GLASS) {
         float go = dot(wo, ng), gi = dot(wi, ng);
-        return (mask & PART_GLOSSY) && go * gi != 0.0f ? rough_glass_eval(m, ng, ns, wo, wi, go, gi, radiance) : e;
+        if (!(mask & PART_GLOSSY) || go * gi == 0.0f) return e;
+        e = rough_glass_eval(m, ng, ns, wo, wi, go, gi, radiance);
+        float keep = 1.0f - null_choice(m, mask);
+        e.f *= m->opacity;
+        e.pdf_fwd *= keep;
+        e.pdf_rev *= keep;
+        return e;
     }
     int parts = material_parts(m) & mask & (PART_DIFFUSE | PART_GLOSSY);
     float go = dot(wo, ng), gi = dot(wi, ng);
@@ -188,7 +213,7 @@ inline BsdfEval bsdf_eval(const Material* m, float3 ng, float3 ns, float3 wo, fl
     }
     if (parts & PART_GLOSSY) {
         float pdf;
-        e.f += glossy_eval(m, n, wo, wi, co, ci, &pdf);  // both lobes have pdf(wo | wi) = pdf(wi | wo)
+        e.f += m->opacity * glossy_eval(m, n, wo, wi, co, ci, &pdf);  // both lobes have pdf(wo | wi) = pdf(wi | wo)
         e.pdf_fwd += fwd.y * pdf;
         e.pdf_rev += rev.y * pdf;
     }
@@ -232,7 +257,16 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
                         BsdfSample* s) {
     float3 wo = -d, n = dot(wo, ng) > 0.0f ? ns : -ns;
     float co = dot(wo, n);
-    if (m->type == MAT_DIFFUSE && (mask & PART_DIFFUSE)) {  // the common case, in closed form: f cos / pdf = rho
+    // The null part: on along d.
+    float pn = null_choice(m, mask);
+    if (pn > 0.0f && (pn >= 1.0f || rng_float(rng) < pn)) {
+        s->dir = d;
+        s->weight = (float3)((1.0f - m->opacity) / pn);
+        s->scale = s->pdf_fwd = s->pdf_rev = 1.0f;
+        s->delta = true;
+        return true;
+    }
+    if (m->type == MAT_DIFFUSE && !(m->flags & MF_MASKED) && (mask & PART_DIFFUSE)) {  // the common case, in closed form: f cos / pdf = rho
         s->dir = sample_cosine(n, rng_float(rng), rng_float(rng));
         float ci = dot(s->dir, n);
         s->delta = false;
@@ -242,7 +276,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
         s->pdf_rev = co / PI_F;
         return co > 0.0f && ci > 0.0f && dot(s->dir, ng) * dot(wo, ng) > 0.0f;
     }
-    float3 p = part_choice(m, fmax(co, 0.0f), mask);
+    float3 p = lobe_choice(m, fmax(co, 0.0f), mask);
     // Choose the part (a random number only where there is a choice).
     int part = p.x > 0.0f ? PART_DIFFUSE : p.y > 0.0f ? PART_GLOSSY : PART_DELTA;
     if (p.x + p.y + p.z == 0.0f) return false;
@@ -254,7 +288,7 @@ inline bool bsdf_sample(const Material* m, float3 ng, float3 ns, float3 d, int m
     s->pdf_fwd = s->pdf_rev = 1.0f;
     if (s->delta) {
         if (!delta_sample(m, d, n, ng, co, radiance, rng, &s->dir, &s->weight, &s->scale)) return false;
-        s->weight /= p.z;
+        s->weight *= m->opacity / ((1.0f - pn) * p.z);
         return true;
     }
     if (part == PART_DIFFUSE) {

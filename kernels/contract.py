@@ -21,12 +21,13 @@ import numpy as np
 
 # Materials (surface record type), their flags and the record's size: kernels/materials.cl.
 # `mirror` is a conductor without a Fresnel term (MF_NO_FRESNEL); MF_TEXTURED: the record's
-# textures row names a texture (kernels/textures.cl); TABLE_SIZE: the cosines a rough
+# textures row names a texture (kernels/textures.cl); MF_MASKED: an opacity below 1 (the
+# record's opacity row); TABLE_SIZE: the cosines a rough
 # plastic's coat transmittance is tabulated at, evenly over [0, 1] (as Mitsuba 3's).
 MATERIALS = {"diffuse": 0, "glossy": 1, "conductor": 2, "rough_conductor": 3, "glass": 4, "thin_glass": 5,
              "plastic": 6, "rough_plastic": 7, "rough_glass": 8}
-MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4, "textured": 8}
-SURF_ROWS = 5
+MATERIAL_FLAGS = {"beckmann": 1, "nonlinear": 2, "no_fresnel": 4, "textured": 8, "masked": 16}
+SURF_ROWS = 6
 TABLE_SIZE = 64
 # Textures (kernels/textures.cl): a record of TEX_ROWS rows per texture; its flags: the kind,
 # the wrap mode shifted by 2, and the TEXTURE_FLAGS bits.

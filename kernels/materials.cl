@@ -10,8 +10,10 @@
 //          reflectance R_int, specular sampling weight); w: MF_* flags (int bits)
 //   row 3: conductors: k rgb; dielectrics: transmission tint; plastics: specular
 //          reflectance; w: rough_plastic's row of its transmittance table (int bits)
-//   row 4: the textures (textures.cl) of row 0's colour, row 3's colour and the roughness,
-//          -1 where it is constant (int bits); read only under MF_TEXTURED
+//   row 4: the textures (textures.cl) of row 0's colour, row 3's colour, the roughness and
+//          the opacity, -1 where it is constant (int bits); read only under MF_TEXTURED
+//   row 5: x: the opacity (Mitsuba 3's mask: the share of the surface that is there, the rest
+//          passes light straight through); read only under MF_MASKED
 // ior is interior / exterior. Tables follow the records in the same buffer: TABLE_SIZE
 // floats over cos in [0, 1], 4 to a row.
 // The type codes MAT_* and flags MF_* come from kernels/contract.py as build options.
@@ -60,13 +62,15 @@ typedef struct {
     float3 eta;     // row 2
     float3 second;  // row 3
     __global const float* table;  // rough_plastic's coat transmittance table (TABLE_SIZE floats)
+    float opacity;  // row 5 (1: opaque)
 } Material;
 
 inline Material load_material(__global const float4* surfaces, int surf) {
     __global const float4* r = surfaces + SURF_ROWS * surf;
     float4 r0 = r[0], r2 = r[2], r3 = r[3];
-    Material m = {as_int(r0.w), as_uint(r2.w), r0.xyz, r[1].w, r2.xyz, r3.xyz,
-                  (__global const float*)(surfaces + as_int(r3.w))};
+    uint flags = as_uint(r2.w);
+    Material m = {as_int(r0.w), flags, r0.xyz, r[1].w, r2.xyz, r3.xyz,
+                  (__global const float*)(surfaces + as_int(r3.w)), (flags & MF_MASKED) ? r[5].x : 1.0f};
     return m;
 }
 

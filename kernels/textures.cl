@@ -95,6 +95,14 @@ inline float3 texture_eval(const SceneGeom* g, int tex, float2 uv) {
     return mix(top, bottom, ay);
 }
 
+// A texture's value where one number is asked for (a roughness, an opacity), as Mitsuba 3's
+// eval_1: a bitmap's luminance, a checkerboard's colour's mean over its channels.
+inline float texture_scalar(const SceneGeom* g, int tex, float2 uv) {
+    float3 c = texture_eval(g, tex, uv);
+    bool checks = (as_int(g->tex_info[TEX_ROWS * tex].x) & 3) == TEX_CHECKERBOARD;
+    return checks ? (c.x + c.y + c.z) / 3.0f : dot(c, (float3)(LUM_R, LUM_G, LUM_B));
+}
+
 // Surface `surf`'s material at point p of primitive `prim` (hit_prim): its record, with the
 // textured values looked up there. A record without textures is loaded as it is.
 inline Material surface_material(const SceneGeom* g, __global const float4* surfaces, int surf, int prim, float3 p) {
@@ -104,10 +112,8 @@ inline Material surface_material(const SceneGeom* g, __global const float4* surf
     float2 uv = prim_uv(g, prim, p);
     if (t.x >= 0) m.base = texture_eval(g, t.x, uv);
     if (t.y >= 0) m.second = texture_eval(g, t.y, uv);
-    if (t.z >= 0) {
-        float3 a = texture_eval(g, t.z, uv);
-        m.rough = clamp((a.x + a.y + a.z) / 3.0f, 0.001f, 1.0f);  // Roughness's range (worker/scene.py)
-    }
+    if (t.z >= 0) m.rough = clamp(texture_scalar(g, t.z, uv), 0.001f, 1.0f);  // Roughness's range (worker/scene.py)
+    if (t.w >= 0) m.opacity = clamp(texture_scalar(g, t.w, uv), 0.0f, 1.0f);
     return m;
 }
 

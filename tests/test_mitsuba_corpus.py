@@ -136,7 +136,7 @@ def test_instances(mi) -> None:
 def test_materials(mi) -> None:
     """Each bsdf of materials.xml is the material of the same parameters as `mi.traverse`
     gives for it (within 1%), through a twosided wrapper too, a named metal's eta and k being
-    worker/metals.py's; the integrator and the rfilter are the notes."""
+    worker/metals.py's, a mask's opacity Mitsuba's; the integrator and the rfilter are the notes."""
     path = CORPUS / "materials.xml"
     notes: list[str] = []
     ours = parse_scene(convert_mitsuba(path, notes=notes))
@@ -154,6 +154,8 @@ def test_materials(mi) -> None:
         assert material.pop("eta") == METALS[metal].eta and material.pop("k") == METALS[metal].k
         del theirs["eta"], theirs["k"]  # Mitsuba's own data: reflectance within 2% (tests/test_named_metals.py)
         assert_same_material(material, theirs)
+    veil = ours.materials["veil"]
+    assert veil.type == "diffuse" and veil.opacity == pytest.approx(mi.traverse(bsdfs["veil"])["opacity.value"])
     assert ours.materials["panel"].distribution == "ggx"
     assert ours.materials["glass"].transmittance != ours.materials["glass"].albedo
     spheres = [s for s in ours.shapes if s.type == "sphere"]

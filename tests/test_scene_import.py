@@ -211,6 +211,14 @@ def test_composition_matches_mitsuba(mi) -> None:
     np.testing.assert_allclose(to_world_matrix(transform_node(ops)), theirs, atol=1e-5)
 
 
+@pytest.mark.parametrize("target", ["0, 0, 0", "0, -5, 5", "0.3, 0.5, -1", "0, 0, 10"])
+def test_lookat_without_up_matches_mitsuba(mi, target: str) -> None:
+    ops = f'<lookat origin="0, 0, 5" target="{target}"/>'
+    scene = mi.load_string(xml(f'<shape type="rectangle"><transform name="to_world">{ops}</transform></shape>'))
+    theirs = np.array(mi.traverse(scene.shapes()[0])["to_world"].matrix, dtype=np.float64)
+    np.testing.assert_allclose(to_world_matrix(transform_node(ops)), theirs, atol=1e-5)
+
+
 # ------------------------------------------------------------------ element mapping
 def test_camera_fov_axis_and_thin_lens(tmp_path: Path) -> None:
     body = """<sensor type="thinlens"><float name="fov" value="60"/><float name="aperture_radius" value="0.1"/>

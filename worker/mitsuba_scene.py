@@ -50,8 +50,8 @@ NAMED_IOR = {
     "pyrex": 1.470, "acrylic glass": 1.49, "polypropylene": 1.49, "bk7": 1.5046, "sodium chloride": 1.544,
     "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
-# Mitsuba's dielectric-like plugins: refused inside `twosided`, as Mitsuba refuses them there.
-TRANSMISSIVE = {"dielectric", "thindielectric", "roughdielectric"}
+# Mitsuba's plugins that pass light through: refused inside `twosided`, as Mitsuba refuses them there.
+TRANSMISSIVE = {"dielectric", "thindielectric", "roughdielectric", "mask"}
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
 CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (area within 1e-4)
 NORMALS_CHUNK = 1 << 14  # triangles per step of _vertex_normals: its temporaries stay in cache, not in fresh pages
@@ -191,13 +191,26 @@ def _transform_op(node: Node) -> np.ndarray:
             raise _error(node, "a matrix has 9 or 16 numbers (row by row)")
         return np.reshape(values, (4, 4))
     if node.tag == "lookat":
-        if not {"origin", "target", "up"} <= a.keys():
-            raise _error(node, "lookat needs origin, target and up")
-        o, t, u = (np.array(_floats(node, a[k], 3)) for k in ("origin", "target", "up"))
+        if not {"origin", "target"} <= a.keys():
+            raise _error(node, "lookat needs origin and target")
+        o, t = (np.array(_floats(node, a[k], 3)) for k in ("origin", "target"))
+        u = np.array(_floats(node, a["up"], 3)) if "up" in a else _some_up(t - o)
         if not np.linalg.norm(t - o) > 0 or not np.linalg.norm(np.cross(u, t - o)) > 0:
             raise _error(node, "lookat target equals origin or up is parallel to the view")
         return look_at(o, t, u)
     raise _error(node, "unknown transform operation (have: translate, rotate, scale, matrix, lookat)")
+
+
+def _some_up(forward: np.ndarray) -> np.ndarray:
+    """Mitsuba's `up` where a lookat gives none: the first tangent of the orthonormal basis
+    about the view direction (Duff et al. 2017); a zero direction is refused by the caller."""
+    length = float(np.linalg.norm(forward))
+    if not length > 0:
+        return np.zeros(3)
+    x, y, z = forward / length
+    sign = math.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    return np.array([1.0 + sign * x * x * a, sign * x * y * a, -sign * x])
 
 
 def to_world_matrix(node: Node) -> np.ndarray:
@@ -675,8 +688,7 @@ class Converter:
             "roughplastic": self._roughplastic,
         }
         if kind == "mask":
-            raise _error(node, "mask (opacity) is not supported: the surface would have to be skipped where "
-                               "the mask is clear")
+            return self._mask(node, p)
         if kind not in convert:
             raise _error(node, f"unknown bsdf plugin {kind!r} (have: {', '.join(['twosided', *convert])})")
         out = convert[kind](p)
@@ -687,6 +699,24 @@ class Converter:
             raise _error(obj, f"<{obj.tag}> is not supported in a {kind} bsdf")
         p.done()
         return out
+
+    def _mask(self, node: Node, p: Props) -> dict:
+        """Mitsuba's mask: its one nested bsdf, with its `opacity` (a float, a colour's channel
+        mean, or a texture; 0.5 by default, as Mitsuba's)."""
+        opacity: float | dict | None = self._texture_of(p, "opacity")
+        if opacity is None:
+            where = p.node_of("opacity")
+            opacity = sum(p.color("opacity", 0.5)) / 3.0
+            if not 0.0 <= opacity <= 1.0:
+                raise _error(where, "opacity must lie in [0, 1]")
+        inner = [self.deref(o) if o.tag == "ref" else o for o in p.objects]
+        if len(inner) != 1 or inner[0].tag != "bsdf":
+            raise _error(node, "mask takes exactly one nested bsdf")
+        p.done()
+        nested = dict(self.materials[inner[0].attrs["id"]]) if p.objects[0].tag == "ref" else self.material(inner[0])
+        if nested.get("opacity", 1.0) != 1.0:
+            raise _error(inner[0], "a mask inside a mask is not supported")
+        return {**nested, "opacity": opacity}
 
     def _albedo(self, p: Props, name: str, default: float) -> list[float] | dict:
         """A colour in [0, 1] (rgb, float or spectrum) or a texture (a reference to it)."""

@@ -234,14 +234,25 @@ def _constant_or_reference(value: object) -> str:
 
 Colour = Annotated[Annotated[Albedo, Tag(CONSTANT)] | Annotated[TextureRef, Tag(REFERENCE)],
                    Discriminator(_constant_or_reference)]
+# An opacity that may vary over the surface: a texture's values (a bitmap's luminance, a
+# checkerboard's channel mean, as Mitsuba 3's eval_1) are clamped to [0, 1].
+Opacity = Annotated[Annotated[Unit, Tag(CONSTANT)] | Annotated[TextureRef, Tag(REFERENCE)],
+                    Discriminator(_constant_or_reference)]
 
 
-class Diffuse(_Model):
+class _Material(_Model):
+    """What every material has: its `opacity`, the share of the surface that is there
+    (Mitsuba 3's mask); the rest passes light straight through, as a cut-out leaf or a fence."""
+
+    opacity: Opacity = 1.0
+
+
+class Diffuse(_Material):
     type: Literal["diffuse"]
     albedo: Colour
 
 
-class Mirror(_Model):
+class Mirror(_Material):
     type: Literal["mirror"]
     albedo: Colour = (1.0, 1.0, 1.0)
 
@@ -259,7 +270,7 @@ EtaPart = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=Fa
 KPart = Annotated[float, Field(strict=True, ge=0.0, le=100.0, allow_inf_nan=False)]
 
 
-class Glass(_Model):
+class Glass(_Material):
     """Smooth dielectric: Fresnel reflection tinted by `albedo`, refraction by `transmittance`."""
 
     type: Literal["glass"]
@@ -277,7 +288,7 @@ class RoughGlass(Glass):
     distribution: Distribution = "beckmann"
 
 
-class ThinGlass(_Model):
+class ThinGlass(_Material):
     """A thin dielectric sheet (a window pane): the interreflections inside it summed, rays pass
     straight through."""
 
@@ -287,7 +298,7 @@ class ThinGlass(_Model):
     transmittance: Colour = (1.0, 1.0, 1.0)
 
 
-class Glossy(_Model):
+class Glossy(_Material):
     """Modified Phong lobe f = albedo (n+2)/(2 pi) cos^n(angle to the mirror direction)."""
 
     type: Literal["glossy"]
@@ -295,7 +306,7 @@ class Glossy(_Model):
     exponent: Annotated[float, Field(strict=True, ge=1.0, le=100_000.0, allow_inf_nan=False)]
 
 
-class _Metal(_Model):
+class _Metal(_Material):
     """A conductor's complex index of refraction eta + i k per rgb channel (relative to the
     exterior); without them the surface reflects `specular` at every angle (no Fresnel term)."""
 
@@ -320,7 +331,7 @@ class RoughConductor(_Metal):
     distribution: Distribution = "beckmann"
 
 
-class Plastic(_Model):
+class Plastic(_Material):
     """A diffuse base (`albedo`) under a smooth dielectric coat of index `ior`; `nonlinear`
     accounts for the colour shift of light scattered inside the coat."""
 

@@ -197,7 +197,7 @@ def surface_records(scene: Scene) -> np.ndarray:
         rows = records[SURF_ROWS * i:SURF_ROWS * (i + 1)]
         rows[1, :3] = shape.emission or (0.0, 0.0, 0.0)
         flags = 0
-        # The textures row: the texture of row 0's colour, row 3's colour and the roughness.
+        # The textures row: the texture of row 0's colour, row 3's colour, the roughness and the opacity.
         slots: list[object] = [None, None, None]
         if isinstance(material, Mirror | Conductor | RoughConductor):
             kind = "rough_conductor" if isinstance(material, RoughConductor) else "conductor"
@@ -247,10 +247,15 @@ def surface_records(scene: Scene) -> np.ndarray:
             kind = "diffuse"
             rows[0, :3] = colour(material.albedo)
             slots[0] = material.albedo
+        # The opacity (Mitsuba's mask): its row, or its texture in the textures row.
+        slots.append(material.opacity)
+        if material.opacity != 1.0:
+            flags |= MATERIAL_FLAGS["masked"]
+        rows[5, 0] = 1.0 if isinstance(material.opacity, TextureRef) else material.opacity
         textures = [texture_index[v.texture] if isinstance(v, TextureRef) else -1 for v in slots]
         if max(textures) >= 0:
             flags |= MATERIAL_FLAGS["textured"]
-        rows[4] = int_bits([*textures, -1])
+        rows[4] = int_bits(textures)
         rows[0, 3] = int_bits([MATERIALS[kind]])[0]
         rows[2, 3] = int_bits([flags])[0]
     return np.concatenate([records, *tables]) if tables else records
