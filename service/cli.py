@@ -5,6 +5,7 @@ model (worker/settings.py) and are validated by it."""
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import sys
 import time
@@ -72,6 +73,16 @@ def _redis_url(text: str) -> str:
     return text
 
 
+def loopback(host: str) -> bool:
+    """Whether binding `host` reaches this machine alone: localhost, 127.0.0.0/8 or ::1."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # another name: it may resolve to any interface
+
+
 def _output(text: str) -> Path:
     path = Path(text)
     if path.suffix.lower() not in (".exr", ".png"):
@@ -115,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
     convert.add_argument("--out", type=Path, help="JSON file to write (default: standard output)")
 
     serve = sub.add_parser("serve", help="run the HTTP API (with embedded Redis and local workers by default)")
-    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="the address to bind (default: 127.0.0.1); beyond loopback only with a token")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--workers", type=_count, default=None,
                        help="local worker processes (default: one per core; 0: workers run elsewhere)")
@@ -221,6 +233,11 @@ def main(argv: list[str] | None = None) -> int:
     redis_url = getattr(args, "redis_url", None) or settings.redis_url
     if args.command == "serve":
         from service.serve import serve  # the HTTP stack is only needed here
+
+        if settings.token is None and not loopback(args.host):
+            print(f"photonfarm: serve --host {args.host} is reachable beyond this machine: set PHOTONFARM_TOKEN "
+                  "or PHOTONFARM_TOKEN_FILE first (docs/farm.md, Security model)", file=sys.stderr)
+            return 2
 
         return serve(args.host, args.port, args.workers, redis_url, args.data_dir or settings.data, settings.token)
     if args.command == "worker":
