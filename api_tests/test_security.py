@@ -2,7 +2,10 @@
 scene name is never a path, the embedded Redis wants a password and runs no code for
 whoever reaches it, the bearer check follows RFC 7235, bad input gets 422, the OpenAPI
 document and /docs work offline, `photonfarm serve` takes every child with it, and
-repeated reads are served from memory. Real Redis, real workers, real HTTP."""
+repeated reads are served from memory; the safe defaults (issue 51, part 6): no bind
+beyond loopback without a token, no secret on a command line, archive members checked
+before they are read, the image's user and compose's port. Real Redis, real workers, real
+HTTP."""
 
 from __future__ import annotations
 

@@ -129,7 +129,8 @@ class Config:
     fold_poll_seconds: float = setting("PHOTONFARM_FOLD_POLL_SECONDS", 0.5, "seconds, a positive number",
                                        "the API's folder thread looks this often, and at once on news", _positive)
     fold_wait_min_seconds: float = setting("PHOTONFARM_FOLD_WAIT_MIN_SECONDS", 0.05, "seconds, a positive number",
-                                           "... or when a job's round is due, but not more often", _positive)
+                                           "the folder looks at once when a job's round is due, but not more "
+                                           "often than this", _positive)
     fold_stale_seconds: float = setting("PHOTONFARM_FOLD_STALE_SECONDS", 5.0, "seconds, a number",
                                         "a worker folds after its merge when the API has not folded this long past "
                                         "the image's planned time")
@@ -152,7 +153,7 @@ class Config:
                                          "has begun to within this long", _positive)
     end_handoff_poll_seconds: float = setting("PHOTONFARM_END_HANDOFF_POLL_SECONDS", 0.05,
                                               "seconds, a positive number",
-                                              "... looking this often", _positive)
+                                              "how often that worker looks whether a folder has begun", _positive)
 
     @property
     def queued_seconds(self) -> float:

@@ -152,7 +152,8 @@ def limits_table() -> str:
         ("mesh file name", f"at most {scene.MAX_PATH_CHARS} characters, inside the scene's folder", "422",
          "one file-system name, no escape from the root", "`worker/scene.py`"),
         ("scene upload, unpacked", f"{upload.MAX_UPLOAD_BYTES // 2**20} MiB, {upload.MAX_UPLOAD_FILES} entries",
-         "413", "counted as written: a zip bomb stops here", "`service/upload.py`"),
+         "413", "each member's declared size checked before it is read, the bytes counted as written: a zip or "
+         "tar bomb stops here, named", "`service/upload.py`"),
         ("upload names", f"{upload.MAX_NAME_CHARS:,} characters a path, {upload.MAX_PART_CHARS} a part", "422",
          "what file systems accept", "`service/upload.py`"),
         ("one scene load, in all", ", ".join(f"{v:,} {k.replace('_', ' ')}" for k, v in scene.LOAD_LIMITS.items()),

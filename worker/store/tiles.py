@@ -1,9 +1,9 @@
 """The job state cut into pixel tiles, each on one of the state's Redis nodes, and the
 encodings of what moves per tile: the folded state, a batch's delta and a batch's inputs.
 
-A tile is a run of `tile_pixels` (worker/config.py) consecutive pixels (row-major, so a band of rows at most;
-65,536 pixels by default, 8.9 MB of state at 136 bytes a pixel); tile k lives on node
-k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
+A tile is a run of `tile_pixels` (worker/config.py) consecutive pixels (row-major, so a
+band of rows at most; 65,536 pixels by default, 8.9 MB of state at 136 bytes a pixel);
+tile k lives on node k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
 (comma-separated), else the main Redis alone; a job records how many nodes it was created
 with, and every process must name the same nodes in the same order. Queues, job records
 and leases always stay on the main Redis.
