@@ -21,7 +21,6 @@ from service.redis_server import EmbeddedRedis, free_port
 from tests.embedded_redis import restart
 from worker.store import Batch, keys
 from worker.store.policy import FINAL
-from worker.store.tiles import STATE_URLS_ENV
 
 LEASE_SECONDS = "4"  # short leases: lost batches come back within a test's patience
 # The settings that choose each way of rendering the fault tests cover: the two integrators
@@ -43,7 +42,8 @@ class Cluster:
         # REDIS_URL carries the password: the environment, never a command line.
         self.env = {**os.environ, "POCL_MAX_PTHREAD_COUNT": str(threads_per_worker),
                     "PHOTONFARM_LEASE_SECONDS": LEASE_SECONDS, "PYTHONUNBUFFERED": "1", "REDIS_URL": self.redis.url,
-                    **({STATE_URLS_ENV: ",".join(s.url for s in self.shards)} if shards else {}), **(env or {})}
+                    **({"PHOTONFARM_STATE_URLS": ",".join(s.url for s in self.shards)} if shards else {}),
+                    **(env or {})}
         if token:
             self.env["PHOTONFARM_TOKEN"] = token
         self.port = free_port()

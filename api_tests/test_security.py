@@ -2,10 +2,14 @@
 scene name is never a path, the embedded Redis wants a password and runs no code for
 whoever reaches it, the bearer check follows RFC 7235, bad input gets 422, the OpenAPI
 document and /docs work offline, `photonfarm serve` takes every child with it, and
-repeated reads are served from memory. Real Redis, real workers, real HTTP."""
+repeated reads are served from memory; the safe defaults (issue 51, part 6): no bind
+beyond loopback without a token, no secret on a command line, archive members checked
+before they are read, the image's user and compose's port. Real Redis, real workers, real
+HTTP."""
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
 import re
@@ -13,6 +17,7 @@ import signal
 import stat
 import subprocess
 import sys
+import tarfile
 import time
 import zlib
 from collections.abc import Iterator
@@ -21,15 +26,17 @@ from pathlib import Path
 import httpx
 import pytest
 import redis
+import yaml
 from rq import Callback, Queue
 from rq.serializers import JSONSerializer
 
 from api_tests import tripwire
 from api_tests.cluster import Cluster, finished
-from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, assert_exact
+from api_tests.helpers import CHROMIUM, CHROMIUM_FLAGS, assert_exact, zip_bomb
 from service.redis_server import AOF_DIR, AOF_FILE, DISABLED_COMMANDS, PASSWORD_FILE, EmbeddedRedis, free_port
 from worker.scheduler import QUEUE_NAMES
 
+REPO = Path(__file__).resolve().parent.parent
 TOKEN = "s3cret-token"
 P = 1 << 12
 
@@ -373,3 +380,182 @@ def test_metrics_scrapes_do_not_each_read_every_job(secured: Cluster) -> None:
     burst = hgetalls() - before
     assert burst < 5 * one, (one, burst)  # ten scrapes within a second: not ten reads of every job
     assert all("photonfarm_jobs" in t for t in texts)
+
+
+# ------------------------------------------------------------------ issue 51, 6: safe defaults
+def _serve(args: list[str], data_dir: Path, env: dict[str, str]) -> subprocess.Popen:
+    """`photonfarm serve` (the real CLI) in a session of its own, its output in data_dir/serve.log."""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith(("REDIS_", "PHOTONFARM_"))}
+    log = open(data_dir / "serve.log", "ab")
+    return subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--data-dir", str(data_dir / "data"),
+                             *args], env={**clean, "POCL_MAX_PTHREAD_COUNT": "1", **env}, stdout=log,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=30)
+    finally:
+        for pid in _session_members(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+def _healthy(url: str, proc: subprocess.Popen, seconds: float = 60.0) -> None:
+    deadline = time.time() + seconds
+    while time.time() < deadline and proc.poll() is None:
+        try:
+            if httpx.get(f"{url}/healthz", timeout=2).status_code == 200:
+                return
+        except httpx.TransportError:
+            time.sleep(0.2)
+    raise AssertionError(f"serve did not come up (exit {proc.poll()})")
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "::", "192.0.2.1", "example.com", ""])
+def test_serve_binds_beyond_loopback_only_with_a_token(host: str, tmp_path: Path) -> None:
+    proc = _serve(["--host", host, "--port", str(free_port())], tmp_path, {})
+    assert proc.wait(timeout=60) == 2
+    out = (tmp_path / "serve.log").read_text().strip()
+    assert out == (f"photonfarm: serve --host {host} is reachable beyond this machine: set PHOTONFARM_TOKEN or "
+                   "PHOTONFARM_TOKEN_FILE first (docs/farm.md, Security model)"), out
+    assert not (tmp_path / "data").exists()  # refused before anything started: no Redis, no data
+
+
+def test_loopback_names_only_this_machine() -> None:
+    from service.cli import loopback
+
+    assert all(loopback(h) for h in ("127.0.0.1", "127.8.9.10", "::1", "localhost"))
+    assert not any(loopback(h) for h in ("0.0.0.0", "::", "", "10.0.0.1", "128.0.0.1", "localhost.example.com",
+                                         "::ffff:127.0.0.1x", "fe80::1"))
+
+
+def test_serve_with_a_token_file_binds_everywhere_wants_the_token_and_shows_no_secret(tmp_path: Path) -> None:
+    """0.0.0.0 with the token in a file: data routes want it; no process serve starts (the
+    embedded Redis, the workers) carries the Redis password or the token on its command line."""
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    port = free_port("0.0.0.0")
+    proc = _serve(["--host", "0.0.0.0", "--port", str(port), "--workers", "2"], tmp_path,
+                  {"PHOTONFARM_TOKEN_FILE": str(token_file)})
+    try:
+        url = f"http://127.0.0.1:{port}"
+        _healthy(url, proc)
+        assert httpx.get(f"{url}/v1/jobs").status_code == 401
+        assert httpx.get(f"{url}/v1/jobs", headers={"Authorization": f"Bearer {TOKEN}x"}).status_code == 401
+        assert httpx.get(f"{url}/v1/jobs", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200
+        password = (tmp_path / "data" / "redis" / PASSWORD_FILE).read_text().strip()
+        members = _session_members(proc.pid)
+        lines = {pid: Path(f"/proc/{pid}/cmdline").read_bytes() for pid in members}
+        assert len(lines) >= 4, lines  # serve, redis-server and two workers
+        assert any(b"valkey-server" in c or b"redis-server" in c for c in lines.values()), lines
+        for pid, cmdline in lines.items():
+            assert password.encode() not in cmdline and TOKEN.encode() not in cmdline, (pid, cmdline)
+    finally:
+        _stop(proc)
+
+
+def _tar_gz(*blocks: bytes) -> bytes:
+    """A .tar.gz of raw tar blocks, as a hostile client may write them (no end marker needed:
+    the upload is refused at the first header that asks for too much)."""
+    return gzip.compress(b"".join(blocks), compresslevel=9)
+
+
+def _pax_header(name: str, records: dict[str, str]) -> bytes:
+    """A pax extended header and its records, for the member `name` that follows."""
+    info = tarfile.TarInfo(name)
+    info.pax_headers = records
+    return info.tobuf(tarfile.PAX_FORMAT)
+
+
+def _peak_rss(pid: int) -> int:
+    """A process's peak resident memory in bytes (VmHWM)."""
+    line = next(s for s in Path(f"/proc/{pid}/status").read_text().splitlines() if s.startswith("VmHWM:"))
+    return int(line.split()[1]) * 1024
+
+
+@pytest.fixture(scope="module")
+def uploads(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    """An API of its own (its peak memory starts low), one worker."""
+    c = Cluster(tmp_path_factory.mktemp("uploads"), workers=1)
+    yield c
+    c.close()
+
+
+def _post_archive(c: Cluster, name: str, data: bytes) -> httpx.Response:
+    return c.http.post("/v1/jobs/upload", files=[("archive", (name, data))],
+                       data={"scene": "s.json", "settings": json.dumps({"max_passes": 1})})
+
+
+def _serves_on(c: Cluster) -> None:
+    assert c.api is not None and c.api.poll() is None
+    job = c.submit(scene_name="furnace", settings={"max_passes": 2, "photons_per_pass": P})
+    assert_exact(c, job["id"], 2, P)
+
+
+def test_a_tar_member_declaring_more_than_the_limit_is_413_before_it_is_read(uploads: Cluster) -> None:
+    huge = tarfile.TarInfo("meshes/huge.ply")
+    huge.size = 64 * 2**30  # 64 GiB declared; none of it sent
+    resp = _post_archive(uploads, "huge.tar.gz", _tar_gz(huge.tobuf(tarfile.GNU_FORMAT)))
+    detail = resp.json()["detail"]
+    assert resp.status_code == 413 and "'meshes/huge.ply'" in detail and f"{huge.size}" in detail, resp.text
+    _serves_on(uploads)
+
+
+def test_a_lying_tar_header_is_413_naming_its_member(uploads: Cluster) -> None:
+    """The member's own header says 0 bytes; the pax header before it says 5 GiB (a pax size
+    overrides the header's): the size checked is the one tarfile would read."""
+    liar = tarfile.TarInfo("liar.ply")  # size 0
+    archive = _tar_gz(_pax_header("liar.ply", {"size": str(5 * 2**30)}), liar.tobuf(tarfile.USTAR_FORMAT))
+    resp = _post_archive(uploads, "liar.tgz", archive)
+    assert resp.status_code == 413 and "'liar.ply'" in resp.json()["detail"], resp.text
+    _serves_on(uploads)
+
+
+def test_a_tar_header_bomb_is_413_without_reading_it(uploads: Cluster) -> None:
+    """A pax header whose content is 100 MB of zeros (100 KB compressed): tarfile reads such
+    a content whole, so it is refused from its declared size, before the read; the API's
+    peak memory shows it was not read."""
+    content = 100 * 10**6
+    header = tarfile.TarInfo("././@PaxHeader")
+    header.type, header.size = tarfile.XHDTYPE, content
+    archive = _tar_gz(header.tobuf(tarfile.USTAR_FORMAT), bytes(content))
+    assert len(archive) < 200_000
+    assert uploads.api is not None
+    before = _peak_rss(uploads.api.pid)
+    resp = _post_archive(uploads, "bomb.tar.gz", archive)
+    grown = _peak_rss(uploads.api.pid) - before
+    assert grown < content // 4, (before, grown)
+    assert resp.status_code == 413 and "'././@PaxHeader'" in resp.json()["detail"], resp.text
+    _serves_on(uploads)
+
+
+def test_a_zip_member_declaring_more_than_the_limit_is_413_naming_it(uploads: Cluster) -> None:
+    bomb = zip_bomb()  # zeros.ply declares (truly) more than the limit
+    resp = _post_archive(uploads, "bomb.zip", bomb)
+    assert resp.status_code == 413 and "'zeros.ply' declares" in resp.json()["detail"], resp.text
+    _serves_on(uploads)
+
+
+# ----------------------------------------------------------------- the deployment files' defaults
+def test_the_image_runs_as_a_user_of_its_own() -> None:
+    lines = [line.split() for line in (REPO / "Dockerfile").read_text().splitlines() if line.strip()]
+    users = [words[1] for words in lines if words[0] == "USER"]
+    assert users and users[-1] not in ("root", "0") and not users[-1].startswith(("root:", "0:")), users
+    last_user = max(i for i, words in enumerate(lines) if words[0] == "USER")
+    assert all(words[0] not in ("RUN", "COPY", "ADD") for words in lines[last_user:])  # nothing after it as root
+
+
+def test_compose_publishes_the_api_on_loopback_and_puts_no_password_on_a_command_line() -> None:
+    services = yaml.safe_load((REPO / "docker-compose.yml").read_text())["services"]
+    for name, service in services.items():
+        for port in service.get("ports", []):
+            assert str(port).startswith("127.0.0.1:"), (name, port)
+    assert "ports" not in services["redis"]
+    assert services["api"]["environment"]["PHOTONFARM_TOKEN"].startswith("${PHOTONFARM_TOKEN:?")  # required
+    # A secret's value interpolated by compose (`${REDIS_PASSWORD}`, `$REDIS_PASSWORD`) would be on
+    # the argv; `$$REDIS_PASSWORD` is the container shell's reference, read from its environment.
+    interpolated = re.compile(r"\$\{?(?:REDIS_PASSWORD|PHOTONFARM_TOKEN)")
+    for name, service in services.items():
+        argv = [str(a) for a in [*service.get("entrypoint", []), *service.get("command", [])]]
+        assert "--requirepass" not in argv and not any(interpolated.search(a.replace("$$", "")) for a in argv), name

@@ -7,7 +7,7 @@ encoding: every simulated worker pushes the same pre-encoded delta, random numbe
 every sum of the default SPPM layout, encoded as every delta is (worker/store/tiles.py: the
 photon sums float16, the error estimator's float32), so nothing compresses; the encoding's
 CPU time is measured once and added to each merge). One folder process folds every
-FOLD_POLL_SECONDS, as the API's folder thread does. Against one Redis and against 3 state
+fold_poll_seconds, as the API's folder thread does. Against one Redis and against 3 state
 nodes, all redis-servers of the embedded default (service/redis_server.py: append-only file,
 fsync always).
 
@@ -60,11 +60,12 @@ import redis
 from bench.common import cpu_seconds, save_figure, write_json
 from service.redis_server import EmbeddedRedis
 from worker.allocator import retain_large_allocations
+from worker.config import config
 from worker.integrators.base import Delta
 from worker.settings import Settings
 from worker.store import Batch, Jobs, keys
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import FOLD_POLL_SECONDS, MERGE_SHARE, REFRESH_SECONDS, batch_passes, fold_interval
+from worker.store.policy import batch_passes, fold_interval
 from worker.store.tiles import encode_delta
 
 PROJECTED_LOAD = 0.7  # a server or the folder busier than this is saturated (project)
@@ -101,8 +102,8 @@ def _merge(store: Jobs, job_id: str, batch: Batch, delta: Delta, payloads: dict[
 
 def _steady_batch(pass_seconds: float, mean_merge: float, fold_seconds: float, n_workers: int) -> float:
     """Seconds of the scheduler's batch once the N workers' deliveries are spread (the
-    others due every REFRESH_SECONDS: Jobs.allocate's rule in its steady state)."""
-    spread = [i * REFRESH_SECONDS for i in range(1, n_workers)]
+    others due every refresh_seconds: Jobs.allocate's rule in its steady state)."""
+    spread = [i * config().refresh_seconds for i in range(1, n_workers)]
     return batch_passes(pass_seconds, mean_merge, None, fold_seconds, n_workers, others_due=spread) * pass_seconds
 
 
@@ -148,7 +149,7 @@ def _pusher(urls: list[str], job_id: str, workers: list[int], n_workers: int, pa
 
 
 def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
-    """The API's folder thread: every FOLD_POLL_SECONDS, a round if one is due, until the
+    """The API's folder thread: every fold_poll_seconds, a round if one is due, until the
     simulated workers are done (`pushed`) and everything they had accepted is folded. Each
     round's start and end, and the backlog when the workers stopped (did it keep up?)."""
     retain_large_allocations()  # as `photonfarm serve` does
@@ -165,7 +166,7 @@ def _folder(urls: list[str], job_id: str, pushed: Any, out: mp.Queue) -> None:
         if store.fold_if_due(job_id) is not None:
             rounds.append((t0, time.time()))
             costs.append((waiting, time.process_time() - cpu))
-        time.sleep(max(0.0, FOLD_POLL_SECONDS - (time.time() - t0)))
+        time.sleep(max(0.0, config().fold_poll_seconds - (time.time() - t0)))
     store.fold(job_id, wait=True, checkpoint=True)  # as the job's end does
     out.put({"rounds": rounds, "costs": costs, "backlog": backlog, "cpu_seconds": time.process_time() - cpu0})
 
@@ -243,7 +244,8 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
               "merge_median_seconds": statistics.median(latencies) if latencies else None,
               "merge_p95_seconds": p95,
               "share": sum(latencies) / (sum(latencies) + sum(r["rendered"] for r in pushes)) if latencies else None,
-              "needed_batch_passes": statistics.fmean(latencies) / MERGE_SHARE / pass_seconds if latencies else None,
+              "needed_batch_passes": (statistics.fmean(latencies) / config().merge_share / pass_seconds
+                                      if latencies else None),
               "lateness_max_seconds": max((x for r in pushes for x in r["lateness"]), default=0.0),
               "refresh_max_seconds": max(refresh), "refresh_median_seconds": statistics.median(refresh),
               "image_lag_max_seconds": max(lags), "image_lag_median_seconds": statistics.median(lags),
@@ -257,7 +259,8 @@ def run(urls: list[str], pids: list[int], w: int, h: int, n_workers: int, pass_s
               "folder_cpu_per_batch": fold["cpu_seconds"] / len(latencies) if latencies else None,
               "folder_round_costs": fold["costs"], "folder_round_model": _round_model(fold["costs"]),
               "delta_bytes": sum(len(p) for p in payloads.values())}
-    report["sustained"] = bool(latencies and report["share"] <= MERGE_SHARE and report["backlog_at_end"] <= n_workers)
+    report["sustained"] = bool(latencies and report["share"] <= config().merge_share
+                               and report["backlog_at_end"] <= n_workers)
     store.delete(job_id)
     return report
 
@@ -303,7 +306,7 @@ def project(runs: list[dict]) -> dict:
                 rate = n / (batch + merge)
                 if model is None:
                     break
-                period = fold_interval(length) + FOLD_POLL_SECONDS / 2 + length
+                period = fold_interval(length) + config().fold_poll_seconds / 2 + length
                 length = 0.5 * (length + model[0] + model[1] * max(1.0, rate * period))
             return batch, rate, length
 
@@ -313,7 +316,7 @@ def project(runs: list[dict]) -> dict:
             batch, rate, length = steady(n)
             load = {part: rate * c for part, c in costs.items()}
             if model is not None:
-                rounds = min(rate, 1.0 / (fold_interval(length) + FOLD_POLL_SECONDS / 2 + length))
+                rounds = min(rate, 1.0 / (fold_interval(length) + config().fold_poll_seconds / 2 + length))
                 load["folder"] = rounds * model[0] + rate * model[1]
             waited = merge / max(1e-9, 1.0 - max(load.values()))
             return load, waited / (batch + waited), rate
@@ -324,7 +327,7 @@ def project(runs: list[dict]) -> dict:
             load, share, _ = loads(n)
             if max(load.values()) > PROJECTED_LOAD:
                 return max(load, key=load.get)
-            return "merge share" if share > MERGE_SHARE else None
+            return "merge share" if share > config().merge_share else None
 
         capacity = max((n for n in range(1, PROJECTED_MAX + 1) if limit_at(n) is None), default=0)
         limit = limit_at(capacity + 1)
@@ -350,7 +353,7 @@ def chart(report: dict, name: str) -> None:
         axes[1].plot(xs, [r["refresh_max_seconds"] for r in runs], "o-", label=label)
         busiest = report["projected"].get(f"{w}x{h}, {nodes} node(s)", {}).get("busiest_part_by_workers", {})
         axes[2].plot([int(n) for n in busiest], list(busiest.values()), "o-", label=label)
-    axes[1].axhline(REFRESH_SECONDS, color="grey", ls="--", label="10 s")
+    axes[1].axhline(config().refresh_seconds, color="grey", ls="--", label="10 s")
     axes[2].axhline(PROJECTED_LOAD, color="grey", ls="--", label="saturated")
     for ax, title in zip(axes, ("passes a batch needs for the merge to take 5%", "refresh interval, largest (s)",
                                 "projected: the busiest server or folder, a core each"), strict=True):

@@ -34,8 +34,9 @@ import redis
 
 from api_tests.cluster import Cluster, finished
 from bench.common import cpu_seconds, write_json
+from worker.config import config
 from worker.store import Jobs
-from worker.store.policy import FINAL, REFRESH_SECONDS
+from worker.store.policy import FINAL
 
 SCENE = "furnace"
 SAMPLE_SECONDS = 0.25
@@ -106,7 +107,7 @@ def run(w: int, h: int, seconds: float, workers: int, shards: int = 0) -> dict:
             "redis_cpu_seconds_per_round": cpu["redis"] / max(1, len(rounds)),
             "load_average_before": load, "load_average_after": os.getloadavg()[0],
             "rounds": rounds, "intervals": intervals, "accepted": accepted, "aof_rewrites": rewriting,
-            "target_seconds": REFRESH_SECONDS}
+            "target_seconds": config().refresh_seconds}
 
 
 def main() -> None:
@@ -124,7 +125,7 @@ def main() -> None:
     print(f"{w}x{h}, {args.workers} workers, {args.shards} shards, "
           f"{report['passes']} passes in {report['batches']} batches: "
           f"{report['fold_rounds']} fold rounds, image refreshed every {report['refresh_median_seconds']:.1f} s "
-          f"(largest {report['refresh_max_seconds']:.1f} s; target {REFRESH_SECONDS:.0f} s), rounds "
+          f"(largest {report['refresh_max_seconds']:.1f} s; target {config().refresh_seconds:.0f} s), rounds "
           f"{report['fold_round_median_seconds']:.1f} s (largest {report['fold_round_max_seconds']:.1f} s); "
           f"CPU s a round: API {report['api_cpu_seconds_per_round']:.2f}, Redis "
           f"{report['redis_cpu_seconds_per_round']:.2f}; load {report['load_average_before']:.1f} to "

@@ -11,7 +11,6 @@ import hmac
 import json
 import logging
 import math
-import os
 import sys
 import tempfile
 import threading
@@ -51,6 +50,7 @@ from service.models import (
 )
 from service.scene_loader import LoadedScene, LoadUnavailable, SceneLoader, SceneRequest
 from service.upload import Unpacker, UploadError, scene_path
+from worker.config import ConfigError, config
 from worker.image_io import error_colours, write_image
 from worker.outputs import write_render
 from worker.scene import (
@@ -502,5 +502,8 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
 
 
 def app_from_env() -> FastAPI:
-    """For `uvicorn service.app:app_from_env --factory`: REDIS_URL and PHOTONFARM_TOKEN."""
-    return create_app(os.environ["REDIS_URL"], os.environ.get("PHOTONFARM_TOKEN") or None)
+    """For `uvicorn service.app:app_from_env --factory`: the configuration's Redis URL and token."""
+    settings = config()
+    if settings.redis_url is None:
+        raise ConfigError("REDIS_URL: unset (or REDIS_URL_FILE): the API needs a Redis")
+    return create_app(settings.redis_url, settings.token)

@@ -5,8 +5,8 @@ model (worker/settings.py) and are validated by it."""
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -16,6 +16,7 @@ from urllib.parse import urlsplit
 from pydantic import ValidationError
 
 from worker.allocator import retain_large_allocations
+from worker.config import URL_SCHEMES, ConfigError, config
 from worker.outputs import check_writable, make_folder
 from worker.scene import MAX_PIXELS, MAX_RESOLUTION, SceneError, bundled_scene_path, load_any_scene, scene_file
 from worker.settings import Settings
@@ -61,10 +62,25 @@ def _count(text: str) -> int:
 
 
 def _redis_url(text: str) -> str:
-    """A Redis URL (the value is not echoed back: it may hold a password)."""
-    if urlsplit(text).scheme not in ("redis", "rediss", "unix"):
+    """A Redis URL without a password (the value is not echoed back): a command line is
+    readable by any local user, so a password goes in REDIS_URL or REDIS_URL_FILE."""
+    parts = urlsplit(text)
+    if parts.scheme not in URL_SCHEMES:
         raise argparse.ArgumentTypeError("expected a redis://, rediss:// or unix:// URL")
+    if parts.password or "password=" in parts.query:
+        raise argparse.ArgumentTypeError("a password on the command line is readable by any local user: "
+                                         "give the URL in REDIS_URL or REDIS_URL_FILE")
     return text
+
+
+def loopback(host: str) -> bool:
+    """Whether binding `host` reaches this machine alone: localhost, 127.0.0.0/8 or ::1."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # another name: it may resolve to any interface
 
 
 def _output(text: str) -> Path:
@@ -110,22 +126,25 @@ def build_parser() -> argparse.ArgumentParser:
     convert.add_argument("--out", type=Path, help="JSON file to write (default: standard output)")
 
     serve = sub.add_parser("serve", help="run the HTTP API (with embedded Redis and local workers by default)")
-    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="the address to bind (default: 127.0.0.1); beyond loopback only with a token")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--workers", type=_count, default=None,
                        help="local worker processes (default: one per core; 0: workers run elsewhere)")
-    serve.add_argument("--redis-url", type=_redis_url, default=os.environ.get("REDIS_URL"),
-                       help="external Redis (default: $REDIS_URL, else an embedded one)")
-    serve.add_argument("--data-dir", type=Path, default=Path(os.environ.get("PHOTONFARM_DATA", "data")),
-                       help="where the embedded Redis keeps its append-only file (default: ./data)")
+    serve.add_argument("--redis-url", type=_redis_url,
+                       help="external Redis (default: $REDIS_URL or the file $REDIS_URL_FILE names, else an "
+                            "embedded one)")
+    serve.add_argument("--data-dir", type=Path,
+                       help="where the embedded Redis keeps its append-only file (default: $PHOTONFARM_DATA, "
+                            "else ./data)")
 
     from service.client import add_parser as add_submit_parser
 
     add_submit_parser(sub, _positive(float), _positive(int), _resolution, _output)
 
     worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
-    worker.add_argument("--redis-url", type=_redis_url, default=os.environ.get("REDIS_URL"),
-                        required="REDIS_URL" not in os.environ)
+    worker.add_argument("--redis-url", type=_redis_url,
+                        help="the Redis (default: $REDIS_URL or the file $REDIS_URL_FILE names)")
     worker.add_argument("--burst", action="store_true",
                         help="exit when the queues are empty (status 1 if Redis stays out of reach)")
     return parser
@@ -204,16 +223,29 @@ def convert(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     retain_large_allocations()
-    args = build_parser().parse_args(argv)
+    try:
+        settings = config()
+    except ConfigError as exc:
+        print(f"photonfarm: {exc}", file=sys.stderr)
+        return 2
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    redis_url = getattr(args, "redis_url", None) or settings.redis_url
     if args.command == "serve":
         from service.serve import serve  # the HTTP stack is only needed here
 
-        return serve(args.host, args.port, args.workers, args.redis_url, args.data_dir,
-                     os.environ.get("PHOTONFARM_TOKEN") or None)
+        if settings.token is None and not loopback(args.host):
+            print(f"photonfarm: serve --host {args.host} is reachable beyond this machine: set PHOTONFARM_TOKEN "
+                  "or PHOTONFARM_TOKEN_FILE first (docs/farm.md, Security model)", file=sys.stderr)
+            return 2
+
+        return serve(args.host, args.port, args.workers, redis_url, args.data_dir or settings.data, settings.token)
     if args.command == "worker":
         from worker.queue_worker import run_worker
 
-        return run_worker(args.redis_url, burst=args.burst)
+        if redis_url is None:
+            parser.error("worker: no Redis: set REDIS_URL (or REDIS_URL_FILE) or give --redis-url")
+        return run_worker(redis_url, burst=args.burst)
     if args.command == "submit":
         from service.client import ClientError, submit
 

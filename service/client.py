@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from service.models import MAX_BODY_BYTES
 from service.upload import MAX_UPLOAD_FILES
+from worker.config import config
 from worker.images import IMAGE_SUFFIXES
 from worker.outputs import check_writable
 from worker.scene import SceneError, scene_file
@@ -188,8 +189,10 @@ def add_parser(sub: argparse._SubParsersAction, positive_float: Any, positive_in
     p = sub.add_parser("submit", help="submit a job to a running service (HTTP)")
     p.add_argument("scene", help="bundled scene name, or a scene .json or Mitsuba .xml file (sent with the scene "
                                  "and mesh files of its folder)")
-    p.add_argument("--url", default=os.environ.get("PHOTONFARM_URL", "http://127.0.0.1:8000"))
-    p.add_argument("--token", default=os.environ.get("PHOTONFARM_TOKEN") or None)
+    p.add_argument("--url", default=config().url, help=f"the API (default: $PHOTONFARM_URL, else {config().url})")
+    p.add_argument("--token", default=config().token,
+                   help="the API's bearer token (default: $PHOTONFARM_TOKEN or the file $PHOTONFARM_TOKEN_FILE "
+                        "names; a token on the command line is readable by any local user)")
     p.add_argument("--threshold", type=positive_float, help="stop when the average relative error is this low")
     p.add_argument("--confidence", type=positive_float)
     p.add_argument("--max-seconds", type=positive_float)

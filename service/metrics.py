@@ -17,7 +17,7 @@ from worker.store import Jobs, Status
 
 def workers(jobs: Jobs) -> list[dict[str, Any]]:
     """Registered RQ workers with their last sign of life (our heartbeat thread's, every
-    LEASE_SECONDS / 3 while the process lives; worker/heartbeat.py)."""
+    lease_seconds / 3 while the process lives; worker/heartbeat.py)."""
     beats = jobs.leases.heartbeats()
     now = time.time()
     out = []

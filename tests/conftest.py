@@ -1,10 +1,11 @@
 """Shared fixtures: one OpenCL context per test session (the program is built once for it),
-a real Redis of the test's own, and the deltas of the sharded-state tests."""
+a configuration with changed tunables, a real Redis of the test's own, and the deltas of the sharded-state tests."""
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,8 @@ import pytest
 from kernels.program import create_context
 from service.redis_server import EmbeddedRedis
 from tests.helpers import BATCHES, H, W
+from worker import config as config_module
+from worker.config import Config, config
 from worker.engine import Engine
 from worker.error_estimate import ErrorEstimate
 from worker.integrators.base import State
@@ -39,6 +42,16 @@ def make_engine(ctx: cl.Context):
         return Engine(parsed, base, Settings(resolution=resolution, **settings), ctx=ctx)
 
     return make
+
+
+@pytest.fixture
+def tune(monkeypatch: pytest.MonkeyPatch) -> Callable[..., Config]:
+    """Install this process's configuration with the given fields changed, for this test."""
+    def change(**fields: object) -> Config:
+        changed = dataclasses.replace(config(), **fields)
+        monkeypatch.setattr(config_module, "_active", changed)
+        return changed
+    return change
 
 
 @pytest.fixture

@@ -10,20 +10,8 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
+from worker.config import config
 from worker.store.policy import (
-    BATCH_TARGET_SECONDS,
-    CHECKPOINT_HELD_SHARE,
-    CHECKPOINT_PENDING_SHARE,
-    CHECKPOINT_SECONDS,
-    DELIVERY_SECONDS,
-    FOLD_POLL_SECONDS,
-    FOLD_SECONDS,
-    FOLD_STALE_SECONDS,
-    MERGE_PATH_SHARE,
-    MERGE_SHARE,
-    PASS_SLACK,
-    REFRESH_SECONDS,
-    ROUNDS_KEPT,
     Round,
     _tail_end,
     batch_passes,
@@ -56,25 +44,25 @@ def test_the_next_batch_is_sized_by_the_later_passes_of_the_last() -> None:
 
 
 def test_a_cheap_merge_gives_batches_of_the_target_length() -> None:
-    assert batch_passes(0.25, 0.0) == round(BATCH_TARGET_SECONDS / 0.25)
+    assert batch_passes(0.25, 0.0) == round(config().batch_target_seconds / 0.25)
 
 
 def test_a_batch_is_long_enough_for_its_merge_and_fold_round_to_stay_within_the_share() -> None:
     n = batch_passes(0.5, 0.1, fold_seconds=0.2, workers=4)
-    assert n * 0.5 == pytest.approx((0.1 + 0.2) / MERGE_SHARE, abs=0.5)
+    assert n * 0.5 == pytest.approx((0.1 + 0.2) / config().merge_share, abs=0.5)
 
 
 @pytest.mark.parametrize("workers", [1, 2, 3])
 def test_the_workers_deliver_a_batch_every_refresh_interval_merges_included(workers: int) -> None:
     """A slow merge (a 3840x2160 frame) does not stretch batches past the refresh: the job's
-    workers, each rendering a batch and then merging it, deliver one every DELIVERY_SECONDS
-    even PASS_SLACK slower than planned, and batches are no shorter than that allows."""
+    workers, each rendering a batch and then merging it, deliver one every delivery_seconds
+    even pass_slack slower than planned, and batches are no shorter than that allows."""
     pass_seconds, merge = 1.0, 3.0
-    slower = 1.0 + PASS_SLACK
-    spread = [i * DELIVERY_SECONDS / slower for i in range(1, workers)]  # the others due, spread
+    slower = 1.0 + config().pass_slack
+    spread = [i * config().delivery_seconds / slower for i in range(1, workers)]  # the others due, spread
     n = batch_passes(pass_seconds, merge, fold_seconds=5.0, workers=workers, others_due=spread)
-    assert (n * pass_seconds + merge) * slower / workers <= DELIVERY_SECONDS + 1e-9
-    assert ((n + 1) * pass_seconds + merge) * slower / workers > DELIVERY_SECONDS  # and no shorter than that
+    assert (n * pass_seconds + merge) * slower / workers <= config().delivery_seconds + 1e-9
+    assert ((n + 1) * pass_seconds + merge) * slower / workers > config().delivery_seconds  # and no shorter than that
 
 
 def test_a_pass_longer_than_the_refresh_still_makes_a_batch_of_one() -> None:
@@ -91,7 +79,7 @@ def test_the_last_passes_are_split_among_the_workers(workers: int, left: int) ->
     share of what is left, so the workers end together instead of one rendering the tail alone."""
     n = batch_passes(0.1, 0.0, workers=workers, passes_left=left)
     assert n == -(-left // workers)
-    assert batch_passes(0.1, 0.0, workers=workers, passes_left=1000) == round(BATCH_TARGET_SECONDS / 0.1)
+    assert batch_passes(0.1, 0.0, workers=workers, passes_left=1000) == round(config().batch_target_seconds / 0.1)
 
 
 def test_the_tail_is_rounded_to_the_earlier_end() -> None:
@@ -162,14 +150,14 @@ def test_many_workers_on_a_job_load_its_merge_path_the_same(workers: int) -> Non
     it (a 1920x1080 pass of 1.2 s, a merge of 0.3 s and a fold round of 2.4 s: 46 passes,
     whatever that takes in passes), and past some N the job's merges together, which come
     N / batch a second, would keep its merge path ever busier: batches then lengthen with N,
-    so the path is busy at most MERGE_PATH_SHARE of the time, and the image still changes
-    every REFRESH_SECONDS."""
+    so the path is busy at most merge_path_share of the time, and the image still changes
+    every refresh_seconds."""
     pass_seconds, merge, fold = 1.2, 0.3, 2.4
-    spread = [i * REFRESH_SECONDS / 2 for i in range(1, workers)]  # the others' deliveries, spread
+    spread = [i * config().refresh_seconds / 2 for i in range(1, workers)]  # the others' deliveries, spread
     batch = batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers, others_due=spread) * pass_seconds
-    assert batch >= (merge + fold) / MERGE_SHARE - pass_seconds / 2
-    assert workers / (batch + merge) * merge <= MERGE_PATH_SHARE * 1.01
-    assert (batch + merge) / workers <= REFRESH_SECONDS
+    assert batch >= (merge + fold) / config().merge_share - pass_seconds / 2
+    assert workers / (batch + merge) * merge <= config().merge_path_share * 1.01
+    assert (batch + merge) / workers <= config().refresh_seconds
 
 
 class Delivery(NamedTuple):
@@ -212,13 +200,13 @@ def _deliveries(workers: int, pass_seconds: float, merge: float, fold: float, ho
                                                        (2.9, 2.0, 7.0)])
 def test_workers_that_start_together_deliver_spread_over_the_refresh(workers: int, pass_seconds: float,
                                                                      merge: float, fold: float) -> None:
-    """The job's deliveries are at most DELIVERY_SECONDS apart (workers that start together
+    """The job's deliveries are at most delivery_seconds apart (workers that start together
     would otherwise deliver together, a refresh of workers times the interval), and its
     batches stay about as long as with the others' deliveries evenly spread (the merge share)."""
     deliveries, sizes = _deliveries(workers, pass_seconds, merge, fold)
     gaps = np.diff([0.0] + [d.delivered for d in deliveries])
-    assert gaps.max() <= DELIVERY_SECONDS + 1e-9, gaps.max()
-    spread = [i * REFRESH_SECONDS for i in range(1, workers)]
+    assert gaps.max() <= config().delivery_seconds + 1e-9, gaps.max()
+    spread = [i * config().refresh_seconds for i in range(1, workers)]
     assert np.mean(sizes[workers:]) >= 0.7 * batch_passes(pass_seconds, merge, fold_seconds=fold, workers=workers,
                                                           others_due=spread)
 
@@ -226,14 +214,14 @@ def test_workers_that_start_together_deliver_spread_over_the_refresh(workers: in
 @pytest.mark.parametrize("fold", [0.05, 0.4, 2.6, 7.0])
 def test_fold_rounds_end_within_the_refresh_of_each_other(fold: float) -> None:
     """A round starts at the folder's first look after fold_interval and takes `fold`."""
-    assert fold_interval(fold) + FOLD_POLL_SECONDS + fold <= REFRESH_SECONDS
+    assert fold_interval(fold) + config().fold_poll_seconds + fold <= config().refresh_seconds
 
 
 def test_a_round_longer_than_the_last_still_ends_within_the_refresh() -> None:
     """A big frame's rounds: a fixed part and a part per new batch, 1 to 5 batches a round,
     each within 15% of that (the machine's load). Started at the folder's last look after
     fold_interval with the length round_seconds expects from the rounds before, at most 5%
-    of them end later than REFRESH_SECONDS after the last (about 3% expected); with the last
+    of them end later than refresh_seconds after the last (about 3% expected); with the last
     round's length in its place, a round that takes in more batches than the last ends late
     (about half of them)."""
     rng = np.random.default_rng(7)
@@ -242,11 +230,11 @@ def test_a_round_longer_than_the_last_still_ends_within_the_refresh() -> None:
     for _ in range(500):
         batches = int(rng.integers(1, 6))
         seconds = (1.5 + 0.8 * batches) * rng.uniform(0.85, 1.15)
-        if len(rounds) >= ROUNDS_KEPT:
+        if len(rounds) >= config().rounds_kept:
             last, timed = rounds[-1][1], timed + 1
-            expected = round_seconds(rounds[-ROUNDS_KEPT:], batches)
-            late += fold_interval(last, expected) + FOLD_POLL_SECONDS + seconds > REFRESH_SECONDS
-            late_by_last += fold_interval(last) + FOLD_POLL_SECONDS + seconds > REFRESH_SECONDS
+            expected = round_seconds(rounds[-config().rounds_kept:], batches)
+            late += fold_interval(last, expected) + config().fold_poll_seconds + seconds > config().refresh_seconds
+            late_by_last += fold_interval(last) + config().fold_poll_seconds + seconds > config().refresh_seconds
         rounds.append((batches, seconds))
     assert late <= 0.05 * timed, late
     assert late_by_last >= 0.3 * timed, late_by_last
@@ -265,19 +253,20 @@ def test_the_expected_round_follows_its_batches() -> None:
 def test_a_rebuilt_round_does_not_set_the_next_rounds_start() -> None:
     """A round that rebuilt the state from the tiles (a 3840 x 2160 job's first: 8.2 s, then
     rounds of 1.6 s) is left out of the expected length: the next rounds still start so as
-    to end about DELIVERY_SECONDS after the last, not at once (with it in the fit, and its
-    margin, a round was expected to take 14 s and started FOLD_SECONDS after the last)."""
+    to end about delivery_seconds after the last, not at once (with it in the fit, and its
+    margin, a round was expected to take 14 s and started fold_seconds after the last)."""
     rounds = [Round(1, 8.2, True), Round(1, 1.6), Round(2, 2.1), Round(1, 1.7)]
     expected = round_seconds(rounds, 1)
     assert expected == pytest.approx(round_seconds(rounds[1:], 1)) and expected < 2.5
-    assert fold_interval(rounds[-1].seconds, expected) > DELIVERY_SECONDS - 2.5
-    assert fold_interval(1.7, round_seconds([(b, t) for b, t, _ in rounds], 1)) == FOLD_SECONDS  # the fit with it
+    assert fold_interval(rounds[-1].seconds, expected) > config().delivery_seconds - 2.5
+    fit = round_seconds([(b, t) for b, t, _ in rounds], 1)  # the fit with it
+    assert fold_interval(1.7, fit) == config().fold_seconds
     assert round_seconds([Round(1, 8.2, True)], 1) is None  # the last round's length stands in (fold_interval)
 
 
 def test_a_round_takes_every_waiting_batch_unless_the_next_delivery_is_far() -> None:
     """paced_batches: one waiting batch, or nothing in flight: all of them; a delivery due
-    already or soon enough for the image to change within DELIVERY_SECONDS: all but one (it
+    already or soon enough for the image to change within delivery_seconds: all but one (it
     may come late); a far delivery: an even share over the rounds that fit before it, at
     least one."""
     assert paced_batches(1, 60.0, 3.0) == 1
@@ -285,28 +274,28 @@ def test_a_round_takes_every_waiting_batch_unless_the_next_delivery_is_far() -> 
     assert paced_batches(2, None, 3.0) == 2
     assert paced_batches(2, -4.0, 3.0) == 1
     assert paced_batches(100, 0.2, 3.0) == 99  # many workers: deliveries come all the time
-    assert paced_batches(3, DELIVERY_SECONDS - 3.0, 3.0) == 2
+    assert paced_batches(3, config().delivery_seconds - 3.0, 3.0) == 2
     assert paced_batches(2, 15.0, 3.0) == 1
     assert paced_batches(5, 15.0, 3.0) == 3  # 2 rounds fit: 3, then 2
     assert paced_batches(3, 100.0, 3.0) == 1
 
 
 def _image_gaps(deliveries: list[Delivery], round_length: float, paced: bool) -> np.ndarray:
-    """The folder's loop against a job's batches: it looks every FOLD_POLL_SECONDS and starts
+    """The folder's loop against a job's batches: it looks every fold_poll_seconds and starts
     a round once fold_interval has passed since the last one ended and a batch waits, told
     when the next batch in flight is due (paced_batches); the round takes `round_length` and
     the image changes at its end. Returns the intervals between image changes."""
     end = max(d.delivered for d in deliveries)
     waiting, images, free_at, t = 0, [], -np.inf, 0.0
     while t < end:
-        waiting += sum(1 for d in deliveries if t - FOLD_POLL_SECONDS < d.delivered <= t)
+        waiting += sum(1 for d in deliveries if t - config().fold_poll_seconds < d.delivered <= t)
         if waiting and t >= free_at and (not images or t - images[-1] >= fold_interval(round_length, round_length)):
             next_due = min((d.due - t for d in deliveries if d.allocated <= t < d.delivered), default=None)
             take = paced_batches(waiting, next_due, round_length) if paced else waiting
             waiting -= take
             images.append(t + round_length)
             free_at = images[-1]
-        t += FOLD_POLL_SECONDS
+        t += config().fold_poll_seconds
     return np.diff(images)
 
 
@@ -321,9 +310,9 @@ def _in_step(cycle: float, workers: int = 2, apart: float = 0.05, cycles: int = 
 def test_paced_rounds_refresh_the_image_of_workers_in_step(cycle: float) -> None:
     """Two workers in step, a batch each every 12-19 s (a 3840x2160 pass on one core and its
     push), rounds of 3 s: taking in both batches at once leaves the image unchanged for the
-    whole cycle; paced, it changes at most REFRESH_SECONDS apart."""
-    assert _image_gaps(_in_step(cycle), 3.0, paced=False).max() >= cycle - FOLD_POLL_SECONDS
-    assert _image_gaps(_in_step(cycle), 3.0, paced=True).max() <= REFRESH_SECONDS
+    whole cycle; paced, it changes at most refresh_seconds apart."""
+    assert _image_gaps(_in_step(cycle), 3.0, paced=False).max() >= cycle - config().fold_poll_seconds
+    assert _image_gaps(_in_step(cycle), 3.0, paced=True).max() <= config().refresh_seconds
 
 
 @pytest.mark.parametrize("workers", [2, 3])
@@ -332,13 +321,13 @@ def test_paced_rounds_refresh_the_image_of_workers_in_step(cycle: float) -> None
 def test_the_image_refreshes_while_every_batch_runs_slower_than_planned(workers: int, pass_seconds: float,
                                                                          merge: float, fold: float) -> None:
     """Workers that start together and whose batches, sized at the recent pace, all take
-    PASS_SLACK longer than planned (an append-only-file rewrite on their cores: 40-45% at
+    pass_slack longer than planned (an append-only-file rewrite on their cores: 40-45% at
     3840x2160, 7.3 s a pass, a merge of 1.5-2 s): the folder's paced rounds still change the
-    image every REFRESH_SECONDS. Batches sized to deliver exactly DELIVERY_SECONDS apart
+    image every refresh_seconds. Batches sized to deliver exactly delivery_seconds apart
     (two 4K passes each on two workers) left it unchanged for 11-13 s here, and so did
     rounds that folded every waiting batch with a delivery in flight (12.5-13 s)."""
-    deliveries, _ = _deliveries(workers, pass_seconds, merge, fold, slower=1.0 + PASS_SLACK)
-    assert _image_gaps(deliveries, fold, paced=True).max() <= REFRESH_SECONDS
+    deliveries, _ = _deliveries(workers, pass_seconds, merge, fold, slower=1.0 + config().pass_slack)
+    assert _image_gaps(deliveries, fold, paced=True).max() <= config().refresh_seconds
 
 
 def test_pacing_leaves_a_busy_job_alone() -> None:
@@ -363,7 +352,7 @@ def test_a_checkpoint_writes_a_part_of_the_state_each_round_and_keeps_the_pendin
         assert len(set(chosen)) == len(chosen)
         for k in chosen:
             pending[k], last_written[k] = 0, r
-        assert sum(pending.values()) <= CHECKPOINT_PENDING_SHARE * state * tiles
+        assert sum(pending.values()) <= config().checkpoint_pending_share * state * tiles
         assert all(r - last_written[k] <= 4 for k in range(tiles) if r > 4)
         written_per_round.append(len(chosen))
     steady = written_per_round[4:]
@@ -373,7 +362,7 @@ def test_a_checkpoint_writes_a_part_of_the_state_each_round_and_keeps_the_pendin
 def test_every_tile_with_a_pending_delta_is_written_once_a_batch_waited_too_long() -> None:
     pending, state_bytes = {0: 5, 1: 0, 2: 7}, {0: 100, 1: 100, 2: 100}
     assert checkpoint_tiles(0.0, pending, state_bytes) == []  # within the share
-    assert sorted(checkpoint_tiles(CHECKPOINT_SECONDS, pending, state_bytes)) == [0, 2]
+    assert sorted(checkpoint_tiles(config().checkpoint_seconds, pending, state_bytes)) == [0, 2]
 
 
 @pytest.mark.parametrize("fold_seconds, fold_cost", [(0.05, 0.08), (0.5, 1.0), (1.8, 4.0), (3.5, 6.0)])
@@ -387,22 +376,23 @@ def test_a_worker_takes_the_api_to_be_behind_only_after_the_image_it_plans(fold_
     for expected in np.linspace(0.1 * fold_cost, fold_cost, 7):
         longest = fold_seconds + fold_interval(fold_cost, expected) + expected
         assert image_due(fold_seconds, fold_cost) >= longest - 1e-9
-    assert image_due(fold_seconds, fold_cost) <= fold_seconds + max(FOLD_SECONDS + fold_cost, DELIVERY_SECONDS)
+    c = config()
+    assert image_due(fold_seconds, fold_cost) <= fold_seconds + max(c.fold_seconds + fold_cost, c.delivery_seconds)
     if fold_cost >= 4.0:  # 3840x2160: the old bound, stale-fold slack included, fell short of a paced round's image
-        assert fold_interval(fold_cost) + FOLD_STALE_SECONDS < \
+        assert fold_interval(fold_cost) + config().fold_stale_seconds < \
             fold_seconds + fold_interval(fold_cost, 0.5 * fold_cost) + 0.5 * fold_cost
 
 
 def test_a_round_writes_past_the_next_rounds_start_only_what_memory_asks() -> None:
     """checkpoint_required: the first of a round's tiles, in its order, that bring the pending
-    deltas within CHECKPOINT_HELD_SHARE of the state's bytes (none when they are); the rest
-    of its writes end when the next round must start for its image to come DELIVERY_SECONDS
+    deltas within checkpoint_held_share of the state's bytes (none when they are); the rest
+    of its writes end when the next round must start for its image to come delivery_seconds
     after this one's (checkpoint_seconds, as fold_interval)."""
     state = {k: 100 for k in range(4)}
-    cap = CHECKPOINT_HELD_SHARE * 400
+    cap = config().checkpoint_held_share * 400
     assert checkpoint_required([3, 1, 0, 2], {k: cap / 4 for k in range(4)}, state) == []
     over = {0: cap / 2, 1: cap / 2, 2: cap / 4, 3: cap / 4}  # 1.5 times the cap
     assert checkpoint_required([2, 0, 1, 3], over, state) == [2, 0]
     assert checkpoint_required([0, 2, 1, 3], over, state) == [0]
-    assert checkpoint_seconds(2.0) == fold_interval(30.0, 2.0) == DELIVERY_SECONDS - 2.0
+    assert checkpoint_seconds(2.0) == fold_interval(30.0, 2.0) == config().delivery_seconds - 2.0
     assert checkpoint_seconds(20.0) == 0.0

@@ -7,7 +7,7 @@ lost batches back. Real redis-servers (the embedded default), restarted by SIGKI
 from __future__ import annotations
 
 import pickle
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -15,9 +15,10 @@ import pytest
 from service.redis_server import EmbeddedRedis
 from tests.embedded_redis import redis_servers, restart
 from tests.helpers import SHARDS, assert_folded_once, caustics_job, merge_new, sharded_store
+from worker.config import Config
 from worker.integrators.base import Delta
 from worker.scheduler import reap
-from worker.store import Batch, Jobs, keys, policy
+from worker.store import Batch, Jobs, keys
 from worker.store.policy import Status
 
 RESTARTED = 1  # the state node restarted (server 1 + RESTARTED)
@@ -73,8 +74,8 @@ def test_deltas_a_restart_lost_are_rendered_again_and_fold_once(servers: list[Em
 
 
 def test_a_jobs_end_waits_for_its_lost_batches(servers: list[EmbeddedRedis], deltas: tuple,
-                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.2)  # no API: the worker ends the job
+                                               tune: Callable[..., Config]) -> None:
+    tune(end_handoff_seconds=0.2)  # no API: the worker ends the job
     store, job_id, made, lost = _lose_deltas_of(servers, deltas, pending=1, max_passes=8)
     last = pickle.loads(deltas[0].read_bytes())[3]
     merge_new(store, job_id, last)  # the budget's last batch: its end's round finds batch 2 lost

@@ -1,5 +1,6 @@
-"""The generated reference stays true to the code: every PHOTONFARM_* variable the code
-reads is declared in worker/environment.py and every declared one is read, the
+"""The generated reference stays true to the code: every PHOTONFARM_* and REDIS_* variable
+the code, the deployment files and the docs name is declared in worker/config.py, every
+declared one is read through the configuration and no module reads one itself, the
 settings table the docs hook builds names every Settings field with its default, and the
 job notes' cap is in the limits table and the job view's reference."""
 
@@ -11,13 +12,18 @@ import re
 from pathlib import Path
 from types import ModuleType
 
-from worker.environment import VARIABLES
+from worker.config import FILE_SUFFIX, VARIABLES
 from worker.settings import Settings
 from worker.store.record import MAX_JOB_NOTES, MAX_NOTE_CHARS
 
 ROOT = Path(__file__).resolve().parent.parent
-NAME = re.compile(r"PHOTONFARM_[A-Z_]+")
+NAME = re.compile(r"\b(?:PHOTONFARM|REDIS)_[A-Z_]+")
 HOOK = ROOT / "docs" / "hooks" / "reference.py"
+DECLARATION = ROOT / "worker" / "config.py"
+CODE = [p for d in ("worker", "service", "kernels") for p in (ROOT / d).rglob("*.py") if p != DECLARATION]
+# A variable read other than through the configuration: os.environ[...], .get(...), getenv(...).
+DIRECT_READ = re.compile(r"(?:environ\s*(?:\[|\.get\()|getenv\()\s*[\"']((?:PHOTONFARM|REDIS)_[A-Z_]+)")
+NOT_OURS = {"REDIS_PASSWORD"}  # the compose Redis's own password variable (docker-compose.yml)
 
 
 def _hook() -> ModuleType:
@@ -29,35 +35,34 @@ def _hook() -> ModuleType:
     return module
 
 
-def _used_names() -> dict[str, list[str]]:
-    """Every PHOTONFARM_* name in the code, with the files it appears in (the declaration excluded)."""
-    files = [p for d in ("worker", "service", "kernels") for p in (ROOT / d).rglob("*.py")]
-    files.append(ROOT / "docker-compose.yml")
-    used: dict[str, list[str]] = {}
+def _named() -> dict[str, list[str]]:
+    """Every variable name in the code, the deployment files and the docs, with where it appears."""
+    files = [*CODE, ROOT / "docker-compose.yml", ROOT / "Dockerfile", *(ROOT / "docs").glob("*.md")]
+    named: dict[str, list[str]] = {}
     for path in files:
-        if path == ROOT / "worker" / "environment.py":
-            continue
         for name in set(NAME.findall(path.read_text())):
-            used.setdefault(name, []).append(str(path.relative_to(ROOT)))
-    return used
+            named.setdefault(name, []).append(str(path.relative_to(ROOT)))
+    return named
 
 
-def test_every_environment_variable_is_declared_and_used() -> None:
-    declared = {v.name for v in VARIABLES}
-    used = _used_names()
-    assert len(declared) == len(VARIABLES), "a variable is declared twice"
-    missing = {name: where for name, where in used.items() if name not in declared}
-    assert not missing, f"read by the code but not declared in worker/environment.py: {missing}"
-    unused = declared - used.keys()
-    assert not unused, f"declared in worker/environment.py but no longer in the code: {sorted(unused)}"
+def test_every_environment_variable_is_declared_and_read_through_the_configuration() -> None:
+    declared = {v.name for v in VARIABLES} | {v.name + FILE_SUFFIX for v in VARIABLES if v.secret}
+    assert len({v.name for v in VARIABLES}) == len(VARIABLES), "a variable is declared twice"
+    missing = {name: where for name, where in _named().items() if name not in declared | NOT_OURS}
+    assert not missing, f"named but not declared in worker/config.py: {missing}"
+    code = "\n".join(p.read_text() for p in [*CODE, DECLARATION])  # the declaration's derived properties too
+    unread = [v.field for v in VARIABLES if not re.search(rf"\.{v.field}\b", code)]
+    assert not unread, f"fields of Config nothing reads: {unread}"
+    direct = {str(p.relative_to(ROOT)): DIRECT_READ.findall(p.read_text()) for p in CODE}
+    assert not {p: names for p, names in direct.items() if names}, "read from the environment, not config()"
 
 
 def test_environment_table_lists_every_variable_with_its_default() -> None:
     table = _hook().environment_table()
     for v in VARIABLES:
-        row = next((line for line in table.splitlines() if line.startswith(f"| `{v.name}` |")), None)
+        row = next((line for line in table.splitlines() if line.startswith(f"| `{v.name}`")), None)
         assert row is not None, f"{v.name} missing from the environment table"
-        assert (f"`{v.default}`" if v.default is not None else "unset") in row
+        assert _hook().shown_default(v.default) in row
 
 
 def test_settings_table_lists_every_field_with_its_default() -> None:

@@ -16,7 +16,7 @@ import signal
 import threading
 import time
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,11 +27,11 @@ from service.redis_server import EmbeddedRedis
 from tests.embedded_redis import redis_servers
 from tests.helpers import BATCHES, SHARDS, assert_folded_once, caustics_job, merge_new, sharded_store
 from worker import stats
+from worker.config import Config, config, use
 from worker.integrators import integrator_for
 from worker.integrators.base import Delta, State
 from worker.store import Batch, Jobs, keys, policy
 from worker.store import overlay as overlay_module
-from worker.store import record as record_module
 from worker.store import state as state_module
 from worker.store.policy import Status
 from worker.store.state import TiledState
@@ -155,7 +155,8 @@ def _fold_then_die(urls: list[str], job_id: str, tiles_before_kill: int, checkpo
             return real(*args)
 
         state_module.encode_inputs = encode_inputs
-    policy.CHECKPOINT_PENDING_SHARE = float("inf")  # a round in memory unless told to checkpoint
+    # a round in memory unless told to checkpoint
+    use(dataclasses.replace(config(), checkpoint_pending_share=float("inf")))
     sharded_store(urls).fold(job_id, checkpoint=checkpoint)
 
 
@@ -244,29 +245,29 @@ def _merge_and_checkpoint(urls: list[str], job_id: str, deltas_file: str, i: int
 
 
 def test_an_overlay_checkpoints_when_old_or_holding_too_many_deltas(servers: list[EmbeddedRedis], deltas: tuple,
-                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                    tune: Callable[..., Config]) -> None:
     """policy.checkpoint_due: by the overlay's age and by the bytes of the deltas it keeps
     pending on the tiles, at the next round with a new batch (none runs for a checkpoint
     alone)."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
     merge_new(store, job_id, made[0])
     assert not store.fold(job_id).checkpointed
-    monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 0.0)
+    tune(checkpoint_seconds=0.0)
     assert store.fold(job_id) is None  # due, but nothing new to show
     merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed
     assert store.get(job_id).folded_passes == made[0].n_passes + made[1].n_passes
     assert not store.r.exists(keys.tofold(job_id))
-    monkeypatch.setattr(policy, "CHECKPOINT_SECONDS", 3600.0)
-    monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # any delta kept pending is too much
+    tune(checkpoint_seconds=3600.0, checkpoint_pending_share=1e-9)  # any delta kept pending is too much
     merge_new(store, job_id, made[2])
     assert store.fold(job_id).checkpointed
     assert_folded_once(store, job_id, made)
 
 
 def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: list[EmbeddedRedis], deltas: tuple,
-                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                        monkeypatch: pytest.MonkeyPatch,
+                                                                        tune: Callable[..., Config]) -> None:
     """The long part of a big frame's round, the checkpoint, comes after the image: the
     record already names the round's passes, and this process's readers keep the overlay
     while the tiles' versions move (never a mix of written and unwritten tiles with the
@@ -285,7 +286,7 @@ def test_a_checkpoint_round_shows_its_image_before_it_writes_the_state(servers: 
         return real(arrays, names, span)
 
     monkeypatch.setattr(state_module, "encode_state", encode_state)
-    monkeypatch.setattr(policy, "CHECKPOINT_PENDING_SHARE", 1e-9)  # this round checkpoints
+    tune(checkpoint_pending_share=1e-9)  # this round checkpoints
     merge_new(store, job_id, made[1])
     folded = store.fold(job_id)
     assert folded is not None and folded.checkpointed
@@ -603,14 +604,14 @@ def test_a_batch_reads_every_tiles_inputs_from_one_round(servers: list[EmbeddedR
 
 
 def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis], deltas: tuple,
-                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+                                                     tune: Callable[..., Config]) -> None:
     """Jobs.fold_if_stale, a worker's fold after its merge: only when accepted passes have
-    waited for the image past the fold interval and FOLD_STALE_SECONDS (not merely because
+    waited for the image past the fold interval and fold_stale_seconds (not merely because
     the last round was long ago), and then as a checkpoint (a worker keeps no overlay)."""
     store, job_id, made = _fresh_job(servers, deltas, 3)
     merge_new(store, job_id, made[0])
     assert store.fold_if_stale(job_id) is None  # it has just been accepted
-    monkeypatch.setattr(record_module, "FOLD_STALE_SECONDS", -1e6)  # any wait is too long
+    tune(fold_stale_seconds=-1e6)  # any wait is too long
     folded = store.fold_if_stale(job_id)
     assert folded is not None and folded.checkpointed
     record = store.get(job_id)
@@ -653,18 +654,18 @@ def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedR
 
 
 def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: list[EmbeddedRedis], deltas: tuple,
-                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                      tune: Callable[..., Config]) -> None:
     """The batch that spends the budget leaves the final round to the API's folder, which
     holds the image in memory (one delta to add, then the checkpoint): its merge returns as
     soon as the folder has begun, and the job ends with every pass folded once. With no
-    folder running, the worker ends the job itself after END_HANDOFF_SECONDS."""
+    folder running, the worker ends the job itself after end_handoff_seconds."""
     from worker.scheduler import fold_active
 
     made = pickle.loads(deltas[0].read_bytes())[:3]
     store = sharded_store([s.url for s in servers])
     budget = sum(d.n_passes for d in made)
     # With the API's folder: the merge does not wait out the hand-off.
-    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 60.0)
+    tune(end_handoff_seconds=60.0)
     job_id = caustics_job(store, *deltas[1:], max_passes=budget)
     stop = threading.Event()
 
@@ -688,7 +689,7 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
     assert store.status(job_id) == Status.COMPLETED
     assert_folded_once(store, job_id, made)
     # Without: the worker ends it.
-    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.2)
+    tune(end_handoff_seconds=0.2)
     job_id = caustics_job(store, *deltas[1:], max_passes=budget)
     for d in made:
         merge_new(store, job_id, d)
@@ -697,10 +698,10 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
 
 
 def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[EmbeddedRedis], deltas: tuple,
-                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+                                                               tune: Callable[..., Config]) -> None:
     """The API's folder may be in a round of the job (its checkpoint writes) when the batch
     that ends the job is accepted. While a folder holds the job's fold lease, the worker
-    does not begin the end itself after END_HANDOFF_SECONDS (it would wait for the lease,
+    does not begin the end itself after end_handoff_seconds (it would wait for the lease,
     then rebuild the state the folder holds in memory): the folder ends the job once its
     round is done, and every pass is folded once."""
     from worker.scheduler import fold_active
@@ -708,7 +709,7 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
 
     made = pickle.loads(deltas[0].read_bytes())[:2]
     store = sharded_store([s.url for s in servers])
-    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 0.3)
+    tune(end_handoff_seconds=0.3)
     job_id = caustics_job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
     merge_new(store, job_id, made[0])
     held, done = threading.Event(), threading.Event()
@@ -739,7 +740,7 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
 
 
 def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], deltas: tuple,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+                                                  tune: Callable[..., Config]) -> None:
     """The batch that ends a job is news (keys.FOLD_NEWS): a folder waiting on it
     (Jobs.wait_for_news, the API's folder thread) starts the final round at once, however
     long it would otherwise wait between looks (here 30 s), and the merge returns as soon
@@ -749,7 +750,7 @@ def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], 
     made = pickle.loads(deltas[0].read_bytes())[:2]
     store = sharded_store([s.url for s in servers])
     store.r.delete(keys.FOLD_NEWS)
-    monkeypatch.setattr(policy, "END_HANDOFF_SECONDS", 60.0)
+    tune(end_handoff_seconds=60.0)
     job_id = caustics_job(store, *deltas[1:], max_passes=sum(d.n_passes for d in made))
     merge_new(store, job_id, made[0])
     assert not store.r.exists(keys.FOLD_NEWS)  # a batch that does not end the job is no news

@@ -8,11 +8,11 @@ import time
 
 import redis
 
+from worker.config import config
 from worker.integrators.base import Delta
 from worker.scene import bundled_scene_path, inline_meshes, load_scene_file
 from worker.settings import Settings
 from worker.store import Batch, Jobs, Leases, Status, keys
-from worker.store.policy import DELIVERY_SECONDS
 
 P = 1 << 12
 
@@ -62,7 +62,7 @@ def test_batches_of_an_unknown_job_are_not_rendered(redis_url: str) -> None:
 
 def test_batches_allocated_together_are_due_one_refresh_after_another(redis_url: str) -> None:
     """Each allocation records when its batch is due; the next one, told, ends at most
-    DELIVERY_SECONDS after it (policy.batch_passes), not together with it. A merged or
+    delivery_seconds after it (policy.batch_passes), not together with it. A merged or
     dropped batch is no longer due."""
     conn = redis.Redis.from_url(redis_url)
     parsed, base = load_scene_file(bundled_scene_path("furnace"))
@@ -75,8 +75,8 @@ def test_batches_allocated_together_are_due_one_refresh_after_another(redis_url:
     assert first is not None and second is not None
     due = dict(conn.zrange(keys.due(job_id), 0, -1, withscores=True))
     at_first, at_second = due[first.id.encode()], due[second.id.encode()]
-    assert at_first - time.time() <= DELIVERY_SECONDS
-    assert 0.0 < at_second - at_first <= DELIVERY_SECONDS + 0.5
+    assert at_first - time.time() <= config().delivery_seconds
+    assert 0.0 < at_second - at_first <= config().delivery_seconds + 0.5
     assert second.n > first.n  # longer: its delivery falls between the first worker's
     jobs.drop(first)
     assert conn.zrange(keys.due(job_id), 0, -1) == [second.id.encode()]

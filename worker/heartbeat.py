@@ -1,4 +1,4 @@
-"""A worker process's heartbeat: a thread that, every LEASE_SECONDS / 3, says the process
+"""A worker process's heartbeat: a thread that, every lease_seconds / 3, says the process
 is alive and extends the lease of the batch it is rendering.
 
 Beating from a thread, not between passes, lets a single pass take longer than a lease
@@ -20,8 +20,8 @@ from contextlib import contextmanager
 
 import redis
 
+from worker.config import config
 from worker.store import Batch, Leases
-from worker.store.policy import LEASE_SECONDS
 
 log = logging.getLogger("photonfarm.worker")
 _current: Heartbeat | None = None  # this process's heartbeat, if it runs one
@@ -29,10 +29,10 @@ OUTAGE_LOG_SECONDS = 60.0  # while Redis stays away, a warning at most this ofte
 
 
 class Heartbeat:
-    def __init__(self, leases: Leases, worker: str, interval: float = LEASE_SECONDS / 3) -> None:
+    def __init__(self, leases: Leases, worker: str, interval: float | None = None) -> None:
         self.leases = leases
         self.worker = worker
-        self.interval = interval
+        self.interval = config().lease_seconds / 3 if interval is None else interval
         self.batch: Batch | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)

@@ -13,24 +13,33 @@ API on a machine of its own with more cores and memory channels may set more thr
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
+from functools import cache
 from typing import TypeVar
+
+from worker.config import config
 
 T = TypeVar("T")
 R = TypeVar("R")
 
-HOST_THREADS = max(1, int(os.environ.get("PHOTONFARM_HOST_THREADS", "1")))
 _PREFIX = "photonfarm-host"
-_POOL = ThreadPoolExecutor(HOST_THREADS, thread_name_prefix=_PREFIX)
+
+
+def threads() -> int:
+    return max(1, config().host_threads)
+
+
+@cache
+def _pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads(), thread_name_prefix=_PREFIX)
 
 
 def each(work: Callable[[T], R], pieces: Iterable[T]) -> list[R]:
     """`work(piece)` for every piece, on the host threads; the results in order. Called from
     a host thread itself, it runs them there (a piece never waits on the pool)."""
     pieces = list(pieces)
-    if HOST_THREADS == 1 or len(pieces) < 2 or threading.current_thread().name.startswith(_PREFIX):
+    if threads() == 1 or len(pieces) < 2 or threading.current_thread().name.startswith(_PREFIX):
         return [work(p) for p in pieces]
-    return list(_POOL.map(work, pieces))
+    return list(_pool().map(work, pieces))

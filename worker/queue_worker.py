@@ -40,6 +40,7 @@ from rq import Queue, SimpleWorker
 from rq.job import Job
 from rq.serializers import JSONSerializer
 
+from worker.config import config
 from worker.heartbeat import Heartbeat
 from worker.logs import configure_logging
 from worker.scheduler import QUEUE_NAMES
@@ -48,7 +49,6 @@ from worker.store.connection import connect
 
 log = logging.getLogger("photonfarm.worker")
 TASKS = ("worker.tasks.run_batch",)  # the only functions a queued job may name
-NICE = int(os.environ.get("PHOTONFARM_WORKER_NICE", "10"))  # added to the worker process's niceness
 RETRY_MAX_SECONDS = 8.0  # the longest wait between attempts to reach Redis (and so to resume after it)
 BURST_PATIENCE_SECONDS = 20.0  # a --burst worker gives up once Redis has been out of reach this long
 
@@ -104,7 +104,7 @@ def _handle_stop_signals() -> None:
 
 def run_worker(redis_url: str, burst: bool = False) -> int:
     configure_logging()
-    os.nice(NICE)  # before any thread starts: the heartbeat and PoCL's threads inherit it
+    os.nice(config().worker_nice)  # before any thread starts: the heartbeat and PoCL's threads inherit it
     conn = connect(redis_url)
     _handle_stop_signals()
     unreachable_since: float | None = None  # when Redis was first out of reach, this time

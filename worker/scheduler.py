@@ -26,10 +26,11 @@ from rq.exceptions import NoSuchJobError
 from rq.job import Job, JobStatus
 from rq.serializers import JSONSerializer
 
+from worker.config import config
 from worker.settings import PRIORITIES, Priority
 from worker.store import Batch, Jobs, Status
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import ACTIVE, FOLD_POLL_SECONDS, FOLD_WAIT_MIN_SECONDS, MAX_INFLIGHT_PER_JOB
+from worker.store.policy import ACTIVE
 
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
@@ -53,8 +54,8 @@ def enqueue(jobs: Jobs, batch: Batch, priority: Priority) -> None:
 
 def target_inflight(jobs: Jobs) -> int:
     """Batches a job keeps in flight: one per live worker (dead registrations count for
-    nothing), within MAX_INFLIGHT_PER_JOB."""
-    return max(1, min(MAX_INFLIGHT_PER_JOB, jobs.leases.live_workers()))
+    nothing), within max_inflight_per_job."""
+    return max(1, min(config().max_inflight_per_job, jobs.leases.live_workers()))
 
 
 def feed(jobs: Jobs, job_id: str, pass_seconds: float | None = None) -> int:
@@ -147,11 +148,11 @@ def fold_active(jobs: Jobs) -> int:
 def next_look_in(jobs: Jobs) -> float:
     """How long the folder waits (for news) before its next look: until the first round of
     an active job is due, so that a paced round starts when due rather than up to a look
-    later; at most FOLD_POLL_SECONDS (a batch accepted
-    meanwhile may make a round due) and at least FOLD_WAIT_MIN_SECONDS (a due round another
+    later; at most fold_poll_seconds (a batch accepted
+    meanwhile may make a round due) and at least fold_wait_min_seconds (a due round another
     process holds the lease for is not polled for in a spin)."""
     due = [d for job_id in jobs.active_ids() if (d := jobs.next_round_in(job_id)) is not None]
-    return max(FOLD_WAIT_MIN_SECONDS, min([FOLD_POLL_SECONDS, *due]))
+    return max(config().fold_wait_min_seconds, min([config().fold_poll_seconds, *due]))
 
 
 class Reaper:
@@ -172,10 +173,10 @@ class Reaper:
                 fold_active(self.jobs)
             except redis.RedisError as exc:
                 log.warning("folder: redis unavailable: %s", exc)
-                self._stop.wait(FOLD_POLL_SECONDS)
+                self._stop.wait(config().fold_poll_seconds)
             except Exception:  # the thread lives on: the next round may succeed
                 log.exception("folder: a pass over the jobs failed")
-                self._stop.wait(FOLD_POLL_SECONDS)
+                self._stop.wait(config().fold_poll_seconds)
 
     def _run(self) -> None:
         last_prune = 0.0

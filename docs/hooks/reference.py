@@ -3,7 +3,7 @@ benchmark charts.
 
 A page asks for a table with a marker line (`<!-- generated: NAME -->`, NAME one of
 GENERATORS); the marker is replaced by the table. The settings table comes from the
-`Settings` model (worker/settings.py), the environment table from worker/environment.py,
+`Settings` model (worker/settings.py), the environment table from worker/config.py,
 the limits from the constants that enforce them, the HTTP reference from the app's OpenAPI
 schema (service/app.py): the docs never retype them. tests/test_reference_docs.py checks
 these same functions against the code.
@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from worker.environment import VARIABLES
+from worker.config import FILE_SUFFIX, VARIABLES, Config
 from worker.scene import MAX_PIXELS, MAX_RESOLUTION
 from worker.settings import DEFAULT_MAX_SECONDS, Settings
 
@@ -103,13 +103,21 @@ def settings_table() -> str:
     return head + "\n".join(settings_rows().values()) + notes
 
 
+def shown_default(value: Any) -> str:
+    """A variable's default as the table shows it: its text in code style, or "unset"."""
+    if value is None or value == ():
+        return "unset"
+    return f"`{value:g}`" if isinstance(value, float) else f"`{value}`"
+
+
 def environment_table() -> str:
-    """Every PHOTONFARM_* variable: name, default, format, meaning, the module that reads it."""
-    head = "| variable | default | format | meaning | read by |\n|---|---|---|---|---|\n"
+    """Every variable of the configuration (worker/config.py): name, default, format, meaning;
+    a secret's `_FILE` form beside its name."""
+    head = "| variable | default | format | meaning |\n|---|---|---|---|\n"
     return head + "\n".join(
         "| " + " | ".join(_cell(c) for c in (
-            f"`{v.name}`", f"`{v.default}`" if v.default is not None else "unset", v.format, v.meaning,
-            ", ".join(f"`{m.strip()}`" for m in v.read_by.split(",")))) + " |"
+            f"`{v.name}`" + (f" or `{v.name}{FILE_SUFFIX}`" if v.secret else ""), shown_default(v.default),
+            v.format, v.meaning)) + " |"
         for v in VARIABLES)
 
 
@@ -118,7 +126,9 @@ def limits_table() -> str:
     from service import models, scene_loader, upload
     from worker import scene
     from worker.settings import MAX_PHOTONS_PER_PASS
-    from worker.store import policy, record, tiles
+    from worker.store import record
+
+    defaults = Config()
 
     rows = [
         ("request body", f"{models.MAX_BODY_BYTES // 2**20} MiB", "413", "bounds the API's memory per request",
@@ -142,7 +152,8 @@ def limits_table() -> str:
         ("mesh file name", f"at most {scene.MAX_PATH_CHARS} characters, inside the scene's folder", "422",
          "one file-system name, no escape from the root", "`worker/scene.py`"),
         ("scene upload, unpacked", f"{upload.MAX_UPLOAD_BYTES // 2**20} MiB, {upload.MAX_UPLOAD_FILES} entries",
-         "413", "counted as written: a zip bomb stops here", "`service/upload.py`"),
+         "413", "each member's declared size checked before it is read, the bytes counted as written: a zip or "
+         "tar bomb stops here, named", "`service/upload.py`"),
         ("upload names", f"{upload.MAX_NAME_CHARS:,} characters a path, {upload.MAX_PART_CHARS} a part", "422",
          "what file systems accept", "`service/upload.py`"),
         ("one scene load, in all", ", ".join(f"{v:,} {k.replace('_', ' ')}" for k, v in scene.LOAD_LIMITS.items()),
@@ -157,11 +168,11 @@ def limits_table() -> str:
          "the rest counted in a last line, \"... and N more\"; a longer note cut",
          "bounds the job record, which every poll of the job reads",
          "`worker/store/record.py`"),
-        ("batch lease", f"{policy.LEASE_SECONDS:g} s", "re-issue",
+        ("batch lease", f"{defaults.lease_seconds:g} s", "re-issue",
          "a batch whose worker stops beating is rendered again", "`PHOTONFARM_LEASE_SECONDS`"),
-        ("finished jobs kept", f"{policy.RETENTION_SECONDS / 86_400:g} days", "deleted",
+        ("finished jobs kept", f"{defaults.retention_seconds / 86_400:g} days", "deleted",
          "then deleted with their images", "`PHOTONFARM_RETENTION_SECONDS`"),
-        ("state tile", f"{tiles.TILE_PIXELS:,} pixels", "-", "the unit of push, fold and checkpoint",
+        ("state tile", f"{defaults.tile_pixels:,} pixels", "-", "the unit of push, fold and checkpoint",
          "`PHOTONFARM_TILE_PIXELS`"),
     ]
     head = "| what | limit | answer | why | set in |\n|---|---|---|---|---|\n"

@@ -2,7 +2,7 @@
 
 A batch is a range of pass indices [first, first + n) of one job. From its allocation
 until it is merged or dropped it is in the job's in-flight set and holds a lease: a
-deadline in `pf:leases`, QUEUED_SECONDS while it waits in a queue, LEASE_SECONDS once a
+deadline in `pf:leases`, queued_seconds while it waits in a queue, lease_seconds once a
 worker has taken it (renewed after every pass). The registry also records which worker
 owns it and which RQ job carries it, so the reaper (worker/scheduler.py) can tell a batch
 still waiting from one whose worker vanished.
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import redis
 
+from worker.config import config
 from worker.store import keys
 from worker.store.connection import Fields, text, text_hash
-from worker.store.policy import ALIVE_SECONDS, LEASE_SECONDS, QUEUED_SECONDS
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ class Leases:
         lease is lapsed at once and the reaper does (scheduler.reap)."""
         pipe.sadd(keys.inflight(batch.job_id), batch.id)
         pipe.zadd(keys.due(batch.job_id), {batch.id: due})
-        pipe.zadd(keys.LEASES, {batch.member: time.time() + (QUEUED_SECONDS if queued else 0.0)})
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + (config().queued_seconds if queued else 0.0)})
 
     @staticmethod
     def release(pipe: redis.client.Pipeline, batch: Batch) -> None:
@@ -101,12 +101,12 @@ class Leases:
     @staticmethod
     def take(pipe: redis.client.Pipeline, batch: Batch, worker: str) -> None:
         """Queue the commands that give `worker` the batch's lease (inside the starting transaction)."""
-        pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS})
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + config().lease_seconds})
         pipe.hset(keys.LEASE_OWNER, batch.member, worker)
 
     def renew(self, pipe: redis.client.Pipeline, batch: Batch, worker: str) -> None:
         """Queue a lease extension and a heartbeat (after every pass)."""
-        pipe.zadd(keys.LEASES, {batch.member: time.time() + LEASE_SECONDS}, xx=True)
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + config().lease_seconds}, xx=True)
         self._beat(pipe, worker, batch.job_id, batch.id, passes=1)
 
     def keep_alive(self, worker: str, batch: Batch | None) -> None:
@@ -116,10 +116,10 @@ class Leases:
         now = time.time()
         idle: Fields = {} if batch is not None else {"job": "", "batch": ""}  # an idle worker shows no job
         pipe.hset(keys.worker(worker), mapping={"last_seen": now, **idle})
-        pipe.expire(keys.worker(worker), int(ALIVE_SECONDS))
+        pipe.expire(keys.worker(worker), int(config().alive_seconds))
         pipe.zadd(keys.WORKER_SEEN, {worker: now})
         if batch is not None:
-            pipe.zadd(keys.LEASES, {batch.member: now + LEASE_SECONDS}, xx=True)
+            pipe.zadd(keys.LEASES, {batch.member: now + config().lease_seconds}, xx=True)
         pipe.execute()
 
     def expired(self, now: float | None = None) -> list[Batch]:
@@ -127,12 +127,12 @@ class Leases:
         return [Batch.parse(text(m)) for m in self.r.zrangebyscore(keys.LEASES, "-inf", now)]
 
     def extend_queued(self, batch: Batch) -> None:
-        self.r.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS}, xx=True)
+        self.r.zadd(keys.LEASES, {batch.member: time.time() + config().queued_seconds}, xx=True)
 
     def reissue(self, batch: Batch) -> None:
         """Give a lost batch a fresh deadline (the caller enqueues it again)."""
         pipe = self.r.pipeline()
-        pipe.zadd(keys.LEASES, {batch.member: time.time() + QUEUED_SECONDS})
+        pipe.zadd(keys.LEASES, {batch.member: time.time() + config().queued_seconds})
         pipe.hdel(keys.LEASE_OWNER, batch.member)
         pipe.execute()
 
@@ -156,16 +156,16 @@ class Leases:
         now = time.time()
         pipe.hset(key, mapping={"job": job, "batch": batch, "last_seen": now})
         pipe.hincrby(key, "passes", passes)
-        pipe.expire(key, int(ALIVE_SECONDS))
+        pipe.expire(key, int(config().alive_seconds))
         pipe.zadd(keys.WORKER_SEEN, {worker: now})
 
     def live_workers(self) -> int:
-        """Workers heard from within ALIVE_SECONDS: the capacity batches are issued for."""
-        return self.r.zcount(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")
+        """Workers heard from within alive_seconds: the capacity batches are issued for."""
+        return self.r.zcount(keys.WORKER_SEEN, time.time() - config().alive_seconds, "+inf")
 
     def dead_workers(self) -> list[str]:
-        """Forget workers not heard from within ALIVE_SECONDS; returns their names."""
-        cutoff = time.time() - ALIVE_SECONDS
+        """Forget workers not heard from within alive_seconds; returns their names."""
+        cutoff = time.time() - config().alive_seconds
         names = [text(n) for n in self.r.zrangebyscore(keys.WORKER_SEEN, "-inf", cutoff)]
         if names:
             self.r.zrem(keys.WORKER_SEEN, *names)
@@ -178,7 +178,7 @@ class Leases:
 
     def heartbeats(self) -> dict[str, dict[str, str]]:
         """Live worker name -> its last heartbeat (job, batch, passes, last_seen)."""
-        names = [text(n) for n in self.r.zrangebyscore(keys.WORKER_SEEN, time.time() - ALIVE_SECONDS, "+inf")]
+        names = [text(n) for n in self.r.zrangebyscore(keys.WORKER_SEEN, time.time() - config().alive_seconds, "+inf")]
         pipe = self.r.pipeline()
         for name in names:
             pipe.hgetall(keys.worker(name))

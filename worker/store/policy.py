@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import heapq
 import math
-import os
 from collections.abc import Sequence
 from enum import StrEnum
 from typing import NamedTuple
 
+from worker.config import config
 from worker.settings import Settings
 
 
@@ -31,67 +31,8 @@ RENDERING = frozenset({Status.QUEUED, Status.RUNNING})  # takes new batches
 MERGING = frozenset({Status.RUNNING, Status.CANCEL_REQUESTED})  # a finished batch still counts
 FINAL = frozenset(Status) - ACTIVE
 
-# A started batch must report a pass (or finish) this often, or it is taken for lost.
-LEASE_SECONDS = float(os.environ.get("PHOTONFARM_LEASE_SECONDS", "30"))
-QUEUED_SECONDS = LEASE_SECONDS  # how often the reaper checks that a waiting batch is still in its queue
-BATCH_TARGET_SECONDS = 2.0  # passes per batch are chosen to take about this long, and ...
-MERGE_SHARE = 0.05  # ... at least 1/MERGE_SHARE times the job's mean merge, and ...
-# ... long enough that the job's merges together keep its merge path (the state nodes, which
-# take a batch's delta in about its merge's time) busy at most this share of the time: with
-# N workers a batch lasts at least N mean merges / MERGE_PATH_SHARE, so the merges of one
-# job load the nodes the same however many workers render it (and, as the mean merge
-# includes its waits, less when the nodes are busy with other jobs too).
-MERGE_PATH_SHARE = 0.5
-MAX_ATTEMPTS = 3  # a batch that fails this often fails its job
-MAX_INFLIGHT_PER_JOB = 256  # one job may keep this many workers busy
-# The fold (worker/store/state.py): one folder per job holds this lease, renewed per tile.
-# The API's folder thread folds a job FOLD_SECONDS after its last round, or later for a
-# large state (`fold_interval`); a worker folds after its merge when the API has not for
-# FOLD_STALE_SECONDS past the image's planned time (`image_due`: the API is down or behind).
-FOLD_LEASE_SECONDS = LEASE_SECONDS
-FOLD_SECONDS = 2.0
-# A round costs about the same however many batches it folds (it merges and estimates the
-# whole state, and a checkpoint writes it): at most this share of the time goes to a job's
-# rounds, as far as the refresh allows.
-FOLD_SHARE = 0.1
-REFRESH_SECONDS = 10.0  # the image a client sees is at most about this old
-FOLD_POLL_SECONDS = 0.5  # the API's folder thread looks this often, and at once on news (Jobs.wait_for_news) ...
-FOLD_WAIT_MIN_SECONDS = 0.05  # ... or when a job's round is due, but not more often (scheduler.next_look_in)
-ROUNDS_KEPT = 8  # a job's recent fold rounds that predict the next one's length (round_seconds) ...
-ROUND_MARGIN = 2.0  # ... with this many times the most one of them ran over the prediction
-# A job's batches are delivered at most this far apart (batch_passes): an image change
-# follows each by the folder's next look and its round.
-DELIVERY_SECONDS = REFRESH_SECONDS - FOLD_POLL_SECONDS
-# ... even when their passes and merges run this much slower than the recent ones the next
-# batch is sized by: workers share their machine with the API and Redis, whose append-only
-# file rewrites slow them.
-PASS_SLACK = 0.5
-PLANNED_DELIVERY_SECONDS = DELIVERY_SECONDS / (1.0 + PASS_SLACK)  # deliveries as planned at the recent pace
-# A round keeps what it folds in the folder's memory (worker/store/overlay.py) and writes
-# tiles of the state (a checkpoint of those tiles) so that the deltas it keeps pending on
-# the state nodes stay within CHECKPOINT_PENDING_SHARE of the state's bytes: each round the
-# tiles that free the most, so a big frame writes a part of its state every round rather
-# than all of it every few rounds. Every tile once a batch has waited CHECKPOINT_SECONDS, or
-# the job ends (at the next round that folds a new batch: a checkpoint alone changes no image).
-CHECKPOINT_SECONDS = 30.0
-CHECKPOINT_PENDING_SHARE = 0.5  # a job then holds at most about two states (docs/limits.md)
-# A regular round writes its tiles after its image only until the next round is due
-# (checkpoint_seconds); the rest wait for later rounds, so that writes never delay the next
-# image. Past this share of the state's bytes in pending deltas (memory) a round writes
-# the tiles that bring them back within it whatever that takes (checkpoint_required).
-CHECKPOINT_HELD_SHARE = 1.0
-FOLD_STALE_SECONDS = 5.0
-# The batch that decides a job's end hands its final round to the API's folder, which holds
-# the image in memory (Jobs.end_if_decided); its worker, looking every END_HANDOFF_POLL_SECONDS,
-# ends the job itself if no process has begun to within END_HANDOFF_SECONDS of when it last
-# saw a folder at work (holding the job's fold lease; Jobs._hand_off_end).
-END_HANDOFF_SECONDS = 3.0
-END_HANDOFF_POLL_SECONDS = 0.05
-# A worker process beats every LEASE_SECONDS / 3 from a thread (worker/heartbeat.py); one
-# not heard from for ALIVE_SECONDS is dead: it counts as no capacity and its leases lapse.
-ALIVE_SECONDS = 3 * LEASE_SECONDS
-# Finished jobs (and their images) are kept this long, then deleted.
-RETENTION_SECONDS = float(os.environ.get("PHOTONFARM_RETENTION_SECONDS", str(7 * 86_400)))
+# The tunables this policy reads (the lease, the batch target and shares, the refresh, the
+# fold's and checkpoints' timings) are fields of worker/config.py's Config, read at each call.
 
 
 def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: float | None = None,
@@ -99,11 +40,11 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
                  others_due: Sequence[float] = ()) -> int:
     """Passes for the next batch of a job whose `workers` render its batches at once.
 
-    Target: about BATCH_TARGET_SECONDS, and at least what keeps the batch's merge plus the
-    job's fold round (`fold_seconds`) within MERGE_SHARE of a worker's time and the job's
-    merges within MERGE_PATH_SHARE of its merge path. Then bounded by
+    Target: about batch_target_seconds, and at least what keeps the batch's merge plus the
+    job's fold round (`fold_seconds`) within merge_share of a worker's time and the job's
+    merges within merge_path_share of its merge path. Then bounded by
     - the refresh, over the merge shares (a budget beats a cost): the workers together
-      deliver a batch every PLANNED_DELIVERY_SECONDS (merge included), each at most that
+      deliver a batch every planned_delivery_seconds (merge included), each at most that
       long after the last of the job's other in-flight batches due before it
       (`others_due`, seconds from now), so that workers fall out of step;
     - the budgets, over everything: `seconds_left` (the job ends within it plus one pass)
@@ -112,19 +53,20 @@ def batch_passes(pass_seconds: float, mean_merge_seconds: float, seconds_left: f
     At least one pass while the budgets allow; one while `pass_seconds` is unknown (0). No
     cap in passes: the refresh bounds a batch, and a worker asks after every pass whether
     the job still wants it."""
-    workers, n = max(1, workers), 1
+    workers, n, c = max(1, workers), 1, config()
     if pass_seconds > 0.0:
         # The bounds, in seconds at the recent pace: the refresh (planned deliveries, which
-        # leave room for passes PASS_SLACK slower), the cost (the merge shares), the budget.
-        refresh = max(pass_seconds, workers * PLANNED_DELIVERY_SECONDS - mean_merge_seconds)
-        cost = max((mean_merge_seconds + fold_seconds) / MERGE_SHARE, workers * mean_merge_seconds / MERGE_PATH_SHARE)
-        target = max(BATCH_TARGET_SECONDS, min(cost, refresh))
+        # leave room for passes pass_slack slower), the cost (the merge shares), the budget.
+        refresh = max(pass_seconds, workers * c.planned_delivery_seconds - mean_merge_seconds)
+        cost = max((mean_merge_seconds + fold_seconds) / c.merge_share,
+                   workers * mean_merge_seconds / c.merge_path_share)
+        target = max(c.batch_target_seconds, min(cost, refresh))
         if seconds_left is not None:
             target = min(target, seconds_left)
         # Passes: the target's nearest count, but never past the refresh, nor past a delivery
-        # PLANNED_DELIVERY_SECONDS after the last of the others due before this one.
+        # planned_delivery_seconds after the last of the others due before this one.
         last = max((due for due in others_due if due < target + mean_merge_seconds), default=0.0)
-        stagger = math.floor((max(0.0, last) + PLANNED_DELIVERY_SECONDS - mean_merge_seconds) / pass_seconds)
+        stagger = math.floor((max(0.0, last) + c.planned_delivery_seconds - mean_merge_seconds) / pass_seconds)
         n = max(1, min(round(target / pass_seconds), math.floor(refresh / pass_seconds), stagger))
     if passes_left is not None:
         n = min(n, tail_share(passes_left, pass_seconds, workers, others_due))
@@ -206,21 +148,22 @@ def fold_interval(fold_seconds: float, next_seconds: float | None = None) -> flo
     """Seconds from one fold round's image to the next one's start, given what the last
     round cost (`fold_seconds`: its whole length, checkpoint writes included,
     JobRecord.fold_cost) and how long the next is expected to take to its image
-    (`next_seconds`, round_seconds; the last one's cost if unknown): FOLD_SECONDS for a
-    small state; for a large one long enough that rounds take at most FOLD_SHARE of the
+    (`next_seconds`, round_seconds; the last one's cost if unknown): fold_seconds for a
+    small state; for a large one long enough that rounds take at most fold_share of the
     time (more batches folded per round), but short enough that the next round starts (at
-    the folder's next look) and ends within REFRESH_SECONDS of the last one's end
+    the folder's next look) and ends within refresh_seconds of the last one's end
     (`_start_by`)."""
     expected = fold_seconds if next_seconds is None else next_seconds
-    return max(FOLD_SECONDS, min(fold_seconds / FOLD_SHARE, _start_by(expected)))
+    c = config()
+    return max(c.fold_seconds, min(fold_seconds / c.fold_share, _start_by(expected)))
 
 
 def _start_by(next_seconds: float) -> float:
     """The latest, in seconds after a round's image, the next round starts for its image to
-    come DELIVERY_SECONDS after this one's, at its expected length (round_seconds, which has
-    a margin for a round longer than the last: ROUND_MARGIN). Not with PASS_SLACK: a round
+    come delivery_seconds after this one's, at its expected length (round_seconds, which has
+    a margin for a round longer than the last: round_margin). Not with pass_slack: a round
     started earlier leaves the next one nothing to show until a delivery comes."""
-    return DELIVERY_SECONDS - next_seconds
+    return config().delivery_seconds - next_seconds
 
 
 def image_due(fold_seconds: float, fold_cost: float) -> float:
@@ -228,7 +171,7 @@ def image_due(fold_seconds: float, fold_cost: float) -> float:
     waiting batches, in seconds after that read: the round's length to its image
     (`fold_seconds`), the fold interval after it, and the next round's length (at most the
     whole cost of the last, `fold_cost`). Why all three: a paced round may end its image
-    about DELIVERY_SECONDS after the last, and a worker that took the API to be behind would
+    about delivery_seconds after the last, and a worker that took the API to be behind would
     fold in its place (a checkpoint of every tile, then a rebuilt state)."""
     return fold_seconds + fold_interval(fold_cost) + fold_cost
 
@@ -246,14 +189,14 @@ class Round(NamedTuple):
 
 def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     """How long a fold round that takes in `batches` new batches is expected to run (to its
-    image), from the job's recent rounds (Round, or (batches, seconds); ROUNDS_KEPT of them)
+    image), from the job's recent rounds (Round, or (batches, seconds); rounds_kept of them)
     that added to a kept state: a round merges each new delta and then estimates the whole
     state, so it costs a part per batch and a fixed part, fit to those rounds by least
     squares (with no spread in their batches, the fixed part taken as one batch's), plus
-    ROUND_MARGIN times the most any of them ran over the fit, so that a round longer than
+    round_margin times the most any of them ran over the fit, so that a round longer than
     the last one still ends in time. None before any. A rebuilt round is left out: it reads
     every tile into fresh memory, costs several times a regular one, and would inflate the
-    next ROUNDS_KEPT predictions."""
+    next rounds_kept predictions."""
     kept = [Round(*r) for r in rounds]
     kept = [r for r in kept if not r.rebuilt]
     if not kept:
@@ -267,45 +210,45 @@ def round_seconds(rounds: Sequence[tuple], batches: int) -> float | None:
     per_batch = max(0.0, per_batch)
     fixed = max(0.0, s_mean - per_batch * n_mean)
     over = max(y - (fixed + per_batch * x) for x, y in zip(n, s, strict=True))
-    return fixed + per_batch * batches + ROUND_MARGIN * max(0.0, over)
+    return fixed + per_batch * batches + config().round_margin * max(0.0, over)
 
 
 # Pacing. Workers that render one long pass per batch deliver together, and a round that
 # folds such a pair shows both at once and then nothing until the next pair. Pacing spreads
 # the waiting batches over the rounds that fit before the next delivery (batches that
 # arrive often enough are all folded at once), and while a batch is in flight a round keeps
-# one back, since the next delivery may come PASS_SLACK late: the held batch shows one round
+# one back, since the next delivery may come pass_slack late: the held batch shows one round
 # later, and that round has something new to show.
 def paced_batches(waiting: int, next_delivery: float | None, round_length: float) -> int:
     """How many of the `waiting` batches new to the image a regular fold round takes in
     (the oldest first; the rest wait for the next rounds), given when the job's next batch
     is due (`next_delivery`, seconds from now, overdue below 0; None with none in flight)
-    and the round's expected length: an even share of the rounds, DELIVERY_SECONDS apart,
+    and the round's expected length: an even share of the rounds, delivery_seconds apart,
     that fit before the next delivery's, and all but one while a batch is in flight."""
     if next_delivery is None:
         return waiting
-    rounds = max(1, min(waiting, math.ceil((max(0.0, next_delivery) + round_length) / DELIVERY_SECONDS)))
+    rounds = max(1, min(waiting, math.ceil((max(0.0, next_delivery) + round_length) / config().delivery_seconds)))
     return max(1, min(-(-waiting // rounds), waiting - 1))
 
 
 def checkpoint_tiles(oldest_seconds: float, pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
     """The tiles a fold round writes, given the bytes of the deltas each keeps pending and
     its state's bytes: every tile with a delta pending once the oldest pending batch was
-    folded CHECKPOINT_SECONDS ago; else the tiles that free the most bytes per byte written
+    folded checkpoint_seconds ago; else the tiles that free the most bytes per byte written
     (a tile's checkpoint writes its state and drops its deltas) until the deltas left are
-    within CHECKPOINT_PENDING_SHARE of the state's bytes."""
+    within checkpoint_pending_share of the state's bytes."""
     held = [k for k, p in pending.items() if p > 0]
-    if oldest_seconds >= CHECKPOINT_SECONDS:
+    if oldest_seconds >= config().checkpoint_seconds:
         return held
     order = sorted(held, key=lambda k: pending[k] / state_bytes[k], reverse=True)
-    return _within(order, pending, state_bytes, CHECKPOINT_PENDING_SHARE)
+    return _within(order, pending, state_bytes, config().checkpoint_pending_share)
 
 
 def checkpoint_required(tiles: Sequence[int], pending: dict[int, int], state_bytes: dict[int, int]) -> list[int]:
     """The first of a round's `tiles` (in the order it writes them: checkpoint_tiles) that
-    bring the deltas pending within CHECKPOINT_HELD_SHARE of the state's bytes: the round
+    bring the deltas pending within checkpoint_held_share of the state's bytes: the round
     writes these whatever the time, the rest until the next round is due."""
-    return _within(tiles, pending, state_bytes, CHECKPOINT_HELD_SHARE)
+    return _within(tiles, pending, state_bytes, config().checkpoint_held_share)
 
 
 def _within(tiles: Sequence[int], pending: dict[int, int], state_bytes: dict[int, int], share: float) -> list[int]:

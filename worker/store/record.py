@@ -38,6 +38,7 @@ from typing import Any, cast
 import numpy as np
 import redis
 
+from worker.config import config
 from worker.integrators import Integrator, integrator_for
 from worker.integrators.base import Delta, State
 from worker.settings import Settings
@@ -46,9 +47,9 @@ from worker.store.connection import Fields, text, text_hash
 from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
-from worker.store.policy import FOLD_STALE_SECONDS, RETENTION_SECONDS, Status
+from worker.store.policy import Status
 from worker.store.state import FoldContended, Folded, LostDeltas, Snapshot, TiledState, UnreadableDelta
-from worker.store.tiles import TILE_PIXELS, Tiling
+from worker.store.tiles import Tiling
 
 log = logging.getLogger("photonfarm.store")
 COUNTER = "counter:"  # prefix of the job hash's fields that hold State.counters
@@ -141,7 +142,7 @@ class JobRecord:
                    round_cost=float(f.get("round_cost", 0.0)),
                    setup=f.get("setup") == "1",
                    stopping=f.get("stopping") == "1", ending=Status(f["ending"]) if f.get("ending") else None,
-                   shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", TILE_PIXELS)),
+                   shards=int(f.get("shards", 1)), tile_pixels=int(f.get("tile_pixels", config().tile_pixels)),
                    next_pass=int(f["next_pass"]),
                    pass_seconds=float(f["pass_seconds"]), render_seconds=float(f.get("render_seconds", 0.0)),
                    render_cpu_seconds=float(f.get("render_cpu_seconds", 0.0)),
@@ -192,11 +193,11 @@ class Jobs:
     """Every read and write of job records and job states goes through here."""
 
     def __init__(self, conn: redis.Redis, state_nodes: list[redis.Redis] | None = None,
-                 tile_pixels: int = TILE_PIXELS) -> None:
+                 tile_pixels: int | None = None) -> None:
         self.r = conn
         self.leases = Leases(conn)
         self.tiles = TiledState(conn, state_nodes)
-        self.tile_pixels = tile_pixels  # of the jobs this process creates
+        self.tile_pixels = config().tile_pixels if tile_pixels is None else tile_pixels  # of the jobs it creates
         self._set_if_exists = conn.register_script(SET_IF_EXISTS)
 
     # ------------------------------------------------------------------ records
@@ -266,12 +267,12 @@ class Jobs:
         pipe.hset(keys.job(job_id), mapping={"status": status.value, "finished": now})
         pipe.srem(keys.ACTIVE, job_id)
         for key in keys.job_keys(job_id):
-            pipe.expire(key, int(RETENTION_SECONDS))
+            pipe.expire(key, int(config().retention_seconds))
 
     def _expire_tiles(self, job_id: str) -> None:
         record = self.get(job_id)
         if record is not None and record.status in policy.FINAL:
-            self.tiles.expire(job_id, self.tiling(record), int(RETENTION_SECONDS))
+            self.tiles.expire(job_id, self.tiling(record), int(config().retention_seconds))
 
     def delete(self, job_id: str) -> None:
         """Remove a job and every key it has."""
@@ -428,12 +429,12 @@ class Jobs:
         self.settle(batch.job_id, Status.CANCEL_REQUESTED, Status.CANCELLED)
 
     def record_failure(self, batch: Batch, message: str) -> bool:
-        """Count a failed attempt; after MAX_ATTEMPTS the job fails. True if it failed."""
+        """Count a failed attempt; after max_attempts the job fails. True if it failed."""
         key = keys.job(batch.job_id)
         attempts = json.loads(self.r.hget(key, "attempts") or b"{}")
         attempts[batch.id] = attempts.get(batch.id, 0) + 1
         self.r.hset(key, "attempts", json.dumps(attempts))
-        if attempts[batch.id] >= policy.MAX_ATTEMPTS:
+        if attempts[batch.id] >= config().max_attempts:
             self.fail(batch.job_id, message)
             return True
         return False
@@ -573,25 +574,25 @@ class Jobs:
     def _hand_off_end(self, job_id: str, final: Status) -> None:
         """The batch that decided the job's end: the API's folder ends it (end_if_decided,
         from the image it holds in memory: one delta to add, then the checkpoint); this
-        worker ends it itself if no process has begun to within END_HANDOFF_SECONDS (the
+        worker ends it itself if no process has begun to within end_handoff_seconds (the
         API down or stuck), reading the state and every pending delta from the tiles.
 
         A folder that holds the job's fold lease is at work, and alive: its lease lapses
-        within FOLD_LEASE_SECONDS if it dies. So the hand-off waits END_HANDOFF_SECONDS from
-        when the lease was last seen held, up to the 2 FOLD_LEASE_SECONDS a folder waits for
+        within fold_lease_seconds if it dies. So the hand-off waits end_handoff_seconds from
+        when the lease was last seen held, up to the 2 fold_lease_seconds a folder waits for
         the lease (FoldLease). Why wait: a worker that took over would only wait for the
         lease, then rebuild the state the API holds in memory."""
         if self.r.scard(keys.lost(job_id)):
             return  # the last lost batch's refill hands it off
         start = time.monotonic()
-        deadline, latest = start + policy.END_HANDOFF_SECONDS, start + 2 * policy.FOLD_LEASE_SECONDS
+        deadline, latest = start + config().end_handoff_seconds, start + 2 * config().fold_lease_seconds
         while time.monotonic() < deadline:
             record = self.get(job_id)
             if record is None or record.stopping or record.status not in policy.MERGING:
                 return
             if self.r.exists(keys.fold_lock(job_id)):
-                deadline = min(latest, max(deadline, time.monotonic() + policy.END_HANDOFF_SECONDS))
-            time.sleep(policy.END_HANDOFF_POLL_SECONDS)
+                deadline = min(latest, max(deadline, time.monotonic() + config().end_handoff_seconds))
+            time.sleep(config().end_handoff_poll_seconds)
         self._end(job_id, policy.MERGING, final)
 
     def wait_for_news(self, seconds: float) -> None:
@@ -705,7 +706,7 @@ class Jobs:
             # the record the batches every tile has now written. A forced checkpoint (a
             # worker's: it serves no image; the job's last) writes every tile and keeps no overlay.
             rounds = (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
-                      )[-policy.ROUNDS_KEPT:]
+                      )[-config().rounds_kept:]
             self.tiles.publish(job_id, folded, {
                 "passes": folded.state.passes, "photons": folded.state.emitted,
                 "seconds": round(record.elapsed_seconds(), 3), "error": folded.error}, rounds, read_at)
@@ -827,13 +828,13 @@ class Jobs:
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
         """A worker's fold after its merge, if accepted passes have waited for the image
-        FOLD_STALE_SECONDS past the time the API plans it (policy.image_due): the API is down
+        fold_stale_seconds past the time the API plans it (policy.image_due): the API is down
         or behind, and the image still refreshes. It checkpoints: a worker serves no image,
         so it keeps no overlay."""
         record = self.get(job_id)
         if record is None or record.passes <= record.image_passes:
             return None
         waiting = time.time() - (record.waiting_since or record.started or time.time())
-        if waiting < policy.image_due(record.fold_seconds, record.fold_cost) + FOLD_STALE_SECONDS:
+        if waiting < policy.image_due(record.fold_seconds, record.fold_cost) + config().fold_stale_seconds:
             return None
         return self.fold(job_id, checkpoint=True)

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import redis
 
-from worker.host_threads import HOST_THREADS, each
+from worker.host_threads import each, threads
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
 from worker.stats import add_counts
@@ -204,7 +204,7 @@ class TiledState:
         each, as many as there are nodes: each waits on its own server), and one node's tiles
         in parts on the host threads (worker/host_threads.py: the client's CPU work)."""
         by_node = tiling.by_node()
-        parts = max(1, -(-HOST_THREADS // len(by_node)))
+        parts = max(1, -(-threads() // len(by_node)))
         pieces = [(node, tiles[i::parts]) for node, tiles in by_node.items() for i in range(parts) if tiles[i::parts]]
         if len(by_node) == 1:
             results = each(lambda item: work(*item), pieces)

@@ -1,9 +1,9 @@
 """The job state cut into pixel tiles, each on one of the state's Redis nodes, and the
 encodings of what moves per tile: the folded state, a batch's delta and a batch's inputs.
 
-A tile is a run of TILE_PIXELS consecutive pixels (row-major, so a band of rows at most;
-65,536 pixels by default, 8.9 MB of state at 136 bytes a pixel); tile k lives on node
-k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
+A tile is a run of `tile_pixels` (worker/config.py) consecutive pixels (row-major, so a
+band of rows at most; 65,536 pixels by default, 8.9 MB of state at 136 bytes a pixel);
+tile k lives on node k mod (number of nodes). The nodes are the Redis URLs in PHOTONFARM_STATE_URLS
 (comma-separated), else the main Redis alone; a job records how many nodes it was created
 with, and every process must name the same nodes in the same order. Queues, job records
 and leases always stay on the main Redis.
@@ -54,7 +54,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import threading
 import typing
 from collections import OrderedDict
@@ -65,20 +64,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import redis
 
+from worker.config import config
 from worker.store.connection import Fields, connect, text
-
-# Pixels a tile holds (a job keeps the size it was created with; tests make tiles small).
-TILE_PIXELS = int(os.environ.get("PHOTONFARM_TILE_PIXELS", str(1 << 16)))
-STATE_URLS_ENV = "PHOTONFARM_STATE_URLS"
-# Folded tiles a process keeps, in bytes (the API process reads what it folded without a
-# round trip; the default holds a 3840 x 2160 job's state at 136 bytes a pixel).
-CACHE_BYTES = int(float(os.environ.get("PHOTONFARM_TILE_CACHE_MB", "2048")) * 1e6)
 
 
 def state_nodes(main: redis.Redis) -> list[redis.Redis]:
-    """The Redis nodes that hold job states: PHOTONFARM_STATE_URLS, else the main Redis."""
-    urls = [u.strip() for u in os.environ.get(STATE_URLS_ENV, "").split(",") if u.strip()]
-    return [connect(u) for u in urls] or [main]
+    """The Redis nodes that hold job states: the configuration's state_urls, else the main Redis."""
+    return [connect(u) for u in config().state_urls] or [main]
 
 
 @dataclass(frozen=True)
@@ -87,7 +79,7 @@ class Tiling:
 
     n_pixels: int
     n_nodes: int
-    tile_pixels: int = TILE_PIXELS
+    tile_pixels: int
 
     @property
     def count(self) -> int:
@@ -336,11 +328,15 @@ class TileCache:
     round changes them: TiledState.checkpoint), so those arrays stay alive while an entry
     refers to them."""
 
-    def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
-        self.max_bytes = max_bytes
+    def __init__(self, max_bytes: int | None = None) -> None:
+        self._max_bytes = max_bytes  # None: the configuration's tile cache (Config.tile_cache_bytes)
         self._items: OrderedDict[tuple[str, int], tuple[int, Fields, int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
+
+    @property
+    def max_bytes(self) -> int:
+        return config().tile_cache_bytes if self._max_bytes is None else self._max_bytes
 
     def get(self, job_id: str, k: int, version: int) -> Fields | None:
         with self._lock:
