@@ -208,8 +208,11 @@ def mitsuba_material(mi, bsdf) -> dict:
 
 def our_material(material: BaseModel) -> dict:
     """One of our materials (validated, so with its defaults) as `mitsuba_material` states
-    Mitsuba's: a glass's transmittance is its albedo unless given; an unset eta and k left out."""
+    Mitsuba's: a glass's transmittance is its albedo unless given; an unset eta and k left out,
+    and an opacity of 1 (Mitsuba's bsdf without a mask)."""
     out = material.model_dump(exclude_none=True)
+    if out.get("opacity") == 1.0:
+        del out["opacity"]
     if out["type"] in ("glass", "rough_glass"):
         out.setdefault("transmittance", out["albedo"])
     return out

@@ -156,9 +156,11 @@ def test_unreferenced_named_objects_are_noted(mi, tmp_path: Path) -> None:
 @pytest.mark.parametrize("body, needle, says", [
     ('<texture type="checkerboard" id="t"/><bsdf type="roughplastic" id="p"><ref name="alpha" id="t"/></bsdf>',
      'name="alpha"', "a texture for 'alpha' is not supported on a roughplastic bsdf"),
-    ('<texture type="checkerboard" id="t"/><shape type="cube"><bsdf type="diffuse"><ref name="reflectance" id="t"/>'
-     '</bsdf></shape>', 'type="cube"', "its texture coordinates are not converted"),
-    ('<bsdf type="mask" id="m"><float name="opacity" value="0.5"/></bsdf>', 'type="mask"', "mask (opacity) is not"),
+    ('<texture type="checkerboard" id="t"/><shape type="sphere"><transform name="to_world"><rotate x="1" angle="30"/>'
+     '</transform><bsdf type="diffuse"><ref name="reflectance" id="t"/></bsdf></shape>', 'type="sphere"',
+     "a textured sphere's to_world may not rotate"),
+    ('<bsdf type="mask" id="m"><float name="opacity" value="0.5"/></bsdf>', 'type="mask"',
+     "mask takes exactly one nested bsdf"),
     ('<shape type="sphere"><medium type="homogeneous" name="interior"/></shape>', "homogeneous",
      "participating media"),
     ('<medium type="homogeneous" id="fog"/>', "fog", "participating media"),

@@ -53,6 +53,13 @@ NAMED_IOR = {
 # Mitsuba's plugins that pass light through: refused inside `twosided`, as Mitsuba refuses them there.
 TRANSMISSIVE = {"dielectric", "thindielectric", "roughdielectric", "mask"}
 DISK_SEGMENTS = 256  # a disk becomes a fan of this many triangles (area within 1e-4)
+# Mitsuba's cube: the corners of each face in its order, which its texture coordinates follow.
+CUBE_FACES = (((1, -1, -1), (1, -1, 1), (-1, -1, 1), (-1, -1, -1)),  # y = -1
+              ((1, 1, -1), (-1, 1, -1), (-1, 1, 1), (1, 1, 1)),  # y = 1
+              ((1, -1, -1), (1, 1, -1), (1, 1, 1), (1, -1, 1)),  # x = 1
+              ((1, -1, 1), (1, 1, 1), (-1, 1, 1), (-1, -1, 1)),  # z = 1
+              ((-1, -1, 1), (-1, 1, 1), (-1, 1, -1), (-1, -1, -1)),  # x = -1
+              ((1, 1, -1), (1, -1, -1), (-1, -1, -1), (-1, 1, -1)))  # z = -1
 CYLINDER_SEGMENTS = 256  # a cylinder becomes a tube of 2x this many triangles (area within 1e-4)
 NORMALS_CHUNK = 1 << 14  # triangles per step of _vertex_normals: its temporaries stay in cache, not in fresh pages
 # Settings of the renderer, not of the scene: our jobs take them from their own settings.
@@ -985,11 +992,8 @@ class Converter:
 
     @staticmethod
     def _check_uvs(node: Node, kind: str | None, m: np.ndarray) -> None:
-        """A textured shape's texture coordinates must be Mitsuba's: ours hold a rectangle's,
-        a mesh's and an unrotated sphere's (about the world's axes)."""
-        if kind in ("cube", "disk", "cylinder"):
-            raise _error(node, f"a textured bsdf on a {kind}: its texture coordinates are not converted "
-                               "(textures apply to rectangles, spheres and meshes)")
+        """A textured shape's texture coordinates must be Mitsuba's: every shape's are, but for
+        a rotated sphere's (ours are taken about the world's axes)."""
         if kind == "sphere":
             r = m[:3, :3] / np.linalg.norm(m[:3, 0])
             if not np.allclose(r, np.eye(3), atol=1e-9):
@@ -1019,23 +1023,30 @@ class Converter:
         return out
 
     def _cube(self, p: Props, m: np.ndarray, flip: bool) -> dict:
-        corners = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
-        # Two triangles per face, wound counter-clockwise seen from outside.
-        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-        tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+        """[-1, 1]^3 as Mitsuba's cube: four corners a face (CUBE_FACES), wound counter-clockwise
+        seen from outside, with its texture coordinates (0, 1), (1, 1), (1, 0), (0, 0)."""
+        corners = np.array(CUBE_FACES, np.float64).reshape(-1, 3)
+        first = 4 * np.arange(6)[:, None]
+        tris = np.concatenate([first + [0, 1, 2], first + [3, 0, 2]], axis=1).reshape(-1, 3)
+        uvs = np.tile([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]], (6, 1))
         if np.linalg.det(m[:3, :3]) < 0:
             tris = tris[:, ::-1]
-        return self._mesh(_apply(m, corners), tris, None, flip)
+        return self._mesh(_apply(m, corners), tris, None, flip, uvs)
 
     def _disk(self, p: Props, m: np.ndarray, flip: bool) -> dict:
-        phi = 2 * math.pi * np.arange(DISK_SEGMENTS) / DISK_SEGMENTS
-        ring = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
-        points = np.concatenate([[[0.0, 0.0, 0.0]], ring])
+        """The unit disk as a fan of DISK_SEGMENTS triangles, with Mitsuba's texture
+        coordinates (r, phi / 2 pi): each triangle has a centre of its own, at the middle of
+        its angles, and the ring repeats its first point at phi = 2 pi."""
         k = np.arange(DISK_SEGMENTS)
-        tris = np.stack([np.zeros_like(k), 1 + k, 1 + (k + 1) % DISK_SEGMENTS], axis=1)
+        phi = 2 * math.pi * np.arange(DISK_SEGMENTS + 1) / DISK_SEGMENTS
+        ring = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
+        points = np.concatenate([np.zeros((DISK_SEGMENTS, 3)), ring])
+        uvs = np.concatenate([np.c_[np.zeros(DISK_SEGMENTS), (k + 0.5) / DISK_SEGMENTS],
+                              np.c_[np.ones(DISK_SEGMENTS + 1), phi / (2 * math.pi)]])
+        tris = np.stack([k, DISK_SEGMENTS + k, DISK_SEGMENTS + k + 1], axis=1)
         if np.linalg.det(m[:3, :3]) < 0:
             tris = tris[:, ::-1]
-        return self._mesh(_apply(m, points), tris, None, flip)
+        return self._mesh(_apply(m, points), tris, None, flip, uvs)
 
     def _sphere(self, p: Props, m: np.ndarray, flip: bool) -> dict:
         center = p.vector("center", "point")
@@ -1111,23 +1122,27 @@ class Converter:
         axis = p1 - p0
         if not (np.linalg.norm(axis) > 0 and radius > 0):
             raise _error(p.owner, "a cylinder needs p0 != p1 and a positive radius")
+        # Mitsuba's frame about the axis (the basis of _some_up): phi counts from its first tangent.
         w = axis / np.linalg.norm(axis)
-        u = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
-        u /= np.linalg.norm(u)
+        u = _some_up(w)
         local = np.eye(4)
         local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * u, radius * np.cross(w, u), axis, p0
         full = m @ local
-        phi = 2 * math.pi * np.arange(CYLINDER_SEGMENTS) / CYLINDER_SEGMENTS
+        # A ring of CYLINDER_SEGMENTS + 1 points (the first repeated at phi = 2 pi) at z = 0 and
+        # z = 1, with Mitsuba's texture coordinates (phi / 2 pi, z).
+        phi = 2 * math.pi * np.arange(CYLINDER_SEGMENTS + 1) / CYLINDER_SEGMENTS
         ring = np.stack([np.cos(phi), np.sin(phi)], axis=1)
         points = np.concatenate([np.c_[ring, np.zeros(len(ring))], np.c_[ring, np.ones(len(ring))]])
+        uvs = np.concatenate([np.c_[phi / (2 * math.pi), np.zeros(len(ring))],
+                              np.c_[phi / (2 * math.pi), np.ones(len(ring))]])
         radial = np.c_[ring, np.zeros(len(ring))]
-        k, n = np.arange(CYLINDER_SEGMENTS), CYLINDER_SEGMENTS
-        nxt = (k + 1) % n
+        k, n = np.arange(CYLINDER_SEGMENTS), CYLINDER_SEGMENTS + 1
+        nxt = k + 1
         tris = np.concatenate([np.stack([k, nxt, n + nxt], 1), np.stack([k, n + nxt, n + k], 1)])
         if np.linalg.det(full[:3, :3]) < 0:
             tris = tris[:, ::-1]
         normals = np.concatenate([radial, radial]) @ np.linalg.inv(full[:3, :3])
-        return self._mesh(_apply(full, points), tris, normals, flip)
+        return self._mesh(_apply(full, points), tris, normals, flip, uvs)
 
     # -------------------------------------------------------------- lights
     def light(self, node: Node) -> None:
