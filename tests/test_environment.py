@@ -101,7 +101,9 @@ def sky_scene(**light: object) -> dict:
     (lambda d: d["textures"].update(sky={"type": "checkerboard"}), "lights.0.map"),
     (lambda d: d["textures"]["sky"].update(pixels=Pixels.of(-sky_image()).model_dump()), "textures.sky.pixels"),
     (lambda d: d["textures"]["sky"].update(pixels=Pixels.of(sky_image(2, 8)).model_dump()), "textures.sky.pixels"),
-], ids=["two", "to_world", "both", "unknown-map", "not-bitmap", "negative", "too-small"])
+    (lambda d: d["textures"]["sky"].update(wrap_mode="clamp"), "textures.sky.wrap_mode"),
+    (lambda d: d["textures"]["sky"].update(to_uv=[[2, 0, 0], [0, 1, 0]]), "textures.sky.to_uv"),
+], ids=["two", "to_world", "both", "unknown-map", "not-bitmap", "negative", "too-small", "wrap-mode", "to-uv"])
 def test_environment_errors_name_the_field(change, field: str) -> None:
     data = sky_scene(map="sky")
     change(data)

@@ -573,7 +573,7 @@ class Scene(_Model):
 
     def _check_environment(self) -> None:
         """At most one environment light; its map a bitmap of `textures` with non-negative
-        samples, at least MIN_ENV_SIZE."""
+        samples, at least MIN_ENV_SIZE, and none of a texture's lookup fields."""
         found = [i for i, light in enumerate(self.lights) if isinstance(light, EnvironmentLight)]
         if len(found) > 1:
             raise SceneError(f"lights.{found[1]}", "a scene has at most one environment light")
@@ -585,6 +585,10 @@ class Scene(_Model):
             texture = self.textures.get(light.map)
             if not isinstance(texture, Bitmap):
                 raise SceneError(f"lights.{i}.map", f"{light.map!r} is not a bitmap of the scene's textures")
+            for name in ("filter", "wrap_mode", "to_uv"):
+                if name in texture.model_fields_set:
+                    raise SceneError(f"textures.{light.map}.{name}", f"an environment map's bitmap takes no {name} "
+                                     "(it is read as Mitsuba's envmap: bilinear, wrapping around)")
             if texture.pixels is not None:  # (a file is checked once it is read)
                 check_env_pixels(texture.pixels, f"textures.{light.map}.pixels")
 
