@@ -132,7 +132,8 @@ __kernel void probe_uv(SCENE_PARAMS, __global const float4* origins, __global co
 # Texture elements as Mitsuba reads them (by id in the scene below, alone for Mitsuba's own lookup).
 TEXTURES = {
     "repeat": '<texture type="bitmap" id="repeat"><string name="filename" value="pattern.png"/>'
-              '<transform name="to_uv"><scale x="2" y="3"/><translate x="0.3" y="-0.2"/></transform></texture>',
+              '<transform name="to_uv"><scale x="2" y="3"/><rotate z="1" angle="30"/><translate x="0.3" y="-0.2"/>'
+              '</transform></texture>',
     "mirror": '<texture type="bitmap" id="mirror"><string name="filename" value="pattern.png"/>'
               '<string name="wrap_mode" value="mirror"/><string name="filter_type" value="nearest"/>'
               '<transform name="to_uv"><scale value="3"/></transform></texture>',
@@ -199,7 +200,7 @@ def _probe(eng) -> cl.Program:
 
 
 def test_lookups_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
-    """Each texture (wrap modes, filters, to_uv, raw, checkerboard) at random (u, v) in [-2, 3]^2,
+    """Each texture (wrap modes, filters, to_uv with a rotation, raw, checkerboard) at random (u, v) in [-2, 3]^2,
     ours against Mitsuba's own `eval` of the same element."""
     eng = make_engine(textured_scene(tmp_path), photons_per_pass=1 << 10)
     dev, probe = eng.device, cl.Kernel(_probe(eng), "probe_texture")
