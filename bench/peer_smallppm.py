@@ -40,7 +40,7 @@ from bench.common import (
 )
 from worker.image_io import read_image
 from worker.render_loop import render
-from worker.settings import DEFAULT_PHOTONS_PER_PASS, DEFAULTS
+from worker.settings import DEFAULTS
 
 CANDIDATES = (1 << 18, 1 << 19, 1 << 20)
 CAP_FACTOR = 3.0  # give up at this multiple of smallppm's time
@@ -78,7 +78,7 @@ def to_reference_size(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
     raise ValueError(f"image {img.shape[:2]} does not match reference {ref.shape[:2]}")
 
 
-def render_until(photons_per_pass: int, ref: np.ndarray, target: float, peer_seconds: float, gather: str,
+def render_until(photons_per_pass: int | None, ref: np.ndarray, target: float, peer_seconds: float, gather: str,
                  seed: int = 0) -> Run:
     """Render passes until the display RMS is <= target or the clock passes the cap."""
     ref_display = display(ref)
@@ -87,7 +87,7 @@ def render_until(photons_per_pass: int, ref: np.ndarray, target: float, peer_sec
     eng = bench_engine("smallppm", gather=gather, photons_per_pass=photons_per_pass, seed=seed)
     state = eng.start()
     setup = time.perf_counter() - t0
-    run = Run(photons_per_pass=photons_per_pass, gather=gather, setup_seconds=setup)
+    run = Run(photons_per_pass=eng.settings.paths_per_pass, gather=gather, setup_seconds=setup)
     h, w = eng.arrays.height, eng.arrays.width
 
     def observe(st: object, seconds: float) -> bool:
@@ -148,7 +148,7 @@ def chart(runs: list[Run], peer: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description="Time to reach smallppm's image error, and the speed ratio.")
-    parser.add_argument("--photons-per-pass", type=int, default=DEFAULT_PHOTONS_PER_PASS)
+    parser.add_argument("--photons-per-pass", type=int, default=None, help="default: the engine's for the frame")
     parser.add_argument("--gather", choices=("exact", "stochastic"), default=DEFAULTS.gather)
     parser.add_argument("--sweep", action="store_true",
                         help=f"both gathers, each with every photons_per_pass in {CANDIDATES}")

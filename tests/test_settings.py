@@ -8,7 +8,7 @@ import sys
 
 from service.cli import RENDER_FIELDS, build_parser
 from service.models import JobRequest, JobSettings
-from worker.settings import DEFAULT_ALPHA, DEFAULT_PHOTONS_PER_PASS, DEFAULTS, MAX_DEFAULT_SUBPATHS, Settings
+from worker.settings import DEFAULT_ALPHA, DEFAULTS, MAX_DEFAULT_SUBPATHS, Settings
 
 
 def test_cli_and_api_defaults_are_the_models_own() -> None:
@@ -67,13 +67,10 @@ def test_alpha_defaults_by_method() -> None:
     assert all(f"{method} {alpha:g}" in alpha_help for method, alpha in DEFAULT_ALPHA.items())
 
 
-def test_paths_per_pass_default_by_method_and_frame() -> None:
-    """No count given: photon mapping traces its fixed count, the connecting methods one light
-    subpath per pixel (capped); a given count wins; a frame's settings keep the count and the
-    resolution they render with."""
-    for method in ("sppm", "ppm"):
-        assert Settings(method=method).for_frame(64, 32).paths_per_pass == DEFAULT_PHOTONS_PER_PASS
-    for method in ("vcm", "bpt", "lt"):
+def test_paths_per_pass_default_by_frame() -> None:
+    """No count given: every method traces one path per pixel (capped); a given count wins; a
+    frame's settings keep the count and the resolution they render with."""
+    for method in ("sppm", "ppm", "vcm", "bpt", "lt"):
         framed = Settings(method=method).for_frame(64, 32)
         assert framed.paths_per_pass == 64 * 32 and framed.resolution == (64, 32)
         assert Settings(method=method).for_frame(4096, 4096).paths_per_pass == MAX_DEFAULT_SUBPATHS

@@ -16,12 +16,11 @@ from kernels.contract import MAX_BOUNCES
 from worker.scene import MAX_COORD, MAX_PIXELS, MAX_RESOLUTION
 
 MAX_PHOTONS_PER_PASS = 1 << 24
-# Paths per pass when none is given (Settings.for_frame): photon mapping traces a fixed count;
-# the connecting methods one light subpath per pixel, as vcm pairs light and camera subpaths
-# one to one (Georgiev et al. 2012), at most MAX_DEFAULT_SUBPATHS.
-DEFAULT_PHOTONS_PER_PASS = 1 << 18
+# Paths per pass when none is given (Settings.for_frame): one per pixel, at most
+# MAX_DEFAULT_SUBPATHS, in every method. vcm pairs light and camera subpaths one to one
+# (Georgiev et al. 2012); photon mapping then balances its photon pass against its eye pass,
+# and many short passes shrink its radius and antialias its pixels sooner than a few long ones.
 MAX_DEFAULT_SUBPATHS = 1 << 22
-SUBPATH_METHODS = ("vcm", "bpt", "lt")
 DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold may be out of reach)
 
 Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
@@ -64,9 +63,7 @@ class Settings(BaseModel):
                                 json_schema_extra={"x-default-by": {"method": {**DEFAULT_ALPHA}}})
     photons_per_pass: int | None = Field(default=None, strict=True, ge=1, le=MAX_PHOTONS_PER_PASS,
                                          description="photon paths per pass (light subpaths for vcm, bpt, lt); "
-                                                     f"default: {DEFAULT_PHOTONS_PER_PASS} for sppm and ppm, the "
-                                                     f"pixel count for {', '.join(SUBPATH_METHODS)} (at most "
-                                                     f"{MAX_DEFAULT_SUBPATHS})")
+                                                     f"default: the pixel count (at most {MAX_DEFAULT_SUBPATHS})")
     initial_radius: float | None = Field(default=None, strict=True, ge=1e-7, le=MAX_COORD,
                                          description="initial gather radius in world units (default: the larger "
                                                      "of 2 pixel footprints and the radius holding 16 photons per "
@@ -142,10 +139,8 @@ class Settings(BaseModel):
         """These settings for a frame of width x height pixels, every frame-dependent default
         filled in (the resolution, the paths per pass), so that a stored job keeps what it
         renders with."""
-        paths = self.photons_per_pass
-        if paths is None:
-            paths = (min(width * height, MAX_DEFAULT_SUBPATHS) if self.method in SUBPATH_METHODS
-                     else DEFAULT_PHOTONS_PER_PASS)
+        paths = self.photons_per_pass if self.photons_per_pass is not None else min(width * height,
+                                                                                      MAX_DEFAULT_SUBPATHS)
         return self.model_copy(update={"resolution": self.resolution or (width, height), "photons_per_pass": paths})
 
     @property
