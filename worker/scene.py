@@ -586,7 +586,7 @@ class Scene(_Model):
             if not isinstance(texture, Bitmap):
                 raise SceneError(f"lights.{i}.map", f"{light.map!r} is not a bitmap of the scene's textures")
             for name in ("filter", "wrap_mode", "to_uv"):
-                if name in texture.model_fields_set:
+                if getattr(texture, name) != Bitmap.model_fields[name].default:
                     raise SceneError(f"textures.{light.map}.{name}", f"an environment map's bitmap takes no {name} "
                                      "(it is read as Mitsuba's envmap: bilinear, wrapping around)")
             if texture.pixels is not None:  # (a file is checked once it is read)
