@@ -1,6 +1,6 @@
 """Error against time on seven scenes, every method measured in one run on this machine:
 SPPM with the exact grid, SPPM with stochastic hashing, PPM (exact grid), SPPM with NEE,
-the hybrid integrator's bpt and vcm (one light subpath per pixel per pass), and the peer,
+the hybrid integrator's bpt and vcm (all at their default, one path per pixel per pass), and the peer,
 Mitsuba 3 (`scalar_rgb`) path tracer and particle tracer, on the same scene converted
 automatically (bench/mitsuba_peer.py).
 
@@ -44,11 +44,9 @@ SCENES = {"cornell-box": "path", "cornell-caustics": "path", "gap": "path",
           "directional-caustic": "sppm", "smallppm": "sppm", "glossy": "sppm", "window-sky": "path"}
 OURS = {"sppm exact": ("sppm", "exact"), "sppm stochastic": ("sppm", "stochastic"), "ppm exact": ("ppm", "exact"),
         "sppm nee": ("sppm", "exact", "nee"), "bpt": ("bpt", "exact"), "vcm": ("vcm", "exact")}
-# (method, gather[, direct]); the hybrid methods trace one light subpath per pixel per pass
-HYBRID = ("vcm", "bpt", "lt")
+# (method, gather[, direct]); every method traces its default paths per pass, one per pixel
 PEERS = ("mitsuba path", "mitsuba ptracer")
 TARGETS = (0.10, 0.05)
-PHOTONS = 1 << 17
 
 
 def resolution(scene: str, side: int) -> tuple[int, int]:
@@ -92,8 +90,7 @@ def rel_rms(img: np.ndarray, ref: np.ndarray) -> float:
 
 def run_ours(scene: str, res: tuple[int, int], ref: np.ndarray, budget: float, method: str, gather: str,
              direct: str = "photons") -> list:
-    photons = res[0] * res[1] if method in HYBRID else PHOTONS
-    settings = dict(method=method, gather=gather, direct=direct, photons_per_pass=photons)
+    settings = dict(method=method, gather=gather, direct=direct)  # paths per pass: the default, one per pixel
     # Warm-up, not timed: one pass of the same configuration first, so the clock does not
     # count PoCL compiling the kernels (once per machine and kernel source, then loaded from
     # its cache; a worker pays it once, not per job), and each method's build options differ.
@@ -164,7 +161,7 @@ def main() -> None:
     # --full and the reduced size keep their own files, and a subset of methods does not
     # overwrite the run of all of them
     report_name = "error_vs_time" + ("_full" if args.full else "") + ("_methods" if args.methods else "")
-    report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget, "photons_per_pass": PHOTONS,
+    report = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_seconds": budget,
               "scenes": {}}
     for scene, ref_method in scenes.items():
         res = resolution(scene, side)
