@@ -32,7 +32,7 @@ import logging
 import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
@@ -44,11 +44,11 @@ from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
 from worker.store.connection import Fields, text, text_hash
-from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
 from worker.store.policy import Status
-from worker.store.state import FoldContended, Folded, LostDeltas, Snapshot, TiledState, UnreadableDelta
+from worker.store.published import Images, Published
+from worker.store.state import Folded, Snapshot, TiledState
 from worker.store.tiles import Tiling
 
 log = logging.getLogger("photonfarm.store")
@@ -197,6 +197,7 @@ class Jobs:
         self.r = conn
         self.leases = Leases(conn)
         self.tiles = TiledState(conn, state_nodes)
+        self.images = Images(conn)
         self.tile_pixels = config().tile_pixels if tile_pixels is None else tile_pixels  # of the jobs it creates
         self._set_if_exists = conn.register_script(SET_IF_EXISTS)
 
@@ -313,10 +314,19 @@ class Jobs:
         self.tiles.init(record.id, self.tiling(record), record.integrator, setup)
         self.r.hset(keys.job(record.id), "setup", "1")
 
+    def published(self, record: JobRecord) -> Published | None:
+        """The job's image as its last fold round published it (worker/store/published.py);
+        one a restart of the main Redis lost, made from the tiles' state; None before its
+        first batch fixed the setup arrays."""
+        image = self.images.get(record.id)
+        if image is not None:
+            return image
+        state = self.state(record)
+        return Published.of(record.integrator, state) if state is not None else None
+
     def state(self, record: JobRecord) -> State | None:
-        """The job state as folded (a fold round first if one is due and the lease is
-        free), or None before its first batch fixed the setup arrays."""
-        self.fold_if_due(record.id)
+        """The job state as folded (this process's overlay, else the tiles' with the accepted
+        batches' pending deltas), or None before its first batch fixed the setup arrays."""
         record = self.get(record.id) or record
         if not record.setup:
             return None
@@ -567,21 +577,21 @@ class Jobs:
 
     @staticmethod
     def _news(pipe: redis.client.Pipeline, job_id: str) -> None:
-        """Queue the news that the job's end is decided: the folder ends it at once."""
+        """Queue the news that the job's end is decided: its reducer ends it at once."""
         pipe.lpush(keys.FOLD_NEWS, job_id)
         pipe.ltrim(keys.FOLD_NEWS, 0, keys.FOLD_NEWS_KEPT - 1)
 
     def _hand_off_end(self, job_id: str, final: Status) -> None:
-        """The batch that decided the job's end: the API's folder ends it (end_if_decided,
+        """The batch that decided the job's end: the job's reducer ends it (end_if_decided,
         from the image it holds in memory: one delta to add, then the checkpoint); this
         worker ends it itself if no process has begun to within end_handoff_seconds (the
-        API down or stuck), reading the state and every pending delta from the tiles.
+        reducers down or stuck), reading the state and every pending delta from the tiles.
 
         A folder that holds the job's fold lease is at work, and alive: its lease lapses
         within fold_lease_seconds if it dies. So the hand-off waits end_handoff_seconds from
         when the lease was last seen held, up to the 2 fold_lease_seconds a folder waits for
         the lease (FoldLease). Why wait: a worker that took over would only wait for the
-        lease, then rebuild the state the API holds in memory."""
+        lease, then rebuild the state the reducer holds in memory."""
         if self.r.scard(keys.lost(job_id)):
             return  # the last lost batch's refill hands it off
         start = time.monotonic()
@@ -597,11 +607,11 @@ class Jobs:
 
     def wait_for_news(self, seconds: float) -> None:
         """Block until a batch that ends its job is accepted (keys.FOLD_NEWS), at most
-        `seconds`: the folder's final round starts at once, not at its next look."""
+        `seconds`: the reducer's final round starts at once, not at its next look."""
         self.r.blpop([keys.FOLD_NEWS], timeout=seconds)
 
     def end_if_decided(self, job_id: str) -> bool:
-        """End a job whose accepted batch decided its final status (the API's folder, at
+        """End a job whose accepted batch decided its final status (its reducer, at
         once: no later batch can add to the round)."""
         record = self.get(job_id)
         if record is None or record.ending is None or record.stopping or self.r.scard(keys.lost(job_id)):
@@ -667,81 +677,10 @@ class Jobs:
 
     # --------------------------------------------------------------------- fold
     def fold(self, job_id: str, wait: bool = False, decide: bool = True, checkpoint: bool = False) -> Folded | None:
-        """One fold round of the job's accepted batches, if any is new to this process
-        (`checkpoint`: a checkpoint round in any case), by whoever gets the fold lease (`wait`:
-        wait for it). With `decide`, a job whose error reached its threshold converges. None
-        if there was nothing to fold or another folder had the lease."""
-        if not self.r.hlen(keys.tofold(job_id)):
-            return None
-        with FoldLease(self.r, job_id, wait) as held:
-            if not held:
-                return None
-            record = self.get(job_id)
-            accepted = self._foldable(job_id)
-            read_at = time.time()  # batches accepted after it wait for the next round
-            if record is None or not record.setup or not accepted:
-                return None
-            checkpoint = checkpoint or record.stopping or record.status in policy.FINAL  # no later round
-            fresh = accepted.keys() - OVERLAYS.batches(job_id)
-            if not fresh and not checkpoint:
-                return None  # all in this process's image already (a due checkpoint waits for news or the end)
-            if not checkpoint:  # paced: the batches that came together, over the rounds before the next
-                fresh, accepted = self._paced(record, fresh, accepted)
-            fold_start = time.perf_counter()
-            tiling = self.tiling(record)
-            try:
-                folded, tiles = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
-                                                      record.folded_passes, record.counters, accepted, checkpoint)
-            except FoldContended:
-                return None  # another folder holds the tiles now; its round counts
-            except LostDeltas as exc:  # a state node restarted: render them again, the next round folds the rest
-                self._refill(job_id, exc.batch_ids)
-                return None
-            except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
-                self.r.hdel(keys.tofold(job_id), exc.batch_id)
-                self.fail(job_id, f"cannot fold {exc}")
-                return None
-            # Show the image first, then write what the next batches read, then the tiles
-            # that are due (a checkpoint: the long part of a big frame's round) and count in
-            # the record the batches every tile has now written. A forced checkpoint (a
-            # worker's: it serves no image; the job's last) writes every tile and keeps no overlay.
-            rounds = (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
-                      )[-config().rounds_kept:]
-            self.tiles.publish(job_id, folded, {
-                "passes": folded.state.passes, "photons": folded.state.emitted,
-                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error}, rounds, read_at)
-            # A regular round's writes end when the next round is due (policy.checkpoint_seconds),
-            # one as long as the rounds so far predict for as many batches as this one took.
-            next_seconds = policy.round_seconds(rounds, max(1, len(fresh))) or rounds[-1].seconds
-            until = None if checkpoint else time.time() + policy.checkpoint_seconds(next_seconds)
-            try:
-                folded = replace(folded, stages=folded.stages | self.tiles.write_inputs(job_id, tiling,
-                                                                                        record.integrator))
-            except FoldContended:
-                tiles = []  # the overlay is dropped: another folder holds the tiles now, and its round counts
-            if tiles:
-                cpu = time.process_time()
-                try:
-                    with OVERLAYS.writing(job_id):  # a failed write drops the overlay
-                        written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles,
-                                                                  keep=not checkpoint, until=until)
-                        if complete:
-                            self.tiles.settle(job_id, complete)
-                        if checkpoint:
-                            OVERLAYS.drop(job_id)
-                        else:
-                            OVERLAYS.put(job_id, written)
-                except FoldContended:
-                    return folded  # another folder holds the tiles now; its round counts
-                folded = replace(folded, checkpointed=not written.batches,
-                                 stages=folded.stages | {"write state": time.process_time() - cpu})
-            self._note_cost(job_id, time.perf_counter() - fold_start)
-        status = self.status(job_id)
-        if status in policy.FINAL:
-            self._expire_tiles(job_id)  # a fold racing the final move rewrote tiles
-        elif decide and status == Status.RUNNING and policy.converged(record.settings, folded.error):
-            self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
-        return folded
+        """One fold round of the job (worker/reducer.py `fold`, which imports this module)."""
+        from worker.reducer import fold
+
+        return fold(self, job_id, wait, decide, checkpoint)
 
     def _note_cost(self, job_id: str, seconds: float) -> None:
         """Record a round's whole length (JobRecord.fold_cost) in the job's record, if it still
@@ -810,7 +749,7 @@ class Jobs:
         return policy.fold_interval(record.fold_cost, expected) - self._since_fold(record), len(fresh)
 
     def fold_if_due(self, job_id: str) -> Folded | None:
-        """The API's fold (its folder thread, and before a read): once `fold_interval`
+        """The reducer's fold: once `fold_interval`
         has passed since the last round, for a round of the batches waiting now."""
         record = self.get(job_id)
         if record is None or self._next_round(record)[0] > 0.0:
@@ -828,7 +767,7 @@ class Jobs:
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
         """A worker's fold after its merge, if accepted passes have waited for the image
-        fold_stale_seconds past the time the API plans it (policy.image_due): the API is down
+        fold_stale_seconds past the time the reducer plans it (policy.image_due): the reducer is down
         or behind, and the image still refreshes. It checkpoints: a worker serves no image,
         so it keeps no overlay."""
         record = self.get(job_id)
