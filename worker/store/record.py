@@ -317,9 +317,9 @@ class Jobs:
     def published(self, record: JobRecord) -> Published | None:
         """The job's image as its last fold round published it (worker/store/published.py);
         one a restart of the main Redis lost, made from the tiles' state; None before its
-        first batch fixed the setup arrays."""
+        first round."""
         image = self.images.get(record.id)
-        if image is not None:
+        if image is not None or record.image_passes == 0:
             return image
         state = self.state(record)
         return Published.of(record.integrator, state) if state is not None else None
