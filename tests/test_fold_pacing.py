@@ -88,7 +88,7 @@ def test_a_round_counts_its_checkpoint_writes_in_its_cost(store: Jobs) -> None:
     assert record.round_cost > record.fold_seconds > 0.0
     assert record.fold_cost == record.round_cost
     store.delete(job_id)
-    store._note_cost(job_id, 1.0)
+    store.note_cost(job_id, 1.0)
     assert not store.r.exists(keys.job(job_id))
 
 

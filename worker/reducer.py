@@ -60,7 +60,7 @@ def fold(jobs: Jobs, job_id: str, wait: bool = False, decide: bool = True, check
         if not held:
             return None
         record = jobs.get(job_id)
-        accepted = jobs._foldable(job_id)
+        accepted = jobs.foldable(job_id)
         read_at = time.time()  # batches accepted after it wait for the next round
         if record is None or not record.setup or not accepted:
             return None
@@ -69,7 +69,7 @@ def fold(jobs: Jobs, job_id: str, wait: bool = False, decide: bool = True, check
         if not fresh and not checkpoint:
             return None  # all in this process's image already (a due checkpoint waits for news or the end)
         if not checkpoint:  # paced: the batches that came together, over the rounds before the next
-            fresh, accepted = jobs._paced(record, fresh, accepted)
+            fresh, accepted = jobs.paced(record, fresh, accepted)
         fold_start = time.perf_counter()
         tiling = jobs.tiling(record)
         # Read deltas, merge, estimate: the state (this process's overlay, or the tiles'),
@@ -80,7 +80,7 @@ def fold(jobs: Jobs, job_id: str, wait: bool = False, decide: bool = True, check
         except FoldContended:
             return None  # another folder holds the tiles now; its round counts
         except LostDeltas as exc:  # a state node restarted: render them again, the next round folds the rest
-            jobs._refill(job_id, exc.batch_ids)
+            jobs.refill(job_id, exc.batch_ids)
             return None
         except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
             jobs.r.hdel(keys.tofold(job_id), exc.batch_id)
@@ -124,13 +124,13 @@ def fold(jobs: Jobs, job_id: str, wait: bool = False, decide: bool = True, check
                 return folded  # another folder holds the tiles now; its round counts
             folded = replace(folded, checkpointed=not written.batches,
                              stages=folded.stages | {"write state": time.process_time() - cpu})
-        jobs._note_cost(job_id, time.perf_counter() - fold_start)
+        jobs.note_cost(job_id, time.perf_counter() - fold_start)
     # Decide the end: a job whose error reached its threshold converges.
     status = jobs.status(job_id)
     if status in policy.FINAL:
-        jobs._expire_tiles(job_id)  # a fold racing the final move rewrote tiles
+        jobs.expire_tiles(job_id)  # a fold racing the final move rewrote tiles
     elif decide and status == Status.RUNNING and policy.converged(record.settings, folded.error):
-        jobs._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
+        jobs.converge(job_id)
     return folded
 
 

@@ -14,7 +14,7 @@ folded and checkpointed, so its final image holds every pass it counts.
 
 A delta is not in the state nodes' append-only files (worker/store/state.py), so a node's
 restart can lose one of an accepted batch. The round that finds it marks the batch lost
-and issues it again (`_refill`): same id, same passes and seeds, rendered at the radii of
+and issues it again (`refill`): same id, same passes and seeds, rendered at the radii of
 the moment. Its push refills the tiles that lack it (those that folded it before keep
 theirs), and its acceptance only takes it out of the lost set: it counts once, as before.
 Until then rounds fold the other batches and the job does not end, unless it is cancelled:
@@ -264,13 +264,13 @@ class Jobs:
     @staticmethod
     def _finish(pipe: redis.client.Pipeline, job_id: str, status: Status, now: float) -> None:
         """Queue a move to a final status: the slot is freed and every key of the job on the
-        main Redis gets its retention time (its tiles get theirs after: `_expire_tiles`)."""
+        main Redis gets its retention time (its tiles get theirs after: `expire_tiles`)."""
         pipe.hset(keys.job(job_id), mapping={"status": status.value, "finished": now})
         pipe.srem(keys.ACTIVE, job_id)
         for key in keys.job_keys(job_id):
             pipe.expire(key, int(config().retention_seconds))
 
-    def _expire_tiles(self, job_id: str) -> None:
+    def expire_tiles(self, job_id: str) -> None:
         record = self.get(job_id)
         if record is not None and record.status in policy.FINAL:
             self.tiles.expire(job_id, self.tiling(record), int(config().retention_seconds))
@@ -460,7 +460,7 @@ class Jobs:
         """Move a job in one of `allowed` to `final`, atomically, once every accepted batch
         is folded (unless `fold` is off) and, if `idle`, nothing is in flight. False if the
         job was not in `allowed` (or, if `idle`, still had batches in flight), or if a lost
-        batch is being rendered again (`_refill`; a cancelled job's are taken back)."""
+        batch is being rendered again (`refill`; a cancelled job's are taken back)."""
         key = keys.job(job_id)
         if self.status(job_id) not in allowed:
             return False
@@ -499,7 +499,7 @@ class Jobs:
                 except redis.WatchError:
                     continue
         OVERLAYS.drop(job_id)  # not folded (`fold` off): the image is the last checkpoint
-        self._expire_tiles(job_id)
+        self.expire_tiles(job_id)
         return True
 
     def settle(self, job_id: str, status: Status, final: Status) -> None:
@@ -524,6 +524,10 @@ class Jobs:
                 except redis.WatchError:
                     continue
 
+    def converge(self, job_id: str) -> bool:
+        """End a running job whose error reached its threshold (everything accepted folded first)."""
+        return self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
+
     def fail(self, job_id: str, message: str) -> None:
         """Fail the job at once (what was folded stays its image)."""
         self._end(job_id, policy.ACTIVE, Status.FAILED, {"error": message[:2000]}, fold=False)
@@ -543,7 +547,7 @@ class Jobs:
     def merge(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float | None = None,
               cpu_seconds: float = 0.0) -> str:
         """Push a batch's delta to the job's tiles, then accept it exactly once. Returns
-        'merged', 'refilled' (a lost batch's tiles refilled, `_refill`), 'duplicate' or
+        'merged', 'refilled' (a lost batch's tiles refilled, `refill`), 'duplicate' or
         'inactive'. The batch that ends the job folds everything accepted before the job
         takes its final status. `seconds` and `cpu_seconds` are the render's wall and process
         CPU time, `wall_seconds` the batch's from its lease."""
@@ -682,12 +686,12 @@ class Jobs:
 
         return fold(self, job_id, wait, decide, checkpoint)
 
-    def _note_cost(self, job_id: str, seconds: float) -> None:
+    def note_cost(self, job_id: str, seconds: float) -> None:
         """Record a round's whole length (JobRecord.fold_cost) in the job's record, if it still
         has one (a finished job may be deleted while its last round writes)."""
         self._set_if_exists(keys=[keys.job(job_id)], args=["round_cost", seconds])
 
-    def _foldable(self, job_id: str) -> dict[str, dict[str, Any]]:
+    def foldable(self, job_id: str) -> dict[str, dict[str, Any]]:
         """The accepted batches a round can fold (id -> {n, e, c}): all but the lost ones."""
         pipe = self.r.pipeline()
         pipe.hgetall(keys.tofold(job_id))
@@ -695,7 +699,7 @@ class Jobs:
         tofold, lost = pipe.execute()
         return {b.decode(): json.loads(v) for b, v in tofold.items() if b not in lost}
 
-    def _refill(self, job_id: str, batch_ids: list[str]) -> None:
+    def refill(self, job_id: str, batch_ids: list[str]) -> None:
         """Mark accepted batches lost and, if the job still renders, issue them again (the
         reaper enqueues them at its next look): same ids, same passes. (A cancelled job takes
         them back: `_end`.)"""
@@ -723,7 +727,7 @@ class Jobs:
             for batch_id in lost:
                 Leases.release(pipe, Batch.from_id(job_id, batch_id))
 
-    def _paced(self, record: JobRecord, fresh: set[str],
+    def paced(self, record: JobRecord, fresh: set[str],
                accepted: dict[str, Any]) -> tuple[set[str], dict[str, Any]]:
         """The batches new to the image a regular round takes in (policy.paced_batches, given
         when the next in-flight batch is due: the oldest passes first), and the accepted
@@ -744,7 +748,7 @@ class Jobs:
         """Seconds until the job's next regular round is due (at most 0: due now), `fold_interval`
         after the last round's image for a round of the batches waiting now, and how many of
         those this process's image lacks (lost ones aside: no round can fold them)."""
-        fresh = self._foldable(record.id).keys() - OVERLAYS.batches(record.id)
+        fresh = self.foldable(record.id).keys() - OVERLAYS.batches(record.id)
         expected = policy.round_seconds(record.fold_rounds, max(1, len(fresh)))
         return policy.fold_interval(record.fold_cost, expected) - self._since_fold(record), len(fresh)
 
