@@ -52,7 +52,20 @@ def fold(jobs: Jobs, job_id: str, wait: bool = False, decide: bool = True, check
     """One fold round of the job's accepted batches, if any is new to this process
     (`checkpoint`: a checkpoint round in any case), by whoever gets the fold lease (`wait`:
     wait for it). With `decide`, a job whose error reached its threshold converges. None
-    if there was nothing to fold or another folder had the lease."""
+    if there was nothing to fold or another folder had the lease.
+    A batch whose delta this process cannot read is never folded: the job fails, and a
+    checkpoint round folds the readable batches into its final image."""
+    try:
+        return fold_round(jobs, job_id, wait, decide, checkpoint)
+    except UnreadableDelta as exc:
+        jobs.r.hdel(keys.tofold(job_id), exc.batch_id)
+        jobs.fail(job_id, f"cannot fold {exc}")
+        fold_round(jobs, job_id, wait=True, decide=False, checkpoint=True)
+        return None
+
+
+def fold_round(jobs: Jobs, job_id: str, wait: bool, decide: bool, checkpoint: bool) -> Folded | None:
+    """`fold`'s round, step by step; raises UnreadableDelta (the round wrote nothing)."""
     if not jobs.r.hlen(keys.tofold(job_id)):
         return None
     # Lease: one folder per round (the reducer that owns the job, or a worker's stale fold).
@@ -81,10 +94,6 @@ def fold(jobs: Jobs, job_id: str, wait: bool = False, decide: bool = True, check
             return None  # another folder holds the tiles now; its round counts
         except LostDeltas as exc:  # a state node restarted: render them again, the next round folds the rest
             jobs.refill(job_id, exc.batch_ids)
-            return None
-        except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
-            jobs.r.hdel(keys.tofold(job_id), exc.batch_id)
-            jobs.fail(job_id, f"cannot fold {exc}")
             return None
         # Publish the image and the estimate: the API serves them; then the round's record
         # (its length, the passes the image holds) and the error history.
