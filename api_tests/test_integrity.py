@@ -118,7 +118,7 @@ def test_a_pass_longer_than_the_lease_keeps_its_lease(tmp_path: Path) -> None:
         done = assert_exact(c, job["id"], 2, photons, timeout=300)
         record = Jobs(c.redis_client).get(job["id"])
         assert record.render_seconds / 2 > 1.0, "passes were not longer than the lease: the test proves nothing"
-        log = (tmp_path / "api.log").read_text() + (tmp_path / "workers.log").read_text()
+        log = (tmp_path / "reducers.log").read_text() + (tmp_path / "workers.log").read_text()
         assert "re-issued lost batches" not in log
         assert '"outcome": "duplicate"' not in log and "batch skipped" not in log
         assert done["passes"] == 2

@@ -308,7 +308,7 @@ def test_serve_takes_every_child_with_it(how: str, tmp_path: Path) -> None:
     proc, http, _ = _serve_mid_batch(tmp_path)
     children = _session_members(proc.pid) - {proc.pid}
     try:
-        assert len(children) >= 3, children  # redis-server and two workers
+        assert len(children) >= 4, children  # redis-server, a reducer and two workers
         start = time.time()
         if how == "sigterm":
             proc.send_signal(signal.SIGTERM)  # what docker stop and systemd send
@@ -432,7 +432,7 @@ def test_loopback_names_only_this_machine() -> None:
 
 def test_serve_with_a_token_file_binds_everywhere_wants_the_token_and_shows_no_secret(tmp_path: Path) -> None:
     """0.0.0.0 with the token in a file: data routes want it; no process serve starts (the
-    embedded Redis, the workers) carries the Redis password or the token on its command line."""
+    embedded Redis, the reducer, the workers) carries the Redis password or the token on its command line."""
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN + "\n")
     port = free_port("0.0.0.0")
@@ -447,7 +447,7 @@ def test_serve_with_a_token_file_binds_everywhere_wants_the_token_and_shows_no_s
         password = (tmp_path / "data" / "redis" / PASSWORD_FILE).read_text().strip()
         members = _session_members(proc.pid)
         lines = {pid: Path(f"/proc/{pid}/cmdline").read_bytes() for pid in members}
-        assert len(lines) >= 4, lines  # serve, redis-server and two workers
+        assert len(lines) >= 5, lines  # serve, redis-server, a reducer and two workers
         assert any(b"valkey-server" in c or b"redis-server" in c for c in lines.values()), lines
         for pid, cmdline in lines.items():
             assert password.encode() not in cmdline and TOKEN.encode() not in cmdline, (pid, cmdline)

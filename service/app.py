@@ -1,7 +1,8 @@
 """The HTTP API (FastAPI). OpenAPI at /docs.
 
-It stores jobs and reads their state; it never renders. Batches run on the workers, and
-this process only kicks a new job off and runs the reaper that re-issues lost batches.
+It stores jobs and serves the images their reducers publish (worker/reducer.py); it never
+renders nor folds, and holds no job state: any number of API processes may serve one farm.
+Batches run on the workers; this process only kicks a new job off.
 """
 
 from __future__ import annotations
@@ -14,8 +15,7 @@ import math
 import sys
 import tempfile
 import threading
-from collections.abc import AsyncIterator, Awaitable, Callable
-from contextlib import asynccontextmanager
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -61,7 +61,7 @@ from worker.scene import (
     bundled_scene_names,
     bundled_scene_path,
 )
-from worker.scheduler import Reaper, feed
+from worker.scheduler import feed
 from worker.settings import Settings
 from worker.store import JobRecord, Jobs
 from worker.store.connection import connect
@@ -148,18 +148,11 @@ def if_none_match(request: Request) -> set[str]:
     return {tag.strip().removeprefix("W/") for tag in tags if tag.strip()}
 
 
-def create_app(redis_url: str, token: str | None = None, reaper: bool = True) -> FastAPI:
+def create_app(redis_url: str, token: str | None = None) -> FastAPI:
     conn = connect(redis_url)
     jobs = Jobs(conn)
 
-    @asynccontextmanager
-    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
-        running = Reaper(jobs).start() if reaper else None
-        yield
-        if running is not None:
-            running.stop()
-
-    app = FastAPIOffline(title="photonfarm", version="0.1.0", lifespan=lifespan, static_url=DOCS_ASSETS,
+    app = FastAPIOffline(title="photonfarm", version="0.1.0", static_url=DOCS_ASSETS,
                          description="Distributed progressive photon mapping (SPPM) render service.",
                          swagger_ui_parameters={"validatorUrl": None})  # no badge fetched from a public host
     bearer = HTTPBearer(auto_error=False, description="the server's PHOTONFARM_TOKEN")
@@ -249,21 +242,21 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
     @by_passes("image")
     def image_body(record: JobRecord, fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
         w, h = record.width, record.height
-        state = jobs.state(record)
-        if state is None:
+        published = jobs.published(record)
+        if published is None:
             return encode_image(np.zeros((h, w, 3)), fmt), {"X-Passes": "0", "X-Photons": "0"}
-        headers = {"X-Passes": str(state.passes), "X-Photons": str(state.emitted)}  # as folded
+        headers = {"X-Passes": str(published.passes), "X-Photons": str(published.emitted)}  # as folded
         # EXR: with the render's metadata (passes, photons, seed, settings, error estimate)
-        return encode_with(fmt, lambda path: write_render(path, record.integrator, state, w, h, error_layers=False)), \
-            headers
+        return encode_with(fmt, lambda path: write_render(path, record.settings, published, w, h,
+                                                          error_layers=False)), headers
 
     @by_passes("error")
     def error_body(record: JobRecord, fmt: Literal["png", "exr"]) -> tuple[bytes, dict[str, str]]:
         w, h = record.width, record.height
-        state = jobs.state(record)
-        if state is None:
+        published = jobs.published(record)
+        if published is None:
             raise HTTPException(409, detail="no pass merged yet")
-        est = record.integrator.estimate(state)
+        est = published.estimate
         if est is None:
             raise HTTPException(409, detail="this job does not estimate its error (error_estimation is off)")
         if fmt == "png":
@@ -271,18 +264,18 @@ def create_app(redis_url: str, token: str | None = None, reaper: bool = True) ->
         else:
             channels = np.stack([est.bias, est.noise, est.bound, est.relative], axis=-1).reshape(h, w, 4)
             body = encode_image(channels, "exr", channels=("bias", "noise", "bound", "relative"))
-        return body, {"X-Passes": str(state.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
+        return body, {"X-Passes": str(published.passes), "X-Average-Relative-Error": f"{est.average:.6g}"}
 
     @cachetools.cached(cachetools.LRUCache(maxsize=PIXEL_CACHE_JOBS),
                        key=lambda record: (record.id, record.image_passes), condition=threading.Condition())
     def pixel_arrays(record: JobRecord) -> dict[str, np.ndarray] | None:
         """The estimate and its error per pixel, (h, w, ...) as the images, by passes merged."""
-        state = jobs.state(record)
-        if state is None:
+        published = jobs.published(record)
+        if published is None:
             return None
         shape = (record.height, record.width)
-        arrays = {"rgb": record.integrator.image(state).reshape(*shape, 3)}
-        est = record.integrator.estimate(state)
+        arrays = {"rgb": published.rgb.reshape(*shape, 3)}
+        est = published.estimate
         if est is not None:
             arrays |= {name: getattr(est, name).reshape(shape)
                        for name in ("luminance", "bound", "relative", "measured")}

@@ -131,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--workers", type=_count, default=None,
                        help="local worker processes (default: one per core; 0: workers run elsewhere)")
+    serve.add_argument("--reducers", type=_count, default=1,
+                       help="local reducer processes, which fold jobs and publish their images (default: 1; "
+                            "0: reducers run elsewhere)")
     serve.add_argument("--redis-url", type=_redis_url,
                        help="external Redis (default: $REDIS_URL or the file $REDIS_URL_FILE names, else an "
                             "embedded one)")
@@ -141,6 +144,11 @@ def build_parser() -> argparse.ArgumentParser:
     from service.client import add_parser as add_submit_parser
 
     add_submit_parser(sub, _positive(float), _positive(int), _resolution, _output)
+
+    reducer = sub.add_parser("reducer", help="run a reducer (folds jobs, publishes their images, re-issues lost "
+                                             "batches) for the Redis at --redis-url")
+    reducer.add_argument("--redis-url", type=_redis_url,
+                         help="the Redis (default: $REDIS_URL or the file $REDIS_URL_FILE names)")
 
     worker = sub.add_parser("worker", help="run a render worker for the Redis at --redis-url")
     worker.add_argument("--redis-url", type=_redis_url,
@@ -156,6 +164,7 @@ def render(args: argparse.Namespace) -> int:
     from worker.engine import Engine
     from worker.outputs import write_render
     from worker.render_loop import render as render_passes
+    from worker.store.published import Published
 
     notes: list[str] = []
     scene, base_dir = load_any_scene(_scene_path(args.scene), notes=notes)
@@ -187,7 +196,8 @@ def render(args: argparse.Namespace) -> int:
             render_passes(engine, passes=args.passes, seconds=args.seconds, progress=progress, state=state)
         except KeyboardInterrupt:
             interrupted = True
-    write_render(args.out, engine.integrator, state, engine.arrays.width, engine.arrays.height)
+    write_render(args.out, engine.integrator.settings, Published.of(engine.integrator, state), engine.arrays.width,
+                 engine.arrays.height)
     note = " (interrupted: the image so far)" if interrupted else ""
     print(f"wrote {args.out}{note}: {state.passes} passes, {state.emitted} photons, "
           f"{time.perf_counter() - start:.1f} s")
@@ -239,7 +249,14 @@ def main(argv: list[str] | None = None) -> int:
                   "or PHOTONFARM_TOKEN_FILE first (docs/farm.md, Security model)", file=sys.stderr)
             return 2
 
-        return serve(args.host, args.port, args.workers, redis_url, args.data_dir or settings.data, settings.token)
+        return serve(args.host, args.port, args.workers, args.reducers, redis_url, args.data_dir or settings.data,
+                     settings.token)
+    if args.command == "reducer":
+        from worker.reducer import run as run_reducer
+
+        if redis_url is None:
+            parser.error("reducer: no Redis: set REDIS_URL (or REDIS_URL_FILE) or give --redis-url")
+        return run_reducer(redis_url)
     if args.command == "worker":
         from worker.queue_worker import run_worker
 

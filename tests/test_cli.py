@@ -129,12 +129,14 @@ def test_mitsuba_notes_and_refusals_are_one_line_each(tmp_path: Path) -> None:
 
 def test_service_flags_are_checked_before_anything_starts(tmp_path: Path) -> None:
     """A Redis URL of another scheme or with a password (the command line is readable by any
-    local user), or a negative worker count: one line, exit 2 (the URL was
+    local user), or a negative worker or reducer count: one line, exit 2 (the URL was
     a traceback from the worker's Redis client; -1 workers started the API with none)."""
     for args in (["worker", "--redis-url", "http://:secret@example"],
                  ["worker", "--redis-url", "redis://:secret@localhost:6379/0"],  # a password on the argv
                  ["serve", "--redis-url", "localhost:6379", "--data-dir", str(tmp_path)],
-                 ["serve", "--workers", "-1", "--data-dir", str(tmp_path)]):
+                 ["reducer", "--redis-url", "redis://:secret@localhost:6379/0"],
+                 ["serve", "--workers", "-1", "--data-dir", str(tmp_path)],
+                 ["serve", "--reducers", "-1", "--data-dir", str(tmp_path)]):
         proc = subprocess.run([str(PHOTONFARM), *args], capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
         assert proc.stderr.strip().splitlines()[-1].startswith("photonfarm"), proc.stderr

@@ -57,6 +57,7 @@ def test_concurrent_shuffled_merges_give_one_state(redis_url: str, tmp_path: Pat
         record = store.get(job_id)
         assert record.passes == 2 * BATCHES
         assert record.emitted == sum(d.emitted for d in deltas)
+        store.fold(job_id, wait=True, checkpoint=True)  # the reducer's round
         states.append(store.state(record))
     a, b = states
     tiling, half = store.tiling(record), record.integrator.sums.half

@@ -127,18 +127,17 @@ def test_a_delta_of_another_version_fails_its_job_cleanly(redis_url: str, header
     store.tiles.push_encoded(job_id, tiling, bad.id, lambda k: _foreign(sums, tiling.span(k), head, dtype))
     assert store.accept(bad, Delta(4, 2, 4096, {}), 0.01, 0.01)[0] == "merged"
 
-    assert store.fold(job_id) is None  # the round refused the delta and wrote nothing
+    assert store.fold(job_id) is None  # the round refused the delta; the job failed
     record = store.get(job_id)
     assert record.status == Status.FAILED
     assert bad.id in record.failure and named in record.failure, record.failure
-    assert record.folded_passes == 0
-    for k in range(tiling.count):
-        assert not store.r.hget(keys.tile(job_id, k, "meta"), "version")
     assert not store.r.hexists(keys.tofold(job_id), bad.id)  # never folded, never retried
+    for k in range(tiling.count):  # nothing of it on a tile
+        assert bad.id.encode() not in store.r.smembers(keys.tile(job_id, k, "folded"))
     # The readable batches fold: the failed job's image holds them.
     state = store.state(record)
-    record = store.get(job_id)
     assert record.folded_passes == state.passes == 4 and not store.r.exists(keys.tofold(job_id))
+    assert store.published(record).passes == 4
     expected = sum(as_sent(d.sums, tiling, record.integrator.sums.half)["S"] for d in good)
     np.testing.assert_allclose(state.S, expected, rtol=1e-12)
 

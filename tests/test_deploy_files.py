@@ -28,8 +28,8 @@ def test_docker_compose_config_is_valid() -> None:
     proc = subprocess.run(config, capture_output=True, text=True, cwd=REPO, env={**env, **secrets})
     assert proc.returncode == 0, proc.stderr
     services = yaml.safe_load(proc.stdout)["services"]
-    assert set(services) == {"redis", "api", "worker"}
-    for name in ("api", "worker"):
+    assert set(services) == {"redis", "api", "reducer", "worker"}
+    for name in ("api", "reducer", "worker"):
         assert services[name]["environment"]["REDIS_URL"] == "redis://:pw-value@redis:6379/0"
     assert services["api"]["environment"]["PHOTONFARM_TOKEN"] == "token-value"
     assert services["api"]["ports"] == ["127.0.0.1:8000:8000/tcp"] and "ports" not in services["redis"]
@@ -37,6 +37,8 @@ def test_docker_compose_config_is_valid() -> None:
         argv = " ".join(str(a) for a in [*service.get("entrypoint", []), *service.get("command", [])])
         assert "pw-value" not in argv and "token-value" not in argv and "--requirepass" not in argv, name
     assert services["worker"]["command"] == ["photonfarm", "worker"]
+    assert services["reducer"]["command"] == ["photonfarm", "reducer"]
+    assert services["api"]["command"][-2:] == ["--reducers", "0"]  # the reducer service folds
 
 
 def test_readme_starts_with_the_two_setup_commands() -> None:

@@ -88,16 +88,16 @@ def test_a_round_counts_its_checkpoint_writes_in_its_cost(store: Jobs) -> None:
     assert record.round_cost > record.fold_seconds > 0.0
     assert record.fold_cost == record.round_cost
     store.delete(job_id)
-    store._note_cost(job_id, 1.0)
+    store.note_cost(job_id, 1.0)
     assert not store.r.exists(keys.job(job_id))
 
 
 def test_the_folder_looks_again_when_a_round_is_due_not_a_whole_poll_later(store: Jobs,
                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    """scheduler.next_look_in: the folder waits until the first active job's next round is
+    """reducer.next_look_in: the reducer waits until the first active job's next round is
     due (fold_interval after its last image), within fold_poll_seconds and never less than
     fold_wait_min_seconds; a job with no batch new to the image sets no wait."""
-    from worker.scheduler import next_look_in
+    from worker.reducer import next_look_in
     from worker.store import policy
 
     job_id, _ = _job_with_two_batches_waiting(store, next_due_in=60.0)
@@ -106,11 +106,11 @@ def test_the_folder_looks_again_when_a_round_is_due_not_a_whole_poll_later(store
     monkeypatch.setattr(store, "active_ids", lambda: [job_id])  # other tests' jobs on this Redis aside
     interval = 0.4 + (time.time() - record.folded_at)
     monkeypatch.setattr(policy, "fold_interval", lambda *args: interval)  # due 0.4 s from now
-    wait = next_look_in(store)
+    wait = next_look_in(store, store.active_ids())
     assert config().fold_wait_min_seconds < wait <= 0.4 < config().fold_poll_seconds
     assert store.fold_if_due(job_id) is None  # not yet
     time.sleep(wait)
-    assert next_look_in(store) == config().fold_wait_min_seconds  # due now ...
+    assert next_look_in(store, store.active_ids()) == config().fold_wait_min_seconds  # due now ...
     folded = store.fold_if_due(job_id)  # ... and folded at this look
     assert folded is not None and folded.state.passes == 4
-    assert store.next_round_in(job_id) is None and next_look_in(store) == config().fold_poll_seconds
+    assert store.next_round_in(job_id) is None and next_look_in(store, store.active_ids()) == config().fold_poll_seconds

@@ -617,7 +617,7 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
     record = store.get(job_id)
     assert record.folded_passes == record.image_passes == record.passes == made[0].n_passes
     assert store.fold_if_stale(job_id) is None  # the image holds every accepted pass
-    # The API folds the next batch in memory: its image holds it, so a worker does not fold.
+    # The reducer folds the next batch in memory: its image holds it, so a worker does not fold.
     merge_new(store, job_id, made[1])
     assert not store.fold(job_id).checkpointed
     assert store.fold_if_stale(job_id) is None
@@ -628,10 +628,10 @@ def test_a_worker_folds_only_for_passes_that_waited(servers: list[EmbeddedRedis]
 
 def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedRedis], deltas: tuple,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    """The API's folder (scheduler.fold_active): a round that raises something other than a
+    """The reducer's folder (reducer.fold_owned): a round that raises something other than a
     Redis error (a bug, memory) is logged, the job's batches stay accepted for the next
     round, and the other jobs fold on."""
-    from worker.scheduler import fold_active
+    from worker.reducer import fold_owned
 
     store, broken, made = _fresh_job(servers, deltas, 2)
     healthy = caustics_job(store, *deltas[1:])
@@ -645,33 +645,33 @@ def test_one_jobs_failing_round_does_not_stop_the_others(servers: list[EmbeddedR
         return real(self, job_id, *args, **kwargs)
 
     monkeypatch.setattr(Jobs, "fold_if_due", fold_if_due)
-    assert fold_active(store) >= 1
+    assert fold_owned(store, store.active_ids()) >= 1
     assert store.get(healthy).image_passes == made[0].n_passes
     assert store.get(broken).image_passes == 0 and store.get(broken).passes == made[0].n_passes
     monkeypatch.setattr(Jobs, "fold_if_due", real)
-    fold_active(store)
+    fold_owned(store, store.active_ids())
     assert store.get(broken).image_passes == made[0].n_passes  # the next round took it
 
 
-def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: list[EmbeddedRedis], deltas: tuple,
+def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_reducer(servers: list[EmbeddedRedis], deltas: tuple,
                                                                       tune: Callable[..., Config]) -> None:
-    """The batch that spends the budget leaves the final round to the API's folder, which
+    """The batch that spends the budget leaves the final round to the reducer, which
     holds the image in memory (one delta to add, then the checkpoint): its merge returns as
     soon as the folder has begun, and the job ends with every pass folded once. With no
     folder running, the worker ends the job itself after end_handoff_seconds."""
-    from worker.scheduler import fold_active
+    from worker.reducer import fold_owned
 
     made = pickle.loads(deltas[0].read_bytes())[:3]
     store = sharded_store([s.url for s in servers])
     budget = sum(d.n_passes for d in made)
-    # With the API's folder: the merge does not wait out the hand-off.
+    # With the reducer: the merge does not wait out the hand-off.
     tune(end_handoff_seconds=60.0)
     job_id = caustics_job(store, *deltas[1:], max_passes=budget)
     stop = threading.Event()
 
     def folder() -> None:
         while not stop.wait(0.05):
-            fold_active(store)
+            fold_owned(store, store.active_ids())
 
     thread = threading.Thread(target=folder, daemon=True)
     thread.start()
@@ -699,12 +699,12 @@ def test_the_batch_that_ends_a_job_hands_its_final_round_to_the_api(servers: lis
 
 def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[EmbeddedRedis], deltas: tuple,
                                                                tune: Callable[..., Config]) -> None:
-    """The API's folder may be in a round of the job (its checkpoint writes) when the batch
+    """The reducer may be in a round of the job (its checkpoint writes) when the batch
     that ends the job is accepted. While a folder holds the job's fold lease, the worker
     does not begin the end itself after end_handoff_seconds (it would wait for the lease,
     then rebuild the state the folder holds in memory): the folder ends the job once its
     round is done, and every pass is folded once."""
-    from worker.scheduler import fold_active
+    from worker.reducer import fold_owned
     from worker.store.fold_lease import FoldLease
 
     made = pickle.loads(deltas[0].read_bytes())[:2]
@@ -714,15 +714,15 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
     merge_new(store, job_id, made[0])
     held, done = threading.Event(), threading.Event()
 
-    def api_folder() -> None:
+    def reducer() -> None:
         with FoldLease(store.r, job_id, wait=True):  # a round of the job under way
             held.set()
             done.wait(30.0)
         while store.status(job_id) == Status.RUNNING:
-            fold_active(store)
+            fold_owned(store, store.active_ids())
             time.sleep(0.05)
 
-    folder = threading.Thread(target=api_folder, daemon=True)
+    folder = threading.Thread(target=reducer, daemon=True)
     folder.start()
     assert held.wait(10.0)
     merging = threading.Thread(target=merge_new, args=(store, job_id, made[1]), daemon=True)
@@ -742,10 +742,10 @@ def test_the_worker_leaves_the_final_round_to_a_folder_at_work(servers: list[Emb
 def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], deltas: tuple,
                                                   tune: Callable[..., Config]) -> None:
     """The batch that ends a job is news (keys.FOLD_NEWS): a folder waiting on it
-    (Jobs.wait_for_news, the API's folder thread) starts the final round at once, however
+    (Jobs.wait_for_news, the reducer's folder thread) starts the final round at once, however
     long it would otherwise wait between looks (here 30 s), and the merge returns as soon
     as it has begun."""
-    from worker.scheduler import fold_active
+    from worker.reducer import fold_owned
 
     made = pickle.loads(deltas[0].read_bytes())[:2]
     store = sharded_store([s.url for s in servers])
@@ -760,7 +760,7 @@ def test_the_folder_wakes_for_a_jobs_ending_batch(servers: list[EmbeddedRedis], 
         while not stop.is_set():
             store.wait_for_news(30.0)
             if not stop.is_set():
-                fold_active(store)
+                fold_owned(store, store.active_ids())
 
     thread = threading.Thread(target=folder, daemon=True)
     thread.start()

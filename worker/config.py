@@ -87,7 +87,7 @@ class Config:
                                 "its error estimate, pushes to the state nodes)")
     worker_nice: int = setting("PHOTONFARM_WORKER_NICE", 10, "an integer (added to the process's niceness)",
                                "how much lower a worker's CPU priority is than the process that started it, so "
-                               "that the API's fold rounds and Redis come first on a shared machine")
+                               "that the reducers' fold rounds and Redis come first on a shared machine")
     tile_pixels: int = setting("PHOTONFARM_TILE_PIXELS", 1 << 16, "a positive integer",
                                "pixels per state tile for jobs created from now on (a job keeps its tile size)",
                                _positive)
@@ -127,12 +127,12 @@ class Config:
                                 "a job's fold rounds take at most this share of the time, as far as the refresh "
                                 "allows", _share)
     fold_poll_seconds: float = setting("PHOTONFARM_FOLD_POLL_SECONDS", 0.5, "seconds, a positive number",
-                                       "the API's folder thread looks this often, and at once on news", _positive)
+                                       "a reducer looks at its jobs this often, and at once on news", _positive)
     fold_wait_min_seconds: float = setting("PHOTONFARM_FOLD_WAIT_MIN_SECONDS", 0.05, "seconds, a positive number",
-                                           "the folder looks at once when a job's round is due, but not more "
+                                           "a reducer looks at once when a job's round is due, but not more "
                                            "often than this", _positive)
     fold_stale_seconds: float = setting("PHOTONFARM_FOLD_STALE_SECONDS", 5.0, "seconds, a number",
-                                        "a worker folds after its merge when the API has not folded this long past "
+                                        "a worker folds after its merge when no reducer has folded this long past "
                                         "the image's planned time")
     rounds_kept: int = setting("PHOTONFARM_ROUNDS_KEPT", 8, "a positive integer",
                                "a job's recent fold rounds that predict the next one's length", _positive)

@@ -9,7 +9,7 @@ import json
 import logging
 import time
 
-CONTEXT_FIELDS = ("job", "batch", "worker", "outcome", "seconds", "passes", "reissued")
+CONTEXT_FIELDS = ("job", "batch", "worker", "reducer", "jobs", "outcome", "seconds", "passes", "reissued")
 
 
 class JsonFormatter(logging.Formatter):

@@ -12,7 +12,8 @@ import numpy as np
 from worker.image_io import write_image
 
 if TYPE_CHECKING:  # (the CLI checks its outputs without loading the engine)
-    from worker.integrators.base import Integrator, State
+    from worker.settings import Settings
+    from worker.store.published import Published
 
 ERROR_LAYERS = ("bias", "noise", "bound", "relative")  # luminance, per pixel (worker/error_estimate.py)
 
@@ -39,21 +40,20 @@ def check_writable(path: Path) -> None:
         raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
-def write_render(path: Path, integrator: Integrator, state: State, width: int, height: int,
+def write_render(path: Path, settings: Settings, image: Published, width: int, height: int,
                  error_layers: bool = True) -> None:
-    """The current estimate to `path` (.png tone-mapped, .exr linear with metadata and, when
-    the job estimates its error and `error_layers` is set, the layers error.bias, error.noise,
-    error.bound and error.relative)."""
-    rgb = integrator.image(state).reshape(height, width, 3)
+    """An image (worker/store/published.py: the estimate and its error) to `path` (.png
+    tone-mapped, .exr linear with metadata and, when the job estimates its error and
+    `error_layers` is set, the layers error.bias, error.noise, error.bound and error.relative)."""
+    rgb = image.rgb.reshape(height, width, 3)
     if Path(path).suffix.lower() != ".exr":
         write_image(path, rgb)
         return
-    settings = integrator.settings
-    metadata: dict[str, object] = {"passes": state.passes, "photons": state.emitted, "seed": settings.seed,
+    metadata: dict[str, object] = {"passes": image.passes, "photons": image.emitted, "seed": settings.seed,
                                    "method": settings.method, "settings": settings.model_dump_json()}
-    if state.counters:  # SPPM's radius schedule held (worker/stats.py); the adaptive sampler's draws, splats, ...
-        metadata["counters"] = json.dumps(state.counters, sort_keys=True)
-    estimate = integrator.estimate(state) if state.passes > 0 else None
+    if image.counters:  # SPPM's radius schedule held (worker/stats.py); the adaptive sampler's draws, splats, ...
+        metadata["counters"] = json.dumps(image.counters, sort_keys=True)
+    estimate = image.estimate if image.passes > 0 else None
     pixels = rgb
     channels: tuple[str, ...] = ("R", "G", "B")
     if estimate is not None:

@@ -5,9 +5,8 @@ asks for the next one, which joins the END of its priority queue: batches of dif
 jobs interleave, so a small job never waits for a large one to finish, only for the
 batches already queued. Workers take the high queue first, then normal, then low.
 
-The folder (a thread of the API process, every few seconds) folds every active job's
-accepted batches into its state (worker/store/state.py). The reaper (another thread of it)
-looks at leases that expired:
+The reducers (worker/reducer.py) fold every active job's accepted batches into its state
+(worker/store/state.py); one of them at a time reaps: it looks at leases that expired:
 a batch still waiting in a queue gets more time; one whose worker vanished (killed, or
 its Redis connection lost) is put on the queue again. Its passes keep their indices and
 seeds, and the merged set guarantees they count once whichever copy finishes first.
@@ -15,9 +14,6 @@ seeds, and the merged set guarantees they count once whichever copy finishes fir
 
 from __future__ import annotations
 
-import logging
-import threading
-import time
 import uuid
 
 import redis
@@ -29,15 +25,10 @@ from rq.serializers import JSONSerializer
 from worker.config import config
 from worker.settings import PRIORITIES, Priority
 from worker.store import Batch, Jobs, Status
-from worker.store.overlay import OVERLAYS
 from worker.store.policy import ACTIVE
 
 QUEUE_NAMES = tuple(f"photonfarm-{p}" for p in PRIORITIES)  # workers listen in this order
 RQ_TIMEOUT = 900  # seconds; a batch is sized to take about two
-REAP_SECONDS = 2.0
-PRUNE_SECONDS = 60.0
-
-log = logging.getLogger("photonfarm.scheduler")
 
 
 def queue_for(conn: redis.Redis, priority: Priority) -> Queue:
@@ -124,78 +115,3 @@ def reap(jobs: Jobs) -> int:
         elif jobs.leases.inflight(job_id) == 0 and feed(jobs, job_id) == 0 and record.status == Status.RUNNING:
             jobs.settle(job_id, Status.RUNNING, Status.COMPLETED)  # budget spent and nothing left to merge
     return reissued
-
-
-def fold_active(jobs: Jobs) -> int:
-    """The reducer: a fold round for every active job with accepted batches waiting whose
-    round is due (a job another process is folding is skipped), and at once the final round
-    of a job an accepted batch ended. Returns how many were folded.
-    A round that fails other than by Redis is logged and the other jobs fold on (its
-    batches stay accepted; the next round tries again)."""
-    active = jobs.active_ids()
-    OVERLAYS.keep_only(set(active))  # an ended job's last round was a checkpoint
-    folded = 0
-    for job_id in active:
-        try:
-            folded += jobs.end_if_decided(job_id) or jobs.fold_if_due(job_id) is not None
-        except redis.RedisError:
-            raise
-        except Exception:  # one job's failing round must not stop the others'
-            log.exception("fold round failed", extra={"job": job_id})
-    return folded
-
-
-def next_look_in(jobs: Jobs) -> float:
-    """How long the folder waits (for news) before its next look: until the first round of
-    an active job is due, so that a paced round starts when due rather than up to a look
-    later; at most fold_poll_seconds (a batch accepted
-    meanwhile may make a round due) and at least fold_wait_min_seconds (a due round another
-    process holds the lease for is not polled for in a spin)."""
-    due = [d for job_id in jobs.active_ids() if (d := jobs.next_round_in(job_id)) is not None]
-    return max(config().fold_wait_min_seconds, min([config().fold_poll_seconds, *due]))
-
-
-class Reaper:
-    """The reaper and the folder as daemon threads (started by the API process): a long
-    fold of a large job does not delay re-issuing lost batches."""
-
-    def __init__(self, jobs: Jobs, interval: float = REAP_SECONDS) -> None:
-        self.jobs = jobs
-        self.interval = interval
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._run, name="reaper", daemon=True),
-                         threading.Thread(target=self._fold, name="folder", daemon=True)]
-
-    def _fold(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.jobs.wait_for_news(next_look_in(self.jobs))
-                fold_active(self.jobs)
-            except redis.RedisError as exc:
-                log.warning("folder: redis unavailable: %s", exc)
-                self._stop.wait(config().fold_poll_seconds)
-            except Exception:  # the thread lives on: the next round may succeed
-                log.exception("folder: a pass over the jobs failed")
-                self._stop.wait(config().fold_poll_seconds)
-
-    def _run(self) -> None:
-        last_prune = 0.0
-        while not self._stop.wait(self.interval):
-            try:
-                if n := reap(self.jobs):
-                    log.info("re-issued lost batches", extra={"reissued": n})
-                if time.monotonic() - last_prune > PRUNE_SECONDS:
-                    self.jobs.prune()  # ids of jobs past their retention
-                    last_prune = time.monotonic()
-            except redis.RedisError as exc:
-                log.warning("reaper: redis unavailable: %s", exc)
-            except Exception:  # the thread lives on: the next look may succeed
-                log.exception("reaper: a look failed")
-
-    def start(self) -> Reaper:
-        for thread in self._threads:
-            thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()

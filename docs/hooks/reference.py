@@ -183,7 +183,7 @@ def openapi_schema() -> dict[str, Any]:
     """The service's OpenAPI schema, as `GET /openapi.json` serves it (no token set)."""
     from service.app import create_app
 
-    return create_app(UNUSED_REDIS_URL, reaper=False).openapi()
+    return create_app(UNUSED_REDIS_URL).openapi()
 
 
 def _operation(path: str, method: str, op: dict[str, Any]) -> str:

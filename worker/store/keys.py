@@ -11,14 +11,17 @@
     pf:job:{id}:lost               set     accepted batch ids whose delta a state node's restart lost on a tile that
                                            had not folded it (deltas stay out of the append-only file): each is
                                            rendered again under its id and refills those tiles (worker/store/record.py)
-    pf:job:{id}:fold-lock          string  the fold lease: one folder per job at a time (worker/store/fold_lease.py)
+    pf:job:{id}:fold-lock          string  the fold lease: one folder per round at a time (worker/store/fold_lease.py)
+    pf:job:{id}:reducer            string  the one reducer that owns the job, its lease (worker/reducer.py)
+    pf:job:{id}:image              hash    the last fold round's image and error (worker/store/published.py)
     pf:job:{id}:history            list    JSON {passes, photons, seconds, error} after each fold round
     pf:job:{id}:inflight           set     batch ids issued and not yet merged or dropped
     pf:leases                      zset    batch member "job/first/n" -> deadline
     pf:lease-owner                 hash    batch member -> worker name
     pf:batch-rq                    hash    batch member -> id of the RQ job that carries it
-    pf:fold-news                   list    ids of jobs whose ending batch was just accepted: the API's folder
-                                           thread waits on it between its looks (at most FOLD_NEWS_KEPT)
+    pf:fold-news                   list    ids of jobs whose ending batch was just accepted: the reducers wait
+                                           on it between their looks (at most FOLD_NEWS_KEPT)
+    pf:reaper                      string  the reaper lease: one reducer re-issues lost batches at a time
     pf:worker:{name}               hash    heartbeat: job, batch, passes, last_seen (expires)
     pf:workers                     zset    worker name -> last heartbeat (live workers: recent scores)
 
@@ -41,7 +44,8 @@ LEASES = "pf:leases"
 LEASE_OWNER = "pf:lease-owner"
 BATCH_RQ = "pf:batch-rq"
 FOLD_NEWS = "pf:fold-news"
-FOLD_NEWS_KEPT = 64  # entries: with no API to take them, the list stays this short
+FOLD_NEWS_KEPT = 64  # entries: with no reducer to take them, the list stays this short
+REAPER = "pf:reaper"
 
 
 def job(job_id: str) -> str:
@@ -58,6 +62,14 @@ def tofold(job_id: str) -> str:
 
 def fold_lock(job_id: str) -> str:
     return f"pf:job:{job_id}:fold-lock"
+
+
+def reducer(job_id: str) -> str:
+    return f"pf:job:{job_id}:reducer"
+
+
+def image(job_id: str) -> str:
+    return f"pf:job:{job_id}:image"
 
 
 TILE_PARTS = ("state", "inputs", "pending", "folded", "meta")
@@ -91,7 +103,7 @@ def due(job_id: str) -> str:
 def job_keys(job_id: str) -> list[str]:
     """Every key of one job on the main Redis (its tiles' keys: `tile_keys`)."""
     return [job(job_id), scene(job_id), merged(job_id), tofold(job_id), lost(job_id), fold_lock(job_id),
-            history(job_id), inflight(job_id), due(job_id)]
+            reducer(job_id), image(job_id), history(job_id), inflight(job_id), due(job_id)]
 
 
 def tile_keys(job_id: str, k: int) -> list[str]:

@@ -14,7 +14,7 @@ folded and checkpointed, so its final image holds every pass it counts.
 
 A delta is not in the state nodes' append-only files (worker/store/state.py), so a node's
 restart can lose one of an accepted batch. The round that finds it marks the batch lost
-and issues it again (`_refill`): same id, same passes and seeds, rendered at the radii of
+and issues it again (`refill`): same id, same passes and seeds, rendered at the radii of
 the moment. Its push refills the tiles that lack it (those that folded it before keep
 theirs), and its acceptance only takes it out of the lost set: it counts once, as before.
 Until then rounds fold the other batches and the job does not end, unless it is cancelled:
@@ -32,7 +32,7 @@ import logging
 import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
@@ -44,11 +44,11 @@ from worker.integrators.base import Delta, State
 from worker.settings import Settings
 from worker.store import keys, policy
 from worker.store.connection import Fields, text, text_hash
-from worker.store.fold_lease import FoldLease
 from worker.store.leases import Batch, Leases
 from worker.store.overlay import OVERLAYS
 from worker.store.policy import Status
-from worker.store.state import FoldContended, Folded, LostDeltas, Snapshot, TiledState, UnreadableDelta
+from worker.store.published import Images, Published
+from worker.store.state import Folded, Snapshot, TiledState
 from worker.store.tiles import Tiling
 
 log = logging.getLogger("photonfarm.store")
@@ -197,6 +197,7 @@ class Jobs:
         self.r = conn
         self.leases = Leases(conn)
         self.tiles = TiledState(conn, state_nodes)
+        self.images = Images(conn)
         self.tile_pixels = config().tile_pixels if tile_pixels is None else tile_pixels  # of the jobs it creates
         self._set_if_exists = conn.register_script(SET_IF_EXISTS)
 
@@ -263,13 +264,13 @@ class Jobs:
     @staticmethod
     def _finish(pipe: redis.client.Pipeline, job_id: str, status: Status, now: float) -> None:
         """Queue a move to a final status: the slot is freed and every key of the job on the
-        main Redis gets its retention time (its tiles get theirs after: `_expire_tiles`)."""
+        main Redis gets its retention time (its tiles get theirs after: `expire_tiles`)."""
         pipe.hset(keys.job(job_id), mapping={"status": status.value, "finished": now})
         pipe.srem(keys.ACTIVE, job_id)
         for key in keys.job_keys(job_id):
             pipe.expire(key, int(config().retention_seconds))
 
-    def _expire_tiles(self, job_id: str) -> None:
+    def expire_tiles(self, job_id: str) -> None:
         record = self.get(job_id)
         if record is not None and record.status in policy.FINAL:
             self.tiles.expire(job_id, self.tiling(record), int(config().retention_seconds))
@@ -313,10 +314,19 @@ class Jobs:
         self.tiles.init(record.id, self.tiling(record), record.integrator, setup)
         self.r.hset(keys.job(record.id), "setup", "1")
 
+    def published(self, record: JobRecord) -> Published | None:
+        """The job's image as its last fold round published it (worker/store/published.py);
+        one a restart of the main Redis lost, made from the tiles' state; None before its
+        first round."""
+        image = self.images.get(record.id)
+        if image is not None or record.image_passes == 0:
+            return image
+        state = self.state(record)
+        return Published.of(record.integrator, state) if state is not None else None
+
     def state(self, record: JobRecord) -> State | None:
-        """The job state as folded (a fold round first if one is due and the lease is
-        free), or None before its first batch fixed the setup arrays."""
-        self.fold_if_due(record.id)
+        """The job state as folded (this process's overlay, else the tiles' with the accepted
+        batches' pending deltas), or None before its first batch fixed the setup arrays."""
         record = self.get(record.id) or record
         if not record.setup:
             return None
@@ -450,7 +460,7 @@ class Jobs:
         """Move a job in one of `allowed` to `final`, atomically, once every accepted batch
         is folded (unless `fold` is off) and, if `idle`, nothing is in flight. False if the
         job was not in `allowed` (or, if `idle`, still had batches in flight), or if a lost
-        batch is being rendered again (`_refill`; a cancelled job's are taken back)."""
+        batch is being rendered again (`refill`; a cancelled job's are taken back)."""
         key = keys.job(job_id)
         if self.status(job_id) not in allowed:
             return False
@@ -489,7 +499,7 @@ class Jobs:
                 except redis.WatchError:
                     continue
         OVERLAYS.drop(job_id)  # not folded (`fold` off): the image is the last checkpoint
-        self._expire_tiles(job_id)
+        self.expire_tiles(job_id)
         return True
 
     def settle(self, job_id: str, status: Status, final: Status) -> None:
@@ -514,6 +524,10 @@ class Jobs:
                 except redis.WatchError:
                     continue
 
+    def converge(self, job_id: str) -> bool:
+        """End a running job whose error reached its threshold (everything accepted folded first)."""
+        return self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
+
     def fail(self, job_id: str, message: str) -> None:
         """Fail the job at once (what was folded stays its image)."""
         self._end(job_id, policy.ACTIVE, Status.FAILED, {"error": message[:2000]}, fold=False)
@@ -533,7 +547,7 @@ class Jobs:
     def merge(self, batch: Batch, delta: Delta, seconds: float, wall_seconds: float | None = None,
               cpu_seconds: float = 0.0) -> str:
         """Push a batch's delta to the job's tiles, then accept it exactly once. Returns
-        'merged', 'refilled' (a lost batch's tiles refilled, `_refill`), 'duplicate' or
+        'merged', 'refilled' (a lost batch's tiles refilled, `refill`), 'duplicate' or
         'inactive'. The batch that ends the job folds everything accepted before the job
         takes its final status. `seconds` and `cpu_seconds` are the render's wall and process
         CPU time, `wall_seconds` the batch's from its lease."""
@@ -567,21 +581,21 @@ class Jobs:
 
     @staticmethod
     def _news(pipe: redis.client.Pipeline, job_id: str) -> None:
-        """Queue the news that the job's end is decided: the folder ends it at once."""
+        """Queue the news that the job's end is decided: its reducer ends it at once."""
         pipe.lpush(keys.FOLD_NEWS, job_id)
         pipe.ltrim(keys.FOLD_NEWS, 0, keys.FOLD_NEWS_KEPT - 1)
 
     def _hand_off_end(self, job_id: str, final: Status) -> None:
-        """The batch that decided the job's end: the API's folder ends it (end_if_decided,
+        """The batch that decided the job's end: the job's reducer ends it (end_if_decided,
         from the image it holds in memory: one delta to add, then the checkpoint); this
         worker ends it itself if no process has begun to within end_handoff_seconds (the
-        API down or stuck), reading the state and every pending delta from the tiles.
+        reducers down or stuck), reading the state and every pending delta from the tiles.
 
         A folder that holds the job's fold lease is at work, and alive: its lease lapses
         within fold_lease_seconds if it dies. So the hand-off waits end_handoff_seconds from
         when the lease was last seen held, up to the 2 fold_lease_seconds a folder waits for
         the lease (FoldLease). Why wait: a worker that took over would only wait for the
-        lease, then rebuild the state the API holds in memory."""
+        lease, then rebuild the state the reducer holds in memory."""
         if self.r.scard(keys.lost(job_id)):
             return  # the last lost batch's refill hands it off
         start = time.monotonic()
@@ -597,11 +611,11 @@ class Jobs:
 
     def wait_for_news(self, seconds: float) -> None:
         """Block until a batch that ends its job is accepted (keys.FOLD_NEWS), at most
-        `seconds`: the folder's final round starts at once, not at its next look."""
+        `seconds`: the reducer's final round starts at once, not at its next look."""
         self.r.blpop([keys.FOLD_NEWS], timeout=seconds)
 
     def end_if_decided(self, job_id: str) -> bool:
-        """End a job whose accepted batch decided its final status (the API's folder, at
+        """End a job whose accepted batch decided its final status (its reducer, at
         once: no later batch can add to the round)."""
         record = self.get(job_id)
         if record is None or record.ending is None or record.stopping or self.r.scard(keys.lost(job_id)):
@@ -667,88 +681,17 @@ class Jobs:
 
     # --------------------------------------------------------------------- fold
     def fold(self, job_id: str, wait: bool = False, decide: bool = True, checkpoint: bool = False) -> Folded | None:
-        """One fold round of the job's accepted batches, if any is new to this process
-        (`checkpoint`: a checkpoint round in any case), by whoever gets the fold lease (`wait`:
-        wait for it). With `decide`, a job whose error reached its threshold converges. None
-        if there was nothing to fold or another folder had the lease."""
-        if not self.r.hlen(keys.tofold(job_id)):
-            return None
-        with FoldLease(self.r, job_id, wait) as held:
-            if not held:
-                return None
-            record = self.get(job_id)
-            accepted = self._foldable(job_id)
-            read_at = time.time()  # batches accepted after it wait for the next round
-            if record is None or not record.setup or not accepted:
-                return None
-            checkpoint = checkpoint or record.stopping or record.status in policy.FINAL  # no later round
-            fresh = accepted.keys() - OVERLAYS.batches(job_id)
-            if not fresh and not checkpoint:
-                return None  # all in this process's image already (a due checkpoint waits for news or the end)
-            if not checkpoint:  # paced: the batches that came together, over the rounds before the next
-                fresh, accepted = self._paced(record, fresh, accepted)
-            fold_start = time.perf_counter()
-            tiling = self.tiling(record)
-            try:
-                folded, tiles = self.tiles.fold_round(job_id, tiling, record.integrator, record.folded_emitted,
-                                                      record.folded_passes, record.counters, accepted, checkpoint)
-            except FoldContended:
-                return None  # another folder holds the tiles now; its round counts
-            except LostDeltas as exc:  # a state node restarted: render them again, the next round folds the rest
-                self._refill(job_id, exc.batch_ids)
-                return None
-            except UnreadableDelta as exc:  # never folded: the job fails, its image keeps what was folded
-                self.r.hdel(keys.tofold(job_id), exc.batch_id)
-                self.fail(job_id, f"cannot fold {exc}")
-                return None
-            # Show the image first, then write what the next batches read, then the tiles
-            # that are due (a checkpoint: the long part of a big frame's round) and count in
-            # the record the batches every tile has now written. A forced checkpoint (a
-            # worker's: it serves no image; the job's last) writes every tile and keeps no overlay.
-            rounds = (*record.fold_rounds, policy.Round(len(fresh), time.perf_counter() - fold_start, folded.rebuilt)
-                      )[-config().rounds_kept:]
-            self.tiles.publish(job_id, folded, {
-                "passes": folded.state.passes, "photons": folded.state.emitted,
-                "seconds": round(record.elapsed_seconds(), 3), "error": folded.error}, rounds, read_at)
-            # A regular round's writes end when the next round is due (policy.checkpoint_seconds),
-            # one as long as the rounds so far predict for as many batches as this one took.
-            next_seconds = policy.round_seconds(rounds, max(1, len(fresh))) or rounds[-1].seconds
-            until = None if checkpoint else time.time() + policy.checkpoint_seconds(next_seconds)
-            try:
-                folded = replace(folded, stages=folded.stages | self.tiles.write_inputs(job_id, tiling,
-                                                                                        record.integrator))
-            except FoldContended:
-                tiles = []  # the overlay is dropped: another folder holds the tiles now, and its round counts
-            if tiles:
-                cpu = time.process_time()
-                try:
-                    with OVERLAYS.writing(job_id):  # a failed write drops the overlay
-                        written, complete = self.tiles.checkpoint(job_id, tiling, record.integrator, tiles,
-                                                                  keep=not checkpoint, until=until)
-                        if complete:
-                            self.tiles.settle(job_id, complete)
-                        if checkpoint:
-                            OVERLAYS.drop(job_id)
-                        else:
-                            OVERLAYS.put(job_id, written)
-                except FoldContended:
-                    return folded  # another folder holds the tiles now; its round counts
-                folded = replace(folded, checkpointed=not written.batches,
-                                 stages=folded.stages | {"write state": time.process_time() - cpu})
-            self._note_cost(job_id, time.perf_counter() - fold_start)
-        status = self.status(job_id)
-        if status in policy.FINAL:
-            self._expire_tiles(job_id)  # a fold racing the final move rewrote tiles
-        elif decide and status == Status.RUNNING and policy.converged(record.settings, folded.error):
-            self._end(job_id, frozenset({Status.RUNNING}), Status.CONVERGED)
-        return folded
+        """One fold round of the job (worker/reducer.py `fold`, which imports this module)."""
+        from worker.reducer import fold
 
-    def _note_cost(self, job_id: str, seconds: float) -> None:
+        return fold(self, job_id, wait, decide, checkpoint)
+
+    def note_cost(self, job_id: str, seconds: float) -> None:
         """Record a round's whole length (JobRecord.fold_cost) in the job's record, if it still
         has one (a finished job may be deleted while its last round writes)."""
         self._set_if_exists(keys=[keys.job(job_id)], args=["round_cost", seconds])
 
-    def _foldable(self, job_id: str) -> dict[str, dict[str, Any]]:
+    def foldable(self, job_id: str) -> dict[str, dict[str, Any]]:
         """The accepted batches a round can fold (id -> {n, e, c}): all but the lost ones."""
         pipe = self.r.pipeline()
         pipe.hgetall(keys.tofold(job_id))
@@ -756,7 +699,7 @@ class Jobs:
         tofold, lost = pipe.execute()
         return {b.decode(): json.loads(v) for b, v in tofold.items() if b not in lost}
 
-    def _refill(self, job_id: str, batch_ids: list[str]) -> None:
+    def refill(self, job_id: str, batch_ids: list[str]) -> None:
         """Mark accepted batches lost and, if the job still renders, issue them again (the
         reaper enqueues them at its next look): same ids, same passes. (A cancelled job takes
         them back: `_end`.)"""
@@ -784,7 +727,7 @@ class Jobs:
             for batch_id in lost:
                 Leases.release(pipe, Batch.from_id(job_id, batch_id))
 
-    def _paced(self, record: JobRecord, fresh: set[str],
+    def paced(self, record: JobRecord, fresh: set[str],
                accepted: dict[str, Any]) -> tuple[set[str], dict[str, Any]]:
         """The batches new to the image a regular round takes in (policy.paced_batches, given
         when the next in-flight batch is due: the oldest passes first), and the accepted
@@ -805,12 +748,12 @@ class Jobs:
         """Seconds until the job's next regular round is due (at most 0: due now), `fold_interval`
         after the last round's image for a round of the batches waiting now, and how many of
         those this process's image lacks (lost ones aside: no round can fold them)."""
-        fresh = self._foldable(record.id).keys() - OVERLAYS.batches(record.id)
+        fresh = self.foldable(record.id).keys() - OVERLAYS.batches(record.id)
         expected = policy.round_seconds(record.fold_rounds, max(1, len(fresh)))
         return policy.fold_interval(record.fold_cost, expected) - self._since_fold(record), len(fresh)
 
     def fold_if_due(self, job_id: str) -> Folded | None:
-        """The API's fold (its folder thread, and before a read): once `fold_interval`
+        """The reducer's fold: once `fold_interval`
         has passed since the last round, for a round of the batches waiting now."""
         record = self.get(job_id)
         if record is None or self._next_round(record)[0] > 0.0:
@@ -828,7 +771,7 @@ class Jobs:
 
     def fold_if_stale(self, job_id: str) -> Folded | None:
         """A worker's fold after its merge, if accepted passes have waited for the image
-        fold_stale_seconds past the time the API plans it (policy.image_due): the API is down
+        fold_stale_seconds past the time the reducer plans it (policy.image_due): the reducer is down
         or behind, and the image still refreshes. It checkpoints: a worker serves no image,
         so it keeps no overlay."""
         record = self.get(job_id)

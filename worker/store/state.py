@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from worker.error_estimate import ErrorEstimate
 from worker.host_threads import each, threads
 from worker.integrators import Integrator
 from worker.integrators.base import Delta, State
@@ -156,6 +157,7 @@ class Folded:
     stages: dict[str, float]
     checkpointed: bool
     rebuilt: bool = False  # the round read the state from the tiles (no overlay: policy.Round)
+    estimate: ErrorEstimate | None = None  # the error per pixel (None: no estimate, or the round added no batch)
 
 
 @dataclass(frozen=True)
@@ -501,6 +503,7 @@ class TiledState:
             stages.lap("read and merge deltas")
             # The error.
             error: float | None
+            estimate: ErrorEstimate | None = None
             if fresh_ids:
                 estimate = integrator.estimate(state)
                 error = estimate.average if estimate is not None else None
@@ -519,7 +522,7 @@ class TiledState:
                                (overlay.folded_at if overlay is not None else {}) | {b: now for b in fresh_ids})
             # Show the image: this process's readers take the overlay.
             OVERLAYS.put(job_id, now_held)
-            return (Folded(state, error, stages.seconds, False, rebuilt=overlay is None),
+            return (Folded(state, error, stages.seconds, False, rebuilt=overlay is None, estimate=estimate),
                     list(range(tiling.count)) if checkpoint else now_held.checkpoint_tiles(tiling))
 
     def write_inputs(self, job_id: str, tiling: Tiling, integrator: Integrator) -> dict[str, float]:
