@@ -122,3 +122,20 @@ inline Material hit_material(const SceneGeom* g, __global const float4* surfaces
     return surface_material(g, surfaces, h->surf, hit_prim(h), p);
 }
 
+// A light vertex's textured values, kept where it is stored (vcm_light_pass.cl; lv_tex, two
+// float4 a vertex, written for textured materials only): the fields surface_material fills
+// in, so that the camera pass's connections to it (vcm_camera_pass.cl) look none up again.
+inline void store_textured(__global float4* lv_tex, uint slot, const Material* m) {
+    lv_tex[2 * slot] = (float4)(m->base, m->rough);
+    lv_tex[2 * slot + 1] = (float4)(m->second, 0.0f);
+}
+
+inline Material stored_material(__global const float4* surfaces, int surf, __global const float4* lv_tex, uint slot) {
+    Material m = load_material(surfaces, surf);
+    if (!(m.flags & MF_TEXTURED)) return m;
+    float4 a = lv_tex[2 * slot], b = lv_tex[2 * slot + 1];
+    m.base = a.xyz;
+    m.rough = a.w;
+    m.second = b.xyz;
+    return m;
+}
