@@ -18,8 +18,8 @@ vcm, bpt) both engines render one warm-up pass (excluded), then R rounds, each N
 one form and N of the other back to back, the order alternating (so load drifts on the
 shared machine fall on both alike), each with the progressive loop (worker/render_loop.py).
 Reported per method: the median over rounds of the wall ms per pass of each form and of
-their ratio. Writes bench/out/texture_speed.json (texture_speed_S_P.json for another side
-or pattern).
+their ratio, and of the ratio of the process's CPU time a pass (ms_per_pass). Writes
+bench/out/texture_speed.json (texture_speed_S_P.json for another side or pattern).
 """
 
 from __future__ import annotations
@@ -72,10 +72,12 @@ def texel_factors(pattern: str, rng: np.random.Generator, side: int) -> np.ndarr
     return np.ones((side, side, 1))
 
 
-def ms_per_pass(engine: Engine, passes: int) -> float:
-    start = time.perf_counter()
+def ms_per_pass(engine: Engine, passes: int) -> tuple[float, float]:
+    """Wall and CPU ms a pass (the CPU time of the whole process, the device's threads
+    included: what other work on the machine delays the passes by drops out of it)."""
+    wall, cpu = time.perf_counter(), time.process_time()
     render(engine, passes=passes)
-    return 1e3 * (time.perf_counter() - start) / passes
+    return 1e3 * (time.perf_counter() - wall) / passes, 1e3 * (time.process_time() - cpu) / passes
 
 
 def main() -> None:
@@ -98,16 +100,22 @@ def main() -> None:
         for engine in engines.values():
             render(engine, passes=1)  # warm-up: first launches, allocations
         times: dict[str, list[float]] = {form: [] for form in forms}
+        cpu: dict[str, list[float]] = {form: [] for form in forms}
         for round_ in range(args.rounds):
             for form in sorted(engines, reverse=round_ % 2 == 1):
-                times[form].append(ms_per_pass(engines[form], args.passes))
+                wall_ms, cpu_ms = ms_per_pass(engines[form], args.passes)
+                times[form].append(wall_ms)
+                cpu[form].append(cpu_ms)
         ratios = [t / c for t, c in zip(times["textured"], times["constant"], strict=True)]
+        cpu_ratios = [t / c for t, c in zip(cpu["textured"], cpu["constant"], strict=True)]
         row = {"method": method, "constant_ms": statistics.median(times["constant"]),
                "textured_ms": statistics.median(times["textured"]), "ratio": statistics.median(ratios),
-               "ratios": ratios, "times": times}
+               "cpu_ratio": statistics.median(cpu_ratios), "ratios": ratios, "cpu_ratios": cpu_ratios,
+               "times": times, "cpu_times": cpu}
         results.append(row)
         print(f"{method}: constant {row['constant_ms']:.1f} ms, textured {row['textured_ms']:.1f} ms a pass, "
-              f"ratio {row['ratio']:.3f} (rounds: {', '.join(f'{r:.3f}' for r in ratios)})", flush=True)
+              f"ratio {row['ratio']:.3f} (rounds: {', '.join(f'{r:.3f}' for r in ratios)}); "
+              f"CPU time ratio {row['cpu_ratio']:.3f}", flush=True)
     default = (args.side, args.pattern) == (TEXTURE_SIDE, PATTERNS[0])
     name = "texture_speed" if default else f"texture_speed_{args.side}_{args.pattern}"
     write_json(name, {"passes": args.passes, "rounds": args.rounds, "resolution": args.resolution,
