@@ -33,8 +33,9 @@ TABLE_SIZE = 64
 # the wrap mode shifted by 2, and the TEXTURE_FLAGS bits.
 TEXTURE_KINDS = {"bitmap": 0, "checkerboard": 1}
 WRAP_MODES = {"repeat": 0, "mirror": 1, "clamp": 2}
-TEXTURE_FLAGS = {"nearest": 16, "grey": 32}
+TEXTURE_FLAGS = {"nearest": 16, "grey": 32, "bytes": 64}
 TEX_ROWS = 3
+TEX_ALIGN = 16  # bytes: each texture's data starts at a multiple (its table's floats, its texels' aligned loads)
 # Emitter kinds: kernels/lights.cl (the environment: kernels/environment.cl).
 EMITTERS = {"triangle": 0, "sphere": 1, "point": 2, "spot": 3, "directional": 4, "environment": 5}
 # Random-number domains: independent streams for eye paths, photon paths and the light

@@ -97,7 +97,7 @@ typedef struct {
     int n_spheres;
     float eps_floor;                 // the scene's coordinate scale, at most 1 (ray_eps)
     __global const float4* tex_info;    // texture records (textures.cl)
-    __global const half* tex_texels;    // their texels
+    __global const uchar* tex_texels;   // their texels (bytes)
     __global const float2* tex_uv;      // 3 rows per triangle: corner texture coordinates (textured scenes only)
 } SceneGeom;
 
@@ -128,7 +128,7 @@ inline void triangle_corners(const SceneGeom* g, int tri, float3 a[3]) {
     __global const float4* node_lo, __global const float4* node_hi, int n_nodes, \
     __global const float4* spheres, __global const int* sphere_surf, int n_spheres, float eps_floor, \
     __global const float4* surfaces, \
-    __global const float4* tex_info, __global const half* tex_texels, __global const float2* tex_uv, \
+    __global const float4* tex_info, __global const uchar* tex_texels, __global const float2* tex_uv, \
     __global const float4* emitters, __global const float* emitter_cdf, int n_emitters
 #define SCENE_GEOM {tri_v0, tri_e1, tri_e2, tri_nrm, tri_adj, node_lo, node_hi, spheres, sphere_surf, n_nodes, \
                     n_spheres, eps_floor, tex_info, tex_texels, tex_uv}

@@ -1,13 +1,15 @@
 // Textures: colours and roughnesses that vary over a surface, looked up at a hit's texture
 // coordinates (u, v). Every texture of a scene lives in two buffers (worker/surfaces.py,
 // texture_table): TEX_ROWS float4 rows a texture in tex_info,
-//   row 0: flags (kind TEX_* | wrap mode WRAP_* << 2 | TEX_NEAREST | TEX_GREY), offset of its
-//          first value in tex_texels, width, height (int bits)
+//   row 0: flags (kind TEX_* | wrap mode WRAP_* << 2 | TEX_NEAREST | TEX_GREY | TEX_BYTES),
+//          byte offset of its data in tex_texels, width, height (int bits)
 //   row 1, 2: to_uv, the affine map to the texture's own coordinates: u' = row1.xyz . (u, v, 1),
 //             v' = row2.xyz . (u, v, 1)
-// and the values, linear and in [0, 1], as half floats in tex_texels: a bitmap's rows from
-// the image's top row (v' = 0) down, a texel 4 halves (rgb and a pad: one aligned load) or
-// 1 (TEX_GREY); a checkerboard's two colours as two texels.
+// and its data in tex_texels, from a multiple of 16 bytes: the values, linear and in [0, 1],
+// with TEX_BYTES an 8-bit image's bytes after a table of 256 floats, each byte's linear value
+// (half the bytes of half floats: fewer cache misses), else half floats; a texel 4 values (rgb
+// and a pad: one aligned load) or 1 (TEX_GREY); a bitmap's rows from the image's top row
+// (v' = 0) down, a checkerboard's two colours as two texels.
 // Lookups follow Mitsuba 3's bitmap and checkerboard textures: bilinear between the texel
 // centres at (u' width - 1/2, v' height - 1/2), nearest the texel at floor(u' width, v' height),
 // the wrap mode applied to the texel indices; and a checkerboard of unit cells, colour 0 where
@@ -51,9 +53,18 @@ inline float wrap_coordinate(float x, int mode) {
     return x - floor(x);
 }
 
-inline float3 texel(__global const half* texels, int at, bool grey) {
-    if (grey) return (float3)(vload_half(at, texels));
-    return vload_half4(0, texels + at).xyz;
+// Texel k of the texture whose data starts at byte `at` of `texels`.
+inline float3 texel(__global const uchar* texels, int at, int k, int flags) {
+    if (flags & TEX_BYTES) {
+        __global const float* decode = (__global const float*)(texels + at);
+        __global const uchar* bytes = texels + at + 256 * sizeof(float);
+        if (flags & TEX_GREY) return (float3)(decode[bytes[k]]);
+        uchar4 b = ((__global const uchar4*)bytes)[k];
+        return (float3)(decode[b.x], decode[b.y], decode[b.z]);
+    }
+    __global const half* values = (__global const half*)(texels + at);
+    if (flags & TEX_GREY) return (float3)(vload_half(k, values));
+    return vload_half4(k, values).xyz;
 }
 
 inline float3 texture_eval(const SceneGeom* g, int tex, float2 uv) {
@@ -61,19 +72,15 @@ inline float3 texture_eval(const SceneGeom* g, int tex, float2 uv) {
     int4 head = as_int4(r[0]);
     float4 ru = r[1], rv = r[2];
     float u = ru.x * uv.x + ru.y * uv.y + ru.z, v = rv.x * uv.x + rv.y * uv.y + rv.z;
-    int flags = head.x, w = head.z, h = head.w;
-    bool grey = flags & TEX_GREY;
-    int step = grey ? 1 : 4;
+    int flags = head.x, at = head.y, w = head.z, h = head.w;
+    __global const uchar* texels = g->tex_texels;
     if ((flags & 3) == TEX_CHECKERBOARD) {
         int parity = ((int)floor(u - 2.0f * floor(0.5f * u)) + (int)floor(v - 2.0f * floor(0.5f * v))) & 1;
-        return texel(g->tex_texels, head.y + parity * step, grey);
+        return texel(texels, at, parity, flags);
     }
     int mode = (flags >> 2) & 3;
     float x = wrap_coordinate(u, mode) * (float)w, y = wrap_coordinate(v, mode) * (float)h;
-    if (flags & TEX_NEAREST) {
-        int i = min((int)x, w - 1), j = min((int)y, h - 1);
-        return texel(g->tex_texels, head.y + (j * w + i) * step, grey);
-    }
+    if (flags & TEX_NEAREST) return texel(texels, at, min((int)y, h - 1) * w + min((int)x, w - 1), flags);
     x -= 0.5f;
     y -= 0.5f;
     float fx = floor(x), fy = floor(y), ax = x - fx, ay = y - fy;
@@ -89,9 +96,9 @@ inline float3 texture_eval(const SceneGeom* g, int tex, float2 uv) {
         x1 = min(x1, w - 1);
         y1 = min(y1, h - 1);
     }
-    int row0 = head.y + y0 * w * step, row1 = head.y + y1 * w * step;
-    float3 top = mix(texel(g->tex_texels, row0 + x0 * step, grey), texel(g->tex_texels, row0 + x1 * step, grey), ax);
-    float3 bottom = mix(texel(g->tex_texels, row1 + x0 * step, grey), texel(g->tex_texels, row1 + x1 * step, grey), ax);
+    int row0 = y0 * w, row1 = y1 * w;
+    float3 top = mix(texel(texels, at, row0 + x0, flags), texel(texels, at, row0 + x1, flags), ax);
+    float3 bottom = mix(texel(texels, at, row1 + x0, flags), texel(texels, at, row1 + x1, flags), ax);
     return mix(top, bottom, ay);
 }
 
@@ -119,4 +126,22 @@ inline Material surface_material(const SceneGeom* g, __global const float4* surf
 
 inline Material hit_material(const SceneGeom* g, __global const float4* surfaces, const Hit* h, float3 p) {
     return surface_material(g, surfaces, h->surf, hit_prim(h), p);
+}
+
+// A light vertex's textured values, kept where it is stored (vcm_light_pass.cl; lv_tex, two
+// float4 a vertex, written for textured materials only): the fields surface_material fills
+// in, so that the camera pass's connections to it (vcm_camera_pass.cl) look none up again.
+inline void store_textured(__global float4* lv_tex, uint slot, const Material* m) {
+    lv_tex[2 * slot] = (float4)(m->base, m->rough);
+    lv_tex[2 * slot + 1] = (float4)(m->second, 0.0f);
+}
+
+inline Material stored_material(__global const float4* surfaces, int surf, __global const float4* lv_tex, uint slot) {
+    Material m = load_material(surfaces, surf);
+    if (!(m.flags & MF_TEXTURED)) return m;
+    float4 a = lv_tex[2 * slot], b = lv_tex[2 * slot + 1];
+    m.base = a.xyz;
+    m.rough = a.w;
+    m.second = b.xyz;
+    return m;
 }

@@ -56,7 +56,8 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
                                  const CameraVertex* x, const SubPath* s, MisEtas eta, int last,
                                  __global const float4* lv_pos, __global const float4* lv_thr,
                                  __global const float4* lv_wo, __global const float4* lv_ng,
-                                 __global const float4* lv_ns, __global const int* lv_prev) {
+                                 __global const float4* lv_ns, __global const int* lv_prev,
+                                 __global const float4* lv_tex) {
     float3 sum = (float3)(0.0f);
     for (int v = last; v >= 0; v = lv_prev[v]) {
         LightVertex y = load_light_vertex(lv_pos, lv_thr, lv_wo, lv_ng, lv_ns, (uint)v);
@@ -65,7 +66,7 @@ inline float3 connect_light_path(const SceneGeom* g, __global const float4* surf
         float3 dir = to / dist;
         BsdfEval ex = camera_bsdf(x, dir);
         if (ex.pdf_fwd <= 0.0f) continue;
-        Material my = surface_material(g, surfaces, y.surf, y.prim, y.pos);
+        Material my = stored_material(surfaces, y.surf, lv_tex, (uint)v);
         BsdfEval ey = bsdf_eval(&my, y.ng, y.ns, y.wo, -dir, PART_ALL, false);
         if (ey.pdf_fwd <= 0.0f) continue;
         float3 y_side = dot(y.ng, dir) < 0.0f ? y.ng : -y.ng;  // y's normal on x's side
@@ -131,7 +132,7 @@ __kernel void vcm_camera_pass(
     uint skip,  // stage timing only (contract.py HYBRID_SKIP): SKIP_NEE, SKIP_CONNECT, SKIP_MERGE
     __global const float4* lv_pos, __global const float4* lv_thr, __global const float4* lv_wo,
     __global const float4* lv_ng, __global const float4* lv_ns, __global const int* lv_prev,
-    __global const int* path_last,
+    __global const int* path_last, __global const float4* lv_tex,
     float inv_cell, uint mask, __global const uint* cell_start, __global const uint* cell_count,
     __global const float4* grid_pos,
     __global float4* cam_out, __global int* cam_hit)
@@ -195,7 +196,7 @@ __kernel void vcm_camera_pass(
             if (connect && n_light_paths > 0 && !(skip & SKIP_CONNECT))
                 radiance += s.thr * connect_light_path(&g, surfaces, &x, &s, eta,
                                                        path_last[(uint)gid % n_light_paths], lv_pos, lv_thr,
-                                                       lv_wo, lv_ng, lv_ns, lv_prev);
+                                                       lv_wo, lv_ng, lv_ns, lv_prev, lv_tex);
             // 4. Merging with the light vertices within r.
             if (merge && !(skip & SKIP_MERGE)) {
                 float3 half_sum;

@@ -19,7 +19,7 @@
 
 typedef struct {
     float3 pos, thr, wo, ng, ns;  // wo: back along the light path
-    int surf, prim;               // prim: where its textures are looked up (textures.cl, hit_prim)
+    int surf;
     float dVCM, dVC, dVM;
 } LightVertex;
 
@@ -27,7 +27,7 @@ inline LightVertex load_light_vertex(__global const float4* lv_pos, __global con
                                      __global const float4* lv_wo, __global const float4* lv_ng,
                                      __global const float4* lv_ns, uint i) {
     float4 p = lv_pos[i], t = lv_thr[i], w = lv_wo[i], n = lv_ng[i], s = lv_ns[i];
-    LightVertex v = {p.xyz, t.xyz, w.xyz, n.xyz, s.xyz, as_int(p.w), as_int(s.w), t.w, w.w, n.w};
+    LightVertex v = {p.xyz, t.xyz, w.xyz, n.xyz, s.xyz, as_int(p.w), t.w, w.w, n.w};
     return v;
 }
 
@@ -50,6 +50,7 @@ __kernel void vcm_light_pass(
     uint skip,                     // stage timing only (contract.py HYBRID_SKIP): SKIP_SPLAT
     __global float4* lv_pos, __global float4* lv_thr, __global float4* lv_wo, __global float4* lv_ng,
     __global float4* lv_ns, __global ulong* lv_key, __global int* lv_prev, __global int* path_last,
+    __global float4* lv_tex,       // textured materials' values (textures.cl, store_textured)
     __global volatile uint* lv_count,
     __global volatile long* splats,  // per pixel rgb, fixed point
     float splat_scale)               // fixed-point units per unit of radiance
@@ -85,7 +86,8 @@ __kernel void vcm_light_pass(
                     lv_thr[slot] = (float4)(arriving, s.dVCM);
                     lv_wo[slot] = (float4)(-s.d, s.dVC);
                     lv_ng[slot] = (float4)(h.ng, s.dVM);
-                    lv_ns[slot] = (float4)(h.ns, as_float(hit_prim(&h)));
+                    lv_ns[slot] = (float4)(h.ns, 0.0f);
+                    if (m.flags & MF_TEXTURED) store_textured(lv_tex, slot, &m);
                     lv_key[slot] = ((ulong)path << 12) | (ulong)bounce;
                     lv_prev[slot] = prev;
                     prev = (int)slot;

@@ -143,7 +143,18 @@ TEXTURES = {
     "checks": '<texture type="checkerboard" id="checks"><rgb name="color0" value="0.9, 0.6, 0.1"/>'
               '<rgb name="color1" value="0.1, 0.3, 0.8"/>'
               '<transform name="to_uv"><scale x="4" y="3"/><translate x="0.1"/></transform></texture>',
+    "grey": '<texture type="bitmap" id="grey"><string name="filename" value="grey.png"/>'
+            '<transform name="to_uv"><scale x="3" y="2"/></transform></texture>',
+    "float": '<texture type="bitmap" id="float"><string name="filename" value="float.exr"/>'
+             '<string name="wrap_mode" value="mirror"/>'
+             '<transform name="to_uv"><scale value="2"/></transform></texture>',
+    "float_grey": '<texture type="bitmap" id="float_grey"><string name="filename" value="float_grey.exr"/>'
+                  '<string name="wrap_mode" value="clamp"/><string name="filter_type" value="nearest"/></texture>',
 }
+# The images beside it: every storage our texels have (kernels/textures.cl): 8-bit rgb and grey,
+# half floats from half-float rgb and single-float grey.
+IMAGES = {"pattern.png": ((5, 7, 3), "uint8"), "grey.png": ((6, 9, 1), "uint8"),
+          "float.exr": ((7, 6, 3), "half"), "float_grey.exr": ((5, 5, 1), "float")}
 TEXTURED_SCENE = """<scene version="3.0.0">
     <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/>
         </transform><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
@@ -153,6 +164,9 @@ TEXTURED_SCENE = """<scene version="3.0.0">
     <bsdf type="plastic" id="b"><ref name="diffuse_reflectance" id="mirror"/></bsdf>
     <bsdf type="diffuse" id="c"><ref name="reflectance" id="clamp"/></bsdf>
     <bsdf type="roughconductor" id="d"><ref name="specular_reflectance" id="checks"/></bsdf>
+    <bsdf type="diffuse" id="e"><ref name="reflectance" id="grey"/></bsdf>
+    <bsdf type="plastic" id="f"><ref name="diffuse_reflectance" id="float"/></bsdf>
+    <bsdf type="roughconductor" id="g"><ref name="alpha" id="float_grey"/></bsdf>
     <shape type="rectangle"><transform name="to_world"><translate x="-1.2" y="1.2"/></transform><ref id="a"/></shape>
     <shape type="rectangle"><transform name="to_world"><rotate z="1" angle="30"/><translate x="1.2" y="1.2"/>
         </transform><boolean name="flip_normals" value="true"/><ref id="c"/></shape>
@@ -185,9 +199,13 @@ def mi():
 
 
 def textured_scene(folder: Path) -> Path:
-    """TEXTURED_SCENE with its image (7 x 5, sRGB 8-bit, random colours) and mesh beside it."""
+    """TEXTURED_SCENE with its IMAGES (random values: integer ones sRGB-encoded, float ones
+    linear in [0, 1]) and its mesh beside it."""
     rng = np.random.default_rng(3)
-    write_image(folder / "pattern.png", (rng.random((5, 7, 3)) * 255).astype(np.uint8), "uint8")
+    for name, (shape, sample) in IMAGES.items():
+        values = rng.random(shape)
+        write_image(folder / name, (values * 255).astype(np.uint8) if sample == "uint8" else values.astype(np.float32),
+                    sample)
     (folder / "quad.obj").write_text(QUAD_OBJ)
     path = folder / "textured.xml"
     path.write_text(TEXTURED_SCENE.format(textures="\n    ".join(TEXTURES.values())))
@@ -207,7 +225,9 @@ def test_lookups_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
     uv = np.random.default_rng(4).uniform(-2.0, 3.0, (512, 2)).astype(np.float32)
     order = used_textures(parse_scene(convert_mitsuba(tmp_path / "textured.xml")))
     for name, element in TEXTURES.items():
-        alone = element.replace("pattern.png", str(tmp_path / "pattern.png"))
+        alone = element
+        for image_name in IMAGES:
+            alone = alone.replace(f'"{image_name}"', f'"{tmp_path / image_name}"')
         texture = mi.load_string(alone.replace("<texture ", '<texture version="3.0.0" ', 1))
         si = mi.SurfaceInteraction3f()
         theirs = []

@@ -73,15 +73,19 @@ class Pixels(BaseModel):
         return self._array
 
     def linear(self, raw: bool = False) -> np.ndarray:
-        """Linear float32 values, (height, width, channels): integer samples scaled to [0, 1]
-        and, unless `raw`, decoded from sRGB (IEC 61966-2-1); float samples as they are."""
-        a = self._array
-        if a.dtype.kind == "f":
-            return a.astype(np.float32)
-        v = a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
-        if raw:
-            return v
-        return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+        """Linear float32 values, (height, width, channels) (linear_values)."""
+        return linear_values(self._array, raw)
+
+
+def linear_values(samples: np.ndarray, raw: bool = False) -> np.ndarray:
+    """Linear float32 values of samples of a `SampleType`: integer samples scaled to [0, 1]
+    and, unless `raw`, decoded from sRGB (IEC 61966-2-1); float samples as they are."""
+    if samples.dtype.kind == "f":
+        return samples.astype(np.float32)
+    v = samples.astype(np.float32) / np.float32(np.iinfo(samples.dtype).max)
+    if raw:
+        return v
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def image_shape(path: Path) -> tuple[int, int, int]:

@@ -43,7 +43,7 @@ class SceneArrays:
     sphere_surf: np.ndarray  # (S,) int32
     surfaces: np.ndarray  # (SURF_ROWS * shapes + table rows, 4) float32 (worker/surfaces.py)
     tex_info: np.ndarray  # (TEX_ROWS * textures, 4) float32 texture records (kernels/textures.cl)
-    tex_texels: np.ndarray  # (texel values,) float16, every texture's
+    tex_texels: np.ndarray  # (bytes,) uint8, every texture's texels (surfaces.py texture_table)
     tex_uv: np.ndarray  # (3 T, 2) float32 corner texture coordinates; empty if no material is textured
     emitters: np.ndarray  # (4 * E + map rows, 4) float32 rows, see kernels/lights.cl, environment.cl
     emitter_cdf: np.ndarray  # (E,) float32, last entry exactly 1

@@ -22,11 +22,13 @@ from kernels.contract import (
     MATERIALS,
     SURF_ROWS,
     TABLE_SIZE,
+    TEX_ALIGN,
     TEX_ROWS,
     TEXTURE_FLAGS,
     TEXTURE_KINDS,
     WRAP_MODES,
 )
+from worker.images import linear_values
 from worker.scene import (
     Bitmap,
     Conductor,
@@ -143,36 +145,61 @@ def texture_texels(scene: Scene, name: str) -> np.ndarray:
     texture = scene.textures[name]
     if isinstance(texture, Bitmap):
         assert texture.pixels is not None  # files are inlined when the scene is loaded
-        values = texture.pixels.linear(texture.raw)
-        values = values[..., :1] if values.shape[2] <= 2 else values[..., :3]  # alpha is not a colour
+        values = _value_channels(texture.pixels.linear(texture.raw))
     else:
         values = np.array([[texture.color0, texture.color1]], np.float32)
     return np.clip(values, 0.0, 1.0).astype(np.float32)
 
 
+def _value_channels(samples: np.ndarray) -> np.ndarray:
+    """The channels of (height, width, channels) samples that hold a texture's value: grey's
+    one, or rgb (alpha is not a colour)."""
+    return samples[..., :1] if samples.shape[2] <= 2 else samples[..., :3]
+
+
+def _texel_data(scene: Scene, name: str) -> tuple[np.ndarray, int, int, int]:
+    """A texture's bytes in tex_texels, its format flags, width and height (kernels/textures.cl):
+    an 8-bit bitmap's decode table (256 float32, each byte's linear value rounded to a half
+    float, as Mitsuba 3 keeps 8-bit images) then its bytes, TEX_BYTES; any other texture's
+    linear values as half floats. TEX_GREY for one channel, else rgb padded to 4 channels;
+    row-major from the top row."""
+    texture = scene.textures[name]
+    table = np.zeros(0, np.uint8)
+    if isinstance(texture, Bitmap) and texture.pixels is not None and texture.pixels.sample == "uint8":
+        samples = _value_channels(texture.pixels.array)
+        decoded = linear_values(np.arange(256, dtype=np.uint8), texture.raw).astype(np.float16)
+        table, flags = decoded.astype(np.float32).view(np.uint8), TEXTURE_FLAGS["bytes"]
+    else:
+        samples, flags = texture_texels(scene, name).astype(np.float16), 0
+    height, width, channels = samples.shape
+    if channels == 3:
+        samples = np.pad(samples, ((0, 0), (0, 0), (0, 1)))
+    else:
+        flags |= TEXTURE_FLAGS["grey"]
+    return np.concatenate([table, samples.view(np.uint8).ravel()]), flags, width, height
+
+
 def texture_table(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """The used textures on the device (kernels/textures.cl): (TEX_ROWS * textures, 4) float32
-    records and every texture's texels in one float16 array (an rgb texel padded to 4 halves,
-    each texture starting at a multiple of 4)."""
+    records and every texture's texels in one byte array (_texel_data), each texture's from a
+    multiple of TEX_ALIGN bytes."""
     names = used_textures(scene)
     records = np.zeros((TEX_ROWS * len(names), 4), np.float32)
-    texels: list[np.ndarray] = []
+    chunks: list[np.ndarray] = []
     offset = 0
     for i, name in enumerate(names):
-        texture, values = scene.textures[name], texture_texels(scene, name)
-        height, width, channels = values.shape
-        flags = TEXTURE_KINDS[texture.type] | (TEXTURE_FLAGS["grey"] if channels == 1 else 0)
+        texture = scene.textures[name]
+        data, flags, width, height = _texel_data(scene, name)
+        flags |= TEXTURE_KINDS[texture.type]
         if isinstance(texture, Bitmap):
             flags |= WRAP_MODES[texture.wrap_mode] << 2
             flags |= TEXTURE_FLAGS["nearest"] if texture.filter == "nearest" else 0
         rows = records[TEX_ROWS * i:TEX_ROWS * (i + 1)]
         rows[0] = int_bits([flags, offset, width, height])
         rows[1, :3], rows[2, :3] = texture.to_uv
-        halves = values.reshape(-1, channels) if channels == 1 else np.pad(values.reshape(-1, 3), ((0, 0), (0, 1)))
-        halves = np.pad(halves.ravel(), (0, -halves.size % 4)).astype(np.float16)
-        texels.append(halves)
-        offset += halves.size
-    return records, np.concatenate(texels) if texels else np.zeros(0, np.float16)
+        chunks.append(np.pad(data, (0, -data.size % TEX_ALIGN)))
+        offset += chunks[-1].size
+    return records, np.concatenate(chunks) if chunks else np.zeros(0, np.uint8)
 
 
 def _mean(scene: Scene, value: tuple[float, float, float] | TextureRef) -> float:

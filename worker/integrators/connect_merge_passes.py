@@ -61,6 +61,8 @@ class ConnectMergePasses:
         self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns = (b(16 * capacity) for _ in range(5))
         self.lv_key = b(8 * capacity)
         self.lv_prev = b(4 * capacity)
+        # A textured material's values at each vertex (kernels/textures.cl, store_textured).
+        self.lv_tex = b(32 * capacity if len(self.dev.arrays.tex_info) else 4)
         self.sorted = b(4 * capacity)
         self.grid_pos = b(16 * capacity)
 
@@ -81,7 +83,8 @@ class ConnectMergePasses:
                 i32(a.width), i32(a.height), u64(self.settings.seed), u32(pass_index), i32(self.settings.max_bounces),
                 u32(self.n_light), u32(self.capacity), i32(it.connects), i32(it.merges), f32(eta_vcm),
                 i32(self.stores), u32(self.skip), self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns,
-                self.lv_key, self.lv_prev, self.path_last, self.lv_count, self.splats, self.splat_scale))
+                self.lv_key, self.lv_prev, self.path_last, self.lv_tex, self.lv_count, self.splats,
+                self.splat_scale))
             stored = np.zeros(1, np.uint32)
             cl.enqueue_copy(dev.queue, stored, self.lv_count)
             dev.times.add("light", events)
@@ -124,7 +127,7 @@ class ConnectMergePasses:
             dev.queue, "vcm_camera_pass", a.n_pixels, *dev.geometry, *dev.emitter_args, dev.camera,
             i32(a.width), i32(a.height), u64(self.settings.seed), u32(k), i32(self.settings.max_bounces),
             u32(self.n_light), i32(it.connects), i32(it.merges), f32(eta_vcm), f32(radius), u32(self.skip),
-            self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_prev, self.path_last,
+            self.lv_pos, self.lv_thr, self.lv_wo, self.lv_ng, self.lv_ns, self.lv_prev, self.path_last, self.lv_tex,
             f32(inv_cell), u32(mask), self.cell_start, self.cell_count, self.grid_pos, self.cam_out,
             self.cam_hit)
         finish = dev.program.launch(dev.queue, "vcm_finish", a.n_pixels, i32(a.n_pixels), self.cam_out,
