@@ -133,7 +133,7 @@ inline Material hit_material(const SceneGeom* g, __global const float4* surfaces
 // in, so that the camera pass's connections to it (vcm_camera_pass.cl) look none up again.
 inline void store_textured(__global float4* lv_tex, uint slot, const Material* m) {
     lv_tex[2 * slot] = (float4)(m->base, m->rough);
-    lv_tex[2 * slot + 1] = (float4)(m->second, 0.0f);
+    lv_tex[2 * slot + 1] = (float4)(m->second, m->opacity);
 }
 
 inline Material stored_material(__global const float4* surfaces, int surf, __global const float4* lv_tex, uint slot) {
@@ -143,5 +143,6 @@ inline Material stored_material(__global const float4* surfaces, int surf, __glo
     m.base = a.xyz;
     m.rough = a.w;
     m.second = b.xyz;
+    m.opacity = b.w;
     return m;
 }
