@@ -152,12 +152,17 @@ def rough_pixels(dh: np.ndarray, dh_se: np.ndarray, passes: int, width: int) -> 
     has = dh_se > 0.0
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(has, np.abs(dh) / dh_se, 0.0)
-    score = np.where(has, special.ndtri(special.stdtr(passes - 1, -t)) ** 2, 0.0)
     window = np.ones((NEIGHBOURHOOD, NEIGHBOURHOOD))
-    total = ndimage.convolve(score.reshape(height, width), window, mode="constant").ravel()
     count = np.rint(ndimage.convolve(has.astype(np.float64).reshape(height, width), window, mode="constant")).ravel()
-    critical = scipy_stats.chi2.isf(EDGE_DETECTION, np.arange(NEIGHBOURHOOD ** 2 + 1))
-    return (count > 0) & (total > critical[count.astype(np.intp)])
+    critical = scipy_stats.chi2.isf(EDGE_DETECTION, np.arange(NEIGHBOURHOOD ** 2 + 1))[count.astype(np.intp)]
+    # A normal score is below its t (t's tails are heavier): windows whose t^2 sum stays under
+    # the quantile are smooth, and only the others' pixels need the (costly) t distribution.
+    score = t ** 2
+    candidate = ndimage.convolve(score.reshape(height, width), window, mode="constant").ravel() > critical
+    exact = has & ndimage.binary_dilation(candidate.reshape(height, width), window.astype(bool)).ravel()
+    score[exact] = special.ndtri(special.stdtr(passes - 1, -t[exact])) ** 2
+    total = ndimage.convolve(score.reshape(height, width), window, mode="constant").ravel()
+    return candidate & (count > 0) & (total > critical)
 
 
 def hybrid_estimate(state: HybridState, confidence: float, width: int) -> ErrorEstimate:
