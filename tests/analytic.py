@@ -91,12 +91,14 @@ def spot_plane(eng: Engine, rho: float, power: float, height: float, cone_degree
 
 
 def shadowed_plane(eng: Engine, rho: float, power: float, light: tuple[float, float, float],
-                   centre: tuple[float, float, float], radius: float, sub: int = 8) -> np.ndarray:
-    """L per pixel for a point light of `power` over the plane y = 0 (albedo rho) with a
-    black sphere (albedo 0: it reflects nothing) casting a hard shadow: on the plane
-    L = rho I cos(theta) / (pi d^2) where the light is visible, I = power / (4 pi); zero where
-    the sphere hides the light or the camera sees the sphere."""
+                   centre: tuple[float, float, float], radius: float, extent: float, sub: int = 8) -> np.ndarray:
+    """L per pixel for a point light of `power` over the square |x|, |z| <= extent of the
+    plane y = 0 (albedo rho) with a black sphere (albedo 0: it reflects nothing) casting a
+    hard shadow: on the square L = rho I cos(theta) / (pi d^2) where the light is visible,
+    I = power / (4 pi); zero where the sphere hides the light, the camera sees the sphere, or
+    its ray passes the square (the far edge is in view)."""
     x, z, pixel_mean = _plane_hits(eng, sub)
+    on_square = (np.abs(x) <= extent) & (np.abs(z) <= extent)
     cam = eng.arrays.camera.astype(np.float64)[0, :3]
     p = np.stack([x, np.zeros_like(x), z], axis=-1)
     c, lp = np.asarray(centre, np.float64), np.asarray(light, np.float64)
@@ -114,12 +116,13 @@ def shadowed_plane(eng: Engine, rho: float, power: float, light: tuple[float, fl
     d2 = np.sum(to_light ** 2, -1)
     L = rho * power / (4.0 * math.pi) * to_light[..., 1] / np.sqrt(d2) / (math.pi * d2)
     seen = ~blocked(np.broadcast_to(cam, p.shape), p)
-    return pixel_mean(np.where(seen & ~blocked(p, np.broadcast_to(lp, p.shape)), L, 0.0))
+    return pixel_mean(np.where(on_square & seen & ~blocked(p, np.broadcast_to(lp, p.shape)), L, 0.0))
 
 
 # Scenes written independently of the bundled ones (as JSON dicts), with their answers above.
 SPOT = {"rho": 0.5, "power": 10.0, "height": 1.0, "cone_degrees": 40.0}
-SHADOW = {"rho": 0.5, "power": 4.0 * math.pi, "light": (0.0, 2.0, 0.0), "centre": (0.0, 1.0, 0.0), "radius": 0.3}
+SHADOW = {"rho": 0.5, "power": 4.0 * math.pi, "light": (0.0, 2.0, 0.0), "centre": (0.0, 1.0, 0.0), "radius": 0.3,
+          "extent": 5.0}
 PATCH = {"rho": 0.5, "power": 10.0, "height": 1.0}
 CHECKER = {"rho0": 0.8, "rho1": 0.1, "cell": 1.0}
 
@@ -252,8 +255,8 @@ def shadow_scene(resolution: tuple[int, int] = (64, 64)) -> dict:
                    "resolution": list(resolution)},
         "materials": {"plane": {"type": "diffuse", "albedo": [SHADOW["rho"]] * 3},
                       "black": {"type": "diffuse", "albedo": [0, 0, 0]}},
-        "shapes": [{"type": "quad", "corner": [-5, 0, -5], "edge1": [0, 0, 10], "edge2": [10, 0, 0],
-                    "material": "plane"},
+        "shapes": [{"type": "quad", "corner": [-SHADOW["extent"], 0, -SHADOW["extent"]],
+                    "edge1": [0, 0, 2 * SHADOW["extent"]], "edge2": [2 * SHADOW["extent"], 0, 0], "material": "plane"},
                    {"type": "sphere", "center": list(SHADOW["centre"]), "radius": SHADOW["radius"],
                     "material": "black"}],
         "lights": [{"type": "point", "position": list(SHADOW["light"]), "power": [SHADOW["power"]] * 3}],

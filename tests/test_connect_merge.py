@@ -35,7 +35,7 @@ def covered(eng, state, truth: np.ndarray, confidence: float = 0.9) -> float:
     """Share of pixels whose error bound holds the true luminance: within 5 points of the
     confidence on these smooth scenes (measured at 48 passes: 0.88 to 0.90 at 90%, 0.48 to
     0.50 at 50%)."""
-    est = hybrid_estimate(state, confidence)
+    est = hybrid_estimate(state, confidence, eng.arrays.width)
     return float(np.mean(np.abs(est.luminance - truth) <= est.bound))
 
 

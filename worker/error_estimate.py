@@ -98,6 +98,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy import special
 from scipy import stats as scipy_stats
 
 from kernels.contract import K1, K2, LUMINANCE
@@ -113,6 +114,7 @@ EDGE_SIGNIFICANCE = 2.0  # standard errors by which the change between radii mus
 EDGE_FACTOR = 2.0  # bias at r per unit of the change from r/2 to r where the density is not smooth
 EDGE_MARGIN = 2.5  # standard errors of that change left out of the bias bound (soft thresholding)
 UNLIT_MIN_PHOTONS = 16  # photons a pixel must have found to set the per-photon luminance q
+FOLDED_STEPS = 3  # Newton steps of folded_quantile
 BLOCK_PIXELS = 1 << 14  # pixels the estimate works on at a time: its temporaries stay in the CPU's cache
 
 
@@ -146,6 +148,26 @@ def bias_estimate(radius: np.ndarray, G: np.ndarray, emitted: float, constant: s
 def student_t(confidence: float, dof: int) -> float:
     """Two-sided quantile t(1 - beta/2, dof) for confidence 1 - beta."""
     return float(scipy_stats.t.ppf(0.5 + 0.5 * confidence, dof))
+
+
+def folded_quantile(mu: np.ndarray, sigma: np.ndarray, confidence: float, dof: int) -> np.ndarray:
+    """Per element, the B >= 0 with P(|mu + sigma T| <= B) = confidence, T Student t with
+    `dof` degrees of freedom: the symmetric bound on an error estimated as mu with standard
+    error sigma (B = student_t sigma at mu = 0). B lies between |mu| plus sigma times the
+    one-sided and the two-sided quantile; for confidence >= 1/2 that is beyond |mu|, where
+    P(|mu + sigma T| <= B) is concave in B (both tails' densities fall), so Newton's steps
+    from the upper end reach the root from below after the first, quadratically
+    (FOLDED_STEPS of them: within 1e-5 of the confidence)."""
+    mu = np.abs(mu)
+    sigma = np.maximum(sigma, np.finfo(np.float64).tiny)
+    lo = mu + sigma * float(scipy_stats.t.ppf(confidence, dof))
+    b = mu + sigma * student_t(confidence, dof)
+    for _ in range(FOLDED_STEPS):
+        upper, lower = (b - mu) / sigma, (-b - mu) / sigma
+        inside = special.stdtr(dof, upper) - special.stdtr(dof, lower)
+        slope = (scipy_stats.t.pdf(upper, dof) + scipy_stats.t.pdf(lower, dof)) / sigma
+        b = np.maximum(b - (inside - confidence) / slope, lo)
+    return b
 
 
 def unlit_scale(state: Accumulators, lum: np.ndarray, known: np.ndarray, confidence: float) -> float:

@@ -25,11 +25,17 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage, special
+from scipy import stats as scipy_stats
 
 from kernels.contract import LUMINANCE, SumLayout
-from worker.error_estimate import EDGE_FACTOR, EDGE_MARGIN, FLOOR_FRACTION, ErrorEstimate, image_average, student_t
+from worker.error_estimate import FLOOR_FRACTION, ErrorEstimate, folded_quantile, image_average, student_t
 from worker.integrators.base import Integrator
 from worker.stats import add_sums
+
+NEIGHBOURHOOD = 3  # pixels a side of the window whose changes dh test a pixel's density for an edge
+EDGE_DETECTION = 0.05  # the test's level (smooth pixels taken for rough: more where dh is heavy-tailed, few passes)
+REMAINDER = 1.0 / math.sqrt(3.0)  # RMS per unit of dh of the r/2 estimate's bias where the density is rough
 
 
 @dataclass
@@ -111,7 +117,9 @@ class ConnectMerge(Integrator[HybridState]):
     def estimate(self, state: HybridState) -> ErrorEstimate | None:
         if not self.settings.error_estimation:
             return None
-        return hybrid_estimate(state, self.settings.confidence)
+        if self.settings.resolution is None:
+            raise ValueError("settings not yet given a frame (Settings.for_frame)")
+        return hybrid_estimate(state, self.settings.confidence, self.settings.resolution[0])
 
 
 class BidirectionalPathTracing(ConnectMerge):
@@ -130,15 +138,51 @@ class LightTracing(ConnectMerge):
     merges = False
 
 
-def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
-    """The per-pixel error bound of a hybrid job (the rules of worker/error_estimate.py):
+def rough_pixels(dh: np.ndarray, dh_se: np.ndarray, passes: int, width: int) -> np.ndarray:
+    """The pixels whose neighbourhood (NEIGHBOURHOOD x NEIGHBOURHOOD pixels, cut at the
+    frame's border) contradicts a smooth density: the change dh of the merged part from r/2
+    to r is zero in expectation where the density is constant in the disc, so under that
+    hypothesis each pixel's (dh / s_dh)^2, its t statistic with passes - 1 degrees of freedom
+    taken to the normal score of the same tail, is chi-squared with 1 degree of freedom, and
+    their sum over the n pixels with a standard error is chi-squared with n; a sum beyond
+    its 1 - EDGE_DETECTION quantile marks the pixel rough. Pooling finds the edges that one
+    pixel's few merged vertices cannot: an edge runs through its neighbours too, and their
+    noises are independent."""
+    height = len(dh) // width
+    has = dh_se > 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(has, np.abs(dh) / dh_se, 0.0)
+    window = np.ones((NEIGHBOURHOOD, NEIGHBOURHOOD))
+    count = np.rint(ndimage.convolve(has.astype(np.float64).reshape(height, width), window, mode="constant")).ravel()
+    critical = scipy_stats.chi2.isf(EDGE_DETECTION, np.arange(NEIGHBOURHOOD ** 2 + 1))[count.astype(np.intp)]
+    # A normal score is below its t (t's tails are heavier): windows whose t^2 sum stays under
+    # the quantile are smooth, and only the others' pixels need the (costly) t distribution.
+    score = t ** 2
+    candidate = ndimage.convolve(score.reshape(height, width), window, mode="constant").ravel() > critical
+    exact = has & ndimage.binary_dilation(candidate.reshape(height, width), window.astype(bool)).ravel()
+    score[exact] = special.ndtri(special.stdtr(passes - 1, -t[exact])) ** 2
+    total = ndimage.convolve(score.reshape(height, width), window, mode="constant").ravel()
+    return candidate & (count > 0) & (total > critical)
+
+
+def hybrid_estimate(state: HybridState, confidence: float, width: int) -> ErrorEstimate:
+    """The per-pixel error bound of a hybrid job (the rules of worker/error_estimate.py), its
+    frame `width` pixels wide:
 
     noise  = t(confidence, i - 1) sqrt(V / i), V the sample variance of the per-pass
              luminance samples (independent across passes, whatever their radii);
-    bias   = EDGE_FACTOR x the mean change dh of the merged part from radius r/2 to r
-             (3/4 of the bias where the density is smooth, 1/2 where it has an edge in the
-             disc: the factor covers both), counted beyond EDGE_MARGIN standard errors (as the
-             discontinuity bias of SPPM: the change rests on few vertices, so it is noisy);
+    bias   = (vcm) dh, the mean change of the merged part from radius r/2 to r over the
+             passes, each at its own radius (so it is the mean of the passes' changes, as
+             the image is the mean of their samples). The error is the noise plus E[dh] +
+             b', b' the bias of the estimate at r/2: between 0 (an edge beyond r/2
+             in the disc: all the bias is in dh) and dh (a bias linear in r: an edge
+             through the disc). It is taken as a zero-mean error with the RMS of a value
+             uniform between those, REMAINDER |dh| = |dh| / sqrt(3) (zero-mean: an edge
+             pixel's edge lies beyond r/2 more often than not). So where the density is
+             rough (`rough_pixels`) the bound is the `confidence` quantile of |dh + sigma T| (`folded_quantile`),
+             sigma^2 = V / i + s_dh^2 + (REMAINDER dh)^2, the three errors taken as
+             independent; elsewhere it is the noise (a smooth density's bias is too small to
+             tell from dh's noise, and adding that noise would over-cover);
     never-lit pixels (a camera ray hit something, but no non-zero sample yet): the one-sided
              Poisson bound on the rate of a non-zero sample, -ln(1 - c) / i, times the RMS
              per-pass sample of the median lit pixel. Pixels whose camera rays never hit anything
@@ -152,19 +196,18 @@ def hybrid_estimate(state: HybridState, confidence: float) -> ErrorEstimate:
     dark = measured & ~known
     bias = np.zeros(n)
     if i >= 2:
-        t = student_t(confidence, i - 1)
         var = np.maximum(state.Y2 - i * lum ** 2, 0.0) / (i - 1)
-        noise = t * np.sqrt(var / i)
-        significant = np.zeros(n)
+        noise = student_t(confidence, i - 1) * np.sqrt(var / i)
+        bound = noise.copy()
         if "Mh" in state.sums:
-            dh = state.Mh / i
-            dh_se = np.sqrt(np.maximum(state.Mh2 - i * dh ** 2, 0.0) / (i - 1) / i)
-            z = student_t(math.erf(EDGE_MARGIN / math.sqrt(2.0)), i - 1)
-            bias = EDGE_FACTOR * dh
-            significant = EDGE_FACTOR * np.maximum(np.abs(dh) - z * dh_se, 0.0)
+            bias = state.Mh / i
+            dh_var = np.maximum(state.Mh2 - i * bias ** 2, 0.0) / (i - 1) / i
+            rough = rough_pixels(bias, np.sqrt(dh_var), i, width)
+            sigma = np.sqrt(var[rough] / i + dh_var[rough] + (REMAINDER * bias[rough]) ** 2)
+            bound[rough] = folded_quantile(bias[rough], sigma, confidence, i - 1)
         rms = float(np.median(np.sqrt(state.Y2[known] / i))) if known.any() else math.inf
         noise = np.where(dark, rms * -math.log1p(-confidence) / i, noise)
-        bound = noise + significant
+        bound = np.where(dark, noise, bound)
     else:
         noise = bound = np.full(n, np.inf)
     lit = measured & (lum > 0.0)
