@@ -16,25 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from bench.common import write_json
-from tests.analytic import (
-    CHECKER,
-    SHADOW,
-    SPOT,
-    checker_plane,
-    checker_plane_scene,
-    edge_pixels,
-    point_plane,
-    shadow_scene,
-    shadowed_plane,
-    spot_plane,
-    spot_plane_scene,
-)
+from tests.analytic import EDGE_CASES, edge_pixels
 from worker.engine import Engine
 from worker.integrators.connect_merge import hybrid_estimate
 from worker.render_loop import render
@@ -43,18 +30,11 @@ from worker.settings import Settings
 
 PASSES = (16, 64, 256)
 CONFIDENCES = (0.5, 0.9)
-Case = tuple[Callable[[tuple[int, int]], dict] | None, Callable[[Engine], np.ndarray]]
-CASES: dict[str, Case] = {
-    "spot cone edge": (spot_plane_scene, lambda eng: spot_plane(eng, **SPOT)),
-    "hard shadow": (shadow_scene, lambda eng: shadowed_plane(eng, **SHADOW)),
-    "texture edge": (checker_plane_scene, lambda eng: checker_plane(eng, **CHECKER)),
-    "point-plane": (None, lambda eng: point_plane(eng)[0]),
-}
 
 
 def engine(case: str, size: int, directory: Path, **settings: object) -> Engine:
     """An engine for `case` at size x size pixels (point-plane: the bundled scene)."""
-    scene = CASES[case][0]
+    scene = EDGE_CASES[case][0]
     path = bundled_scene_path("point-plane")
     if scene is not None:
         path = directory / "scene.json"
@@ -66,7 +46,7 @@ def engine(case: str, size: int, directory: Path, **settings: object) -> Engine:
 def covered_counts(case: str, method: str, size: int, seed: int, directory: Path) -> dict:
     """Per pass count and confidence: [covered, of] for edge and for smooth known pixels."""
     eng = engine(case, size, directory, method=method, seed=seed)
-    truth = CASES[case][1](eng)
+    truth = EDGE_CASES[case][1](eng)
     edge = edge_pixels(truth.reshape(size, size)).ravel()
     counts: dict = {}
 
@@ -91,7 +71,7 @@ def main() -> None:
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for case in CASES:
+        for case in EDGE_CASES:
             for method in args.methods.split(","):
                 total: dict = {}
                 for seed in range(1, args.seeds + 1):

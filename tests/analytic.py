@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -276,3 +277,15 @@ def edge_pixels(ref: np.ndarray, within: int = 1) -> np.ndarray:
         return np.zeros(ref.shape, bool)
     yy, xx = np.mgrid[0:ref.shape[0], 0:ref.shape[1]]
     return np.min(np.hypot(yy[..., None] - ys, xx[..., None] - xs), axis=-1) <= within
+
+
+# The analytic cases with a discontinuity in view, where error bounds are checked at edge and
+# at smooth pixels: the scene's builder (of a resolution; None: the bundled point-plane,
+# smooth everywhere) and the luminance per pixel for an engine of it.
+EdgeCase = tuple[Callable[[tuple[int, int]], dict] | None, Callable[[Engine], np.ndarray]]
+EDGE_CASES: dict[str, EdgeCase] = {
+    "spot cone edge": (spot_plane_scene, lambda eng: spot_plane(eng, **SPOT)),
+    "hard shadow": (shadow_scene, lambda eng: shadowed_plane(eng, **SHADOW)),
+    "texture edge": (checker_plane_scene, lambda eng: checker_plane(eng, **CHECKER)),
+    "point-plane": (None, lambda eng: point_plane(eng)[0]),
+}

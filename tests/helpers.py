@@ -248,6 +248,16 @@ def mean_variance(runs: np.ndarray) -> np.ndarray:
 PEER_BIAS = {"sppm": 0.03, "vcm": 0.06, "bpt": 0.02}
 
 
+def mitsuba_renders(path: Path, runs: int, **params: str) -> np.ndarray:
+    """`runs` independent renders of a Mitsuba XML file by Mitsuba 3 itself (its own
+    integrator, 1024 spp, seeds 0, 1, ...), rgb float64: the peer side of a block comparison."""
+    import mitsuba
+
+    mitsuba.set_variant("scalar_rgb")
+    return np.array([np.array(mitsuba.render(mitsuba.load_file(str(path), **params), spp=1024, seed=s),
+                              np.float64)[..., :3] for s in range(runs)])
+
+
 def assert_matches_block_by_block(mine: np.ndarray, theirs: np.ndarray, mean_rtol: float, bias: float) -> None:
     """Independent renders of one scene by us and by a peer, (runs, h, w, 3) a side: image
     means per channel within `mean_rtol`, and every 8 x 8 block's luminance within 5 combined

@@ -21,7 +21,7 @@ from kernels.contract import build_options
 from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import camera_rays
 from tests.conftest import image, render
-from tests.helpers import PEER_BIAS, assert_matches_block_by_block
+from tests.helpers import PEER_BIAS, assert_matches_block_by_block, mitsuba_renders
 from tests.test_bsdf_consistency import grid_directions
 from worker.engine import Engine
 from worker.images import Pixels
@@ -334,12 +334,7 @@ def sky_xml(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def mitsuba_sky(sky_xml: Path) -> np.ndarray:
-    """RUNS independent Mitsuba renders of the sky scene (1024 spp each)."""
-    import mitsuba as mi
-
-    mi.set_variant("scalar_rgb")
-    return np.array([np.array(mi.render(mi.load_file(str(sky_xml)), spp=1024, seed=s), np.float64)[..., :3]
-                     for s in range(RUNS)])
+    return mitsuba_renders(sky_xml, RUNS)
 
 
 def test_envmap_import(sky_xml: Path) -> None:

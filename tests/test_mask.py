@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import image, render
-from tests.helpers import PEER_BIAS, SENSOR, assert_matches_block_by_block, xml
+from tests.helpers import PEER_BIAS, SENSOR, assert_matches_block_by_block, mitsuba_renders, xml
 from tests.test_images import write_image
 from tests.test_materials import BALL, LE, PATHS, ball_radiance, furnace_scene
 from tests.test_textures import METHODS, cells_and_closed_form, checker_plane
@@ -187,13 +187,7 @@ def room_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def mitsuba_room(room_folder: Path) -> np.ndarray:
-    """SIDE_RUNS independent Mitsuba renders of the room (1024 spp each)."""
-    import mitsuba
-
-    mitsuba.set_variant("scalar_rgb")
-    path = str(room_folder / "room.xml")
-    return np.array([np.array(mitsuba.render(mitsuba.load_file(path), spp=1024, seed=s), np.float64)[..., :3]
-                     for s in range(SIDE_RUNS)])
+    return mitsuba_renders(room_folder / "room.xml", SIDE_RUNS)
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -20,7 +20,14 @@ import numpy as np
 import pytest
 
 from tests.conftest import image, render
-from tests.helpers import PEER_BIAS, assert_matches_block_by_block, assert_same_material, mitsuba_material, our_material
+from tests.helpers import (
+    PEER_BIAS,
+    assert_matches_block_by_block,
+    assert_same_material,
+    mitsuba_material,
+    mitsuba_renders,
+    our_material,
+)
 from worker.metals import METALS
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SCENES_DIR, parse_scene
@@ -197,13 +204,7 @@ RUNS = 6  # independent renders a side: the spread of a block between them is it
 
 @pytest.fixture(scope="module")
 def mitsuba_materials() -> np.ndarray:
-    """RUNS independent Mitsuba renders of materials.xml (1024 spp each)."""
-    import mitsuba
-
-    mitsuba.set_variant("scalar_rgb")
-    path = str(CORPUS / "materials.xml")
-    return np.array([np.array(mitsuba.render(mitsuba.load_file(path), spp=1024, seed=s), np.float64)[..., :3]
-                     for s in range(RUNS)])
+    return mitsuba_renders(CORPUS / "materials.xml", RUNS)
 
 
 @pytest.mark.parametrize("method", ["sppm", "vcm", "bpt"])

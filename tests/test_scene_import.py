@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.mitsuba_peer import beckmann_alpha
 from tests.conftest import image, render
-from tests.helpers import SENSOR, assert_matches_block_by_block, xml
+from tests.helpers import SENSOR, assert_matches_block_by_block, mitsuba_renders, xml
 from worker.engine import Engine
 from worker.error_estimate import LUMINANCE
 from worker.meshes import MeshError, load_mesh
@@ -96,14 +96,7 @@ THIN_LENS = {"aperture": "0.1", "focus": "0.6", "resolution": "64"}  # a wide le
 
 @pytest.fixture(scope="module")
 def mitsuba_thin_lens() -> np.ndarray:
-    """THIN_LENS_RUNS independent Mitsuba renders of thinlens-glossy.xml with THIN_LENS
-    (1024 spp each)."""
-    import mitsuba
-
-    mitsuba.set_variant("scalar_rgb")
-    path = str(MITSUBA_SCENES / "thinlens-glossy.xml")
-    return np.array([np.array(mitsuba.render(mitsuba.load_file(path, **THIN_LENS), spp=1024, seed=s),
-                              np.float64)[..., :3] for s in range(THIN_LENS_RUNS)])
+    return mitsuba_renders(MITSUBA_SCENES / "thinlens-glossy.xml", THIN_LENS_RUNS, **THIN_LENS)
 
 
 @pytest.mark.parametrize("method", ["sppm", "vcm", "bpt", "lt"])

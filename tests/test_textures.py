@@ -19,7 +19,7 @@ from kernels.contract import build_options
 from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import PLANE_H, PLANE_I, camera_rays
 from tests.conftest import image, render
-from tests.helpers import PEER_BIAS, assert_matches_block_by_block
+from tests.helpers import PEER_BIAS, assert_matches_block_by_block, mitsuba_renders
 from tests.test_images import write_image
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SceneError, bundled_scene_path, parse_scene
@@ -217,6 +217,22 @@ def _probe(eng) -> cl.Program:
     return cl.Program(eng.device.ctx, source).build(options=["-cl-mad-enable", *build_options(eng.integrator.sums)])
 
 
+def _probe_uvs(eng, seed: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """n rays from the plane z = 5 over [-2.3, 2.3]^2, nearly straight down -z: their origins,
+    directions and, per ray, our hit's (u, v, t, surface) (surface -1: a miss)."""
+    dev, program = eng.device, _probe(eng)
+    rng = np.random.default_rng(seed)
+    origins = np.column_stack([rng.uniform(-2.3, 2.3, (n, 2)), np.full(n, 5.0), np.zeros(n)]).astype(np.float32)
+    dirs = np.column_stack([rng.uniform(-0.05, 0.05, (n, 2)), -np.ones(n), np.zeros(n)])
+    dirs[:, :3] /= np.linalg.norm(dirs[:, :3], axis=1, keepdims=True)
+    dirs = dirs.astype(np.float32)
+    ours = np.empty((n, 4), np.float32)
+    out = dev.buffer(ours.nbytes)
+    program.probe_uv(dev.queue, (n,), None, *dev.geometry, *dev.emitter_args, dev.const(origins), dev.const(dirs), out)
+    cl.enqueue_copy(dev.queue, ours, out)
+    return origins, dirs, ours
+
+
 def test_lookups_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
     """Each texture (wrap modes, filters, to_uv with a rotation, raw, checkerboard) at random (u, v) in [-2, 3]^2,
     ours against Mitsuba's own `eval` of the same element."""
@@ -247,18 +263,8 @@ def test_surface_uvs_match_mitsuba(make_engine, mi, tmp_path: Path) -> None:
     """Rays at the four shapes (a rectangle, a flipped and turned rectangle, a sphere, an OBJ
     mesh with its own texture coordinates): the (u, v) at our hit is Mitsuba's at its hit."""
     path = textured_scene(tmp_path)
-    eng = make_engine(path, photons_per_pass=1 << 10)
-    dev, program = eng.device, _probe(eng)
-    rng = np.random.default_rng(5)
     n = 2000
-    origins = np.column_stack([rng.uniform(-2.3, 2.3, (n, 2)), np.full(n, 5.0), np.zeros(n)]).astype(np.float32)
-    dirs = np.column_stack([rng.uniform(-0.05, 0.05, (n, 2)), -np.ones(n), np.zeros(n)])
-    dirs[:, :3] /= np.linalg.norm(dirs[:, :3], axis=1, keepdims=True)
-    dirs = dirs.astype(np.float32)
-    ours = np.empty((n, 4), np.float32)
-    out = dev.buffer(ours.nbytes)
-    program.probe_uv(dev.queue, (n,), None, *dev.geometry, *dev.emitter_args, dev.const(origins), dev.const(dirs), out)
-    cl.enqueue_copy(dev.queue, ours, out)
+    origins, dirs, ours = _probe_uvs(make_engine(path, photons_per_pass=1 << 10), 5, n)
     scene = mi.load_file(str(path))
     hits = 0
     for i in range(n):
@@ -297,18 +303,8 @@ def test_generated_shapes_uvs_match_mitsuba(make_engine, mi, tmp_path: Path) -> 
     modulo 1 at the seams where phi wraps."""
     path = tmp_path / "shapes.xml"
     path.write_text(SHAPES_SCENE)
-    eng = make_engine(path, photons_per_pass=1 << 10)
-    dev, program = eng.device, _probe(eng)
-    rng = np.random.default_rng(6)
     n = 3000
-    origins = np.column_stack([rng.uniform(-2.3, 2.3, (n, 2)), np.full(n, 5.0), np.zeros(n)]).astype(np.float32)
-    dirs = np.column_stack([rng.uniform(-0.05, 0.05, (n, 2)), -np.ones(n), np.zeros(n)])
-    dirs[:, :3] /= np.linalg.norm(dirs[:, :3], axis=1, keepdims=True)
-    dirs = dirs.astype(np.float32)
-    ours = np.empty((n, 4), np.float32)
-    out = dev.buffer(ours.nbytes)
-    program.probe_uv(dev.queue, (n,), None, *dev.geometry, *dev.emitter_args, dev.const(origins), dev.const(dirs), out)
-    cl.enqueue_copy(dev.queue, ours, out)
+    origins, dirs, ours = _probe_uvs(make_engine(path, photons_per_pass=1 << 10), 6, n)
     scene = mi.load_file(str(path))
     hits: dict[int, int] = {}
     for i in range(n):
@@ -394,13 +390,7 @@ def room_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def mitsuba_room(room_folder: Path) -> np.ndarray:
-    """SIDE_RUNS independent Mitsuba renders of the textured room (1024 spp each)."""
-    import mitsuba
-
-    mitsuba.set_variant("scalar_rgb")
-    path = str(room_folder / "room.xml")
-    return np.array([np.array(mitsuba.render(mitsuba.load_file(path), spp=1024, seed=s), np.float64)[..., :3]
-                     for s in range(SIDE_RUNS)])
+    return mitsuba_renders(room_folder / "room.xml", SIDE_RUNS)
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -12,38 +12,18 @@ pixels (48x48, 40 seeds: 0.85), so 16 passes are allowed SLACK_AT_16 points."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.analytic import (
-    CHECKER,
-    SHADOW,
-    SPOT,
-    checker_plane,
-    checker_plane_scene,
-    edge_pixels,
-    point_plane,
-    shadow_scene,
-    shadowed_plane,
-    spot_plane,
-    spot_plane_scene,
-)
-from worker.engine import Engine
+from tests.analytic import EDGE_CASES, edge_pixels
 from worker.integrators.connect_merge import hybrid_estimate
 from worker.render_loop import render
 from worker.scene import bundled_scene_path
 
 SIZE = 48
 SEEDS = (11, 12, 13, 14)
-CASES: dict[str, tuple[Callable[[tuple[int, int]], dict] | None, Callable[[Engine], np.ndarray]]] = {
-    "spot cone edge": (spot_plane_scene, lambda eng: spot_plane(eng, **SPOT)),
-    "hard shadow": (shadow_scene, lambda eng: shadowed_plane(eng, **SHADOW)),
-    "texture edge": (checker_plane_scene, lambda eng: checker_plane(eng, **CHECKER)),
-    "point-plane": (None, lambda eng: point_plane(eng)[0]),
-}
 SLACK_AT_16 = 0.065
 FIRST_PASS = {"vcm": 16, "bpt": 64}  # bpt's t interval holds from here (before: its splats are too skewed)
 
@@ -51,7 +31,7 @@ FIRST_PASS = {"vcm": 16, "bpt": 64}  # bpt's t interval holds from here (before:
 def coverage(make_engine, tmp_path: Path, case: str, method: str) -> dict[tuple[int, float, str], float]:
     """Per (passes, confidence, 'edge' or 'smooth'): the share of known pixels whose bound
     holds the actual error, over SEEDS renders."""
-    scene, truth_of = CASES[case]
+    scene, truth_of = EDGE_CASES[case]
     path = bundled_scene_path("point-plane")
     if scene is not None:
         path = tmp_path / "scene.json"
@@ -79,7 +59,7 @@ def coverage(make_engine, tmp_path: Path, case: str, method: str) -> dict[tuple[
 
 
 @pytest.mark.parametrize("method", ("vcm", "bpt"))
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", EDGE_CASES)
 def test_bounds_cover_within_five_points_at_edges_and_smooth_pixels(make_engine, tmp_path: Path,
                                                                      case: str, method: str) -> None:
     found = coverage(make_engine, tmp_path, case, method)
