@@ -248,6 +248,22 @@ def mean_variance(runs: np.ndarray) -> np.ndarray:
 PEER_BIAS = {"sppm": 0.03, "vcm": 0.06, "bpt": 0.02}
 
 
+def room_shell(floor: str) -> str:
+    """Mitsuba XML of a closed 2 x 2 x 2 room about the origin: its floor of bsdf `floor`, the
+    other walls of bsdf `white`, and a small square area light under the ceiling."""
+    walls = [("floor", '<rotate x="1" angle="-90"/><translate y="-1"/>'),
+             ("white", '<rotate x="1" angle="90"/><translate y="1"/>'), ("white", '<translate z="-1"/>'),
+             ("white", '<rotate y="1" angle="90"/><translate x="-1"/>'),
+             ("white", '<rotate y="1" angle="-90"/><translate x="1"/>'),
+             ("white", '<rotate y="1" angle="180"/><translate z="1"/>')]
+    shapes = [f'<shape type="rectangle"><transform name="to_world">{ops}</transform>'
+              f'<ref id="{floor if kind == "floor" else kind}"/></shape>' for kind, ops in walls]
+    light = ('<shape type="rectangle"><transform name="to_world"><scale x="0.25" y="0.25"/><rotate x="1" angle="90"/>'
+             '<translate y="0.99"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>'
+             '<emitter type="area"><rgb name="radiance" value="12"/></emitter></shape>')
+    return "\n".join(shapes + [light])
+
+
 def mitsuba_renders(path: Path, runs: int, **params: str) -> np.ndarray:
     """`runs` independent renders of a Mitsuba XML file by Mitsuba 3 itself (its own
     integrator, 1024 spp, seeds 0, 1, ...), rgb float64: the peer side of a block comparison."""

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import image, render
-from tests.helpers import PEER_BIAS, SENSOR, assert_matches_block_by_block, mitsuba_renders, xml
+from tests.helpers import PEER_BIAS, SENSOR, assert_matches_block_by_block, mitsuba_renders, room_shell, xml
 from tests.test_images import write_image
 from tests.test_materials import BALL, LE, PATHS, ball_radiance, furnace_scene
 from tests.test_textures import METHODS, cells_and_closed_form, checker_plane
@@ -123,7 +123,7 @@ def test_bad_masks_are_refused_by_line(tmp_path: Path, xml: str, message: str) -
 
 
 # ------------------------------------------------------------------ side by side with Mitsuba 3
-ROOM = """<scene version="3.0.0">
+ROOM = f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="-1"/></integrator>
     <sensor type="perspective">
         <float name="fov" value="60"/>
@@ -142,22 +142,7 @@ ROOM = """<scene version="3.0.0">
         <bsdf type="twosided"><bsdf type="roughplastic"><rgb name="diffuse_reflectance" value="0.2, 0.4, 0.7"/>
             <float name="alpha" value="0.2"/></bsdf></bsdf>
     </bsdf>
-    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><translate y="-1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="90"/><translate y="1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><translate z="-1"/></transform><ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="90"/><translate x="-1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="-90"/><translate x="1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="180"/><translate z="1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle">
-        <transform name="to_world"><scale x="0.25" y="0.25"/><rotate x="1" angle="90"/><translate y="0.99"/></transform>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>
-        <emitter type="area"><rgb name="radiance" value="12"/></emitter>
-    </shape>
+    {room_shell("white")}
     <shape type="rectangle"><transform name="to_world"><scale x="0.6" y="0.6"/><rotate x="1" angle="-90"/>
         <translate y="0.2" z="-0.2"/></transform><ref id="screen"/></shape>
     <shape type="rectangle"><transform name="to_world"><scale x="0.3" y="0.5"/><rotate y="1" angle="30"/>

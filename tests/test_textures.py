@@ -19,7 +19,7 @@ from kernels.contract import build_options
 from kernels.program import KERNEL_DIR, PREAMBLE, SOURCES
 from tests.analytic import PLANE_H, PLANE_I, camera_rays
 from tests.conftest import image, render
-from tests.helpers import PEER_BIAS, assert_matches_block_by_block, mitsuba_renders
+from tests.helpers import PEER_BIAS, assert_matches_block_by_block, mitsuba_renders, room_shell
 from tests.test_images import write_image
 from worker.mitsuba_scene import convert_mitsuba
 from worker.scene import SceneError, bundled_scene_path, parse_scene
@@ -319,7 +319,7 @@ def test_generated_shapes_uvs_match_mitsuba(make_engine, mi, tmp_path: Path) -> 
 
 
 # ------------------------------------------------------------------ side by side with Mitsuba 3
-ROOM = """<scene version="3.0.0">
+ROOM = f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="-1"/></integrator>
     <sensor type="perspective">
         <float name="fov" value="62"/>
@@ -341,22 +341,7 @@ ROOM = """<scene version="3.0.0">
         <texture type="bitmap" name="reflectance"><string name="filename" value="tiles.png"/>
             <string name="filter_type" value="nearest"/><string name="wrap_mode" value="mirror"/></texture>
     </bsdf></bsdf>
-    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><translate y="-1"/></transform>
-        <ref id="floor"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="90"/><translate y="1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><translate z="-1"/></transform><ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="90"/><translate x="-1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="-90"/><translate x="1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle"><transform name="to_world"><rotate y="1" angle="180"/><translate z="1"/></transform>
-        <ref id="white"/></shape>
-    <shape type="rectangle">
-        <transform name="to_world"><scale x="0.25" y="0.25"/><rotate x="1" angle="90"/><translate y="0.99"/></transform>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>
-        <emitter type="area"><rgb name="radiance" value="12"/></emitter>
-    </shape>
+    {room_shell("floor")}
     <shape type="sphere"><point name="center" x="-0.45" y="-0.68" z="-0.4"/><float name="radius" value="0.32"/>
         <ref id="ball"/></shape>
     <shape type="obj"><string name="filename" value="panel.obj"/>
