@@ -39,9 +39,10 @@
 6. (`--closed`, alone) `sampler: auto` against uniform photons and chains in every pass, at
    equal CPU time (`--closed-seconds`, 12 by default), two seeds each, 64 pixels, the
    service's 2^18 photons a pass, on the closed scenes `window-sky` (lit by the sky through
-   a window) and `slit-room` (lit through a slit): the error against a reference where
-   bench/reference holds one (window-sky's Mitsuba path-traced one), else the noise of the
-   two seeds; auto's choice and figures per seed; the load average before and after.
+   a window), `slit-room` (lit through a slit) and, where auto should keep uniform photons,
+   `cornell-box`: the error against a reference where bench/reference holds one (window-sky's
+   Mitsuba path-traced one, cornell-box's), else the noise of the two seeds; auto's choice
+   and figures per seed; the load average before and after.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
@@ -386,7 +387,7 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="cases of parts 2 and 3 to run (default: all)")
     parser.add_argument("--defaults", action="store_true", help="part 4 alone: the service's defaults")
     parser.add_argument("--bound", action="store_true", help="part 5 alone: the most a sampler of V could gain")
-    parser.add_argument("--closed", action="store_true", help="part 6 alone: sampler auto on window-sky and slit-room")
+    parser.add_argument("--closed", action="store_true", help="part 6 alone: sampler auto on closed scenes")
     parser.add_argument("--closed-seconds", type=float, default=12.0, help="part 6: CPU seconds per run")
     args = parser.parse_args()
     if args.defaults:
@@ -464,7 +465,7 @@ def compare(name: str, scene: Scene, res: tuple[int, int], ref: np.ndarray, phot
     return equal_time, same_paths
 
 
-CLOSED_SCENES = ("window-sky", "slit-room")
+CLOSED_SCENES = ("window-sky", "slit-room", "cornell-box")
 
 
 def closed(args: argparse.Namespace) -> None:
