@@ -38,11 +38,13 @@
 
 6. (`--closed`, alone) `sampler: auto` against uniform photons and chains in every pass, at
    equal CPU time (`--closed-seconds`, 12 by default), two seeds each, 64 pixels, the
-   service's 2^18 photons a pass, on the closed scenes `window-sky` (lit by the sky through
+   service's 2^18 photons a pass (`--closed-photons`), on the closed scenes `window-sky` (lit by the sky through
    a window), `slit-room` (lit through a slit) and, where auto should keep uniform photons,
-   `cornell-box`: the error against a reference where bench/reference holds one (window-sky's
-   Mitsuba path-traced one, cornell-box's), else the noise of the two seeds; auto's choice
-   and figures per seed; the load average before and after.
+   `cornell-box`; and uniform photons at smaller passes (`--closed-uniform-photons`, 2^17
+   and 2^15: a chain pass costs less than a uniform pass of 2^18 photons, and more passes
+   alone can lower the error): the error against a reference where bench/reference holds
+   one (window-sky's Mitsuba path-traced one, cornell-box's), else the noise of the two
+   seeds; auto's choice and figures per seed; the load average before and after.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
@@ -57,7 +59,7 @@ long uniform SPPM runs, as bench/make_reference.py makes them) on first use. `--
 runs everything tiny (a few seconds a scene) to check the script, its figures mean nothing.
 Writes bench/out/adaptive.json and bench/out/adaptive_<scene>.png (with --smoke,
 adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json, part 6
-adaptive_closed.json.
+adaptive_closed.json (adaptive_closed_<P>.json with other photons a pass).
 Timing figures need a quiet machine.
 """
 
@@ -158,7 +160,8 @@ def take_turns(scene: Scene, res: tuple[int, int], photons: int, budget: float, 
     `after_pass(run)` is called after each pass, off the clock."""
     runs = {}
     for variant, seed in keys:
-        eng = warmed(scene, res, photons, VARIANTS[variant], seed)
+        sampler, own_photons = sampler_photons(variant, photons)
+        eng = warmed(scene, res, own_photons, sampler, seed)
         t0 = time.process_time()
         runs[(variant, seed)] = {"engine": eng, "state": eng.start()}
         runs[(variant, seed)]["spent"] = time.process_time() - t0
@@ -171,6 +174,13 @@ def take_turns(scene: Scene, res: tuple[int, int], photons: int, budget: float, 
                 if after_pass is not None:
                     after_pass(run)
     return runs
+
+
+def sampler_photons(variant: str, photons: int) -> tuple[str, int]:
+    """A variant's sampler and photons a pass: VARIANTS[variant] at `photons`, or for
+    `uniform@P` uniform photons at P a pass."""
+    name, _, own = variant.partition("@")
+    return VARIANTS[name], int(own) if own else photons
 
 
 def curves(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
@@ -389,6 +399,9 @@ def main() -> None:
     parser.add_argument("--bound", action="store_true", help="part 5 alone: the most a sampler of V could gain")
     parser.add_argument("--closed", action="store_true", help="part 6 alone: sampler auto on closed scenes")
     parser.add_argument("--closed-seconds", type=float, default=12.0, help="part 6: CPU seconds per run")
+    parser.add_argument("--closed-photons", type=int, default=DEFAULTS_PHOTONS, help="part 6: photons per pass")
+    parser.add_argument("--closed-uniform-photons", type=int, nargs="*", default=[1 << 17, 1 << 15],
+                        help="part 6: uniform photons at these photons per pass too (uniform@P)")
     args = parser.parse_args()
     if args.defaults:
         defaults(args.smoke)
@@ -470,7 +483,7 @@ CLOSED_SCENES = ("window-sky", "slit-room", "cornell-box")
 
 def closed(args: argparse.Namespace) -> None:
     """Part 6 (module docstring): bench/out/adaptive_closed.json."""
-    side, budget, photons, prefix = 64, args.closed_seconds, DEFAULTS_PHOTONS, "adaptive"
+    side, budget, photons, prefix = 64, args.closed_seconds, args.closed_photons, "adaptive"
     if args.smoke:
         side, budget, photons, prefix = 32, 1.0, 1 << 12, "adaptive-smoke"
     report: dict = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_cpu_seconds": budget,
@@ -481,10 +494,11 @@ def closed(args: argparse.Namespace) -> None:
         path = reference_path(name, res)
         ref = read_image(path)[..., :3].astype(np.float64) if path.exists() and not args.smoke else None
         load = os.getloadavg()
-        runs = take_turns(scene, res, photons, budget, [(v, seed) for v in VARIANTS for seed in (SEED, SEED + 1)])
+        variants = [*VARIANTS, *(f"uniform@{p}" for p in args.closed_uniform_photons)]
+        runs = take_turns(scene, res, photons, budget, [(v, seed) for v in variants for seed in (SEED, SEED + 1)])
         case: dict = {"resolution": list(res), "reference": path.name if ref is not None else None,
                       "load_average_before_after": [load, os.getloadavg()]}
-        for variant in VARIANTS:
+        for variant in variants:
             pair = pair_of(runs, variant)
             a, b = (run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3) for run in pair)
             case[variant] = {"passes": [run["state"].passes for run in pair],
@@ -494,7 +508,7 @@ def closed(args: argparse.Namespace) -> None:
                                for c in choices]
         report["cases"][name] = case
         print(name, json.dumps(case, indent=1), flush=True)
-    write_json(f"{prefix}_closed", report)
+    write_json(f"{prefix}_closed" + ("" if photons == DEFAULTS_PHOTONS else f"_{photons}"), report)
 
 
 if __name__ == "__main__":

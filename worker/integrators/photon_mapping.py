@@ -95,7 +95,6 @@ class PhotonMapping(Integrator[Accumulators]):
     def state_widths(self) -> dict[str, int]:
         return {"R0": 1, "N": 1, **{name: w for name, w in self.sums.widths if name not in BATCH_ONLY}}
 
-
     def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
         return Accumulators.start(self.alpha, setup["R0"], self.sums, BATCH_ONLY)
 
