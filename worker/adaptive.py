@@ -41,10 +41,10 @@ replays its passes bit for bit.
 `sampler: adaptive` runs chains in every pass. `sampler: auto` (the default) measures first:
 a job's passes 0 .. MEASURE_PASSES - 1 alternate a uniform pass (even) and a chain pass
 (odd), each timed on the device and counted apart (`measured`); once all are merged it
-keeps the sampler with more useful photon paths a second (`choice`), the choice and its
-figures in the job's notes. Passes after the window that start before the choice are
-uniform passes. The window is fixed by pass index, so the choice is a function of the
-merged counters, made once.
+keeps chains where their visible paths a second are at least MIN_VISIBLE_RATIO times
+uniform tracing's (`choice`), the choice and its figures in the job's notes. Passes after
+the window that start before the choice are uniform passes. The window is fixed by pass
+index (half of it each kind), so the choice is a function of the merged counters, made once.
 """
 
 from __future__ import annotations
@@ -221,17 +221,17 @@ def choice(counters: dict[str, int], photons: int) -> Choice | None:
     41.9, "the ratio may need to be more than a few tens"). A function of the merged
     counters alone, which only the measuring passes add to: the same whatever the batch
     split, and fixed once made."""
-    c = {name[len(MEASURED):]: value for name, value in counters.items() if name.startswith(MEASURED)}
-    n_uniform, n_chain = c.get("uniform_passes", 0), c.get("chain_passes", 0)
-    if n_uniform + n_chain < MEASURE_PASSES:
+    if measured_passes(counters) < MEASURE_PASSES:
         return None
+    c = {name[len(MEASURED):]: value for name, value in counters.items() if name.startswith(MEASURED)}
+    n_uniform, n_chain = c["uniform_passes"], c["chain_passes"]
     draws, visible, splats, mutations, accepted = (c.get(name, 0) for name in MEASURED_COUNTERS)
     v_c = visible / draws if draws else 0.0
     uniform_us, chain_us = max(c.get("uniform_us", 0), 1), max(c.get("chain_us", 0), 1)
     uniform_rate = v_c * photons * n_uniform / (uniform_us * 1e-6)
     chain_rate = splats / (chain_us * 1e-6)
     return Choice(visible_ratio(uniform_rate, chain_rate) >= MIN_VISIBLE_RATIO, v_c,
-                  uniform_us * 1e-6 / max(n_uniform, 1), chain_us * 1e-6 / max(n_chain, 1),
+                  uniform_us * 1e-6 / n_uniform, chain_us * 1e-6 / n_chain,
                   accepted / mutations if mutations else 0.0, uniform_rate, chain_rate)
 
 
@@ -243,7 +243,11 @@ def visible_ratio(uniform_rate: float, chain_rate: float) -> float:
     return math.inf if chain_rate > 0.0 else 0.0
 
 
+def measured_passes(counters: dict[str, int]) -> int:
+    """Measuring passes merged into these counters."""
+    return counters.get(f"{MEASURED}uniform_passes", 0) + counters.get(f"{MEASURED}chain_passes", 0)
+
+
 def measuring_note(counters: dict[str, int]) -> str:
     """What sampler auto says before its choice."""
-    merged = counters.get(f"{MEASURED}uniform_passes", 0) + counters.get(f"{MEASURED}chain_passes", 0)
-    return f"sampler auto: measuring ({merged} of passes 0-{MEASURE_PASSES - 1} merged)"
+    return f"sampler auto: measuring ({measured_passes(counters)} of passes 0-{MEASURE_PASSES - 1} merged)"
