@@ -1,10 +1,11 @@
 """Adaptive photon tracing (`sampler: adaptive`) against uniform photon tracing, one run:
 
 1. the visible fraction V_c (and the visible-photon ratio 1 / V_c, the paper's Table 1
-   column), the final mutation size theta and the achieved acceptance, per bundled scene
+   column), the final mutation size theta and the achieved acceptance of chains in every
+   pass (`sampler: adaptive`), per bundled scene
    and per zoom level of `directional-caustic` (the camera closing in on the caustic,
    vertical field of view 40 (the scene's), 20, 10, 5, 2.5 and 1.25 degrees);
-2. error against time, uniform and adaptive on the same scene and budget (SPPM, exact
+2. error against time, uniform and `sampler: auto` on the same scene and budget (SPPM, exact
    gather), with a chart per scene; the clock is this process's CPU seconds (set-up and
    rendering), the runs taking turns pass by pass. Two seeds per sampler, paired
    (a seed's initial radius comes from its own uniform probe pass, the same for both
@@ -12,7 +13,7 @@
    so one seed's ratio says little): the error is the two runs' mean, split into
    noise (the relative RMS of their difference over sqrt 2, one image's) and bias (what
    the mean image's error keeps beyond its noise, sqrt(e_mean^2 - noise^2 / 2));
-3. error at equal passes: both samplers the same passes of the same photons per pass (a
+3. error at equal passes: uniform and chains in every pass, the same passes of the same photons per pass (a
    chain pass runs adaptive.iterations; `traced` counts its paths, starts included), with
    the CPU seconds each took; and the
    noise alone, from a second seed (the relative RMS of the two images' difference over
@@ -20,33 +21,37 @@
    alike (a chain pass's sums are in uniform photons), so this ratio is the chains' gain itself.
 
 4. (`--defaults`, alone) at the service's defaults (256 pixels, 2^18 photons a pass, 12 CPU
-   s): uniform, adaptive, and chains made to mutate at the paper's break-even (MIN_GAIN 1),
+   s): uniform, auto and chains in every pass,
    on cornell-box, gap, directional-caustic at fov 5 and 1.25 and a point-lit patch
    (tests/analytic.py patch_scene) at fov 6, 2 and 0.6 (V_c falling with the field of
    view): the noise of two seeds (no reference needed at this size) and, on the patch,
-   the error against its closed form. This is where adaptive.mutates's MIN_GAIN comes from.
+   the error against its closed form, and what auto chose.
 5. (`--bound`, alone) the most any sampler of F = V / V_c could gain at equal time, from a
    uniform pass's own stage times (device seconds) and V_c: such a sampler's visible paths
    are distributed as uniform tracing's visible ones, so at equal visible paths it leaves
    the eye pass, the gather and the visible paths' trace and build as they are. An ideal one
    (invisible paths free) takes T - (1 - V_c)(trace + build) a pass; the paper's kernel (a
    traced path finds a new visible one gain x V_c times as often as uniform tracing,
-   adaptive.gain; only visible paths stored), with free visibility tests and independent
+   new_visible_gain; only visible paths stored), with free visibility tests and independent
    samples, T - trace (1 - 1 / gain) - build (1 - V_c). A time gain X lowers the error at
    most by sqrt(X) (all of it noise; SPPM's shrinking radius gives less), so 2x needs X >= 4.
 
-6. (`--sky`, alone) `window-sky` (a closed room lit by the sky through a window: the
-   environment light's photons mostly land on the room's outside): V_c (part 1) and parts 2
-   and 3 against a Mitsuba path-traced reference (bench/reference/window-sky-<W>x<H>.exr,
-   made on first use, as bench/error_vs_time.py makes its references); equal time also for
-   chains that always mutate (MIN_GAIN 1, as part 4).
+6. (`--closed`, alone) `sampler: auto` against uniform photons and chains in every pass, at
+   equal CPU time (`--closed-seconds`, 12 by default), two seeds each, 64 pixels, the
+   service's 2^18 photons a pass (`--closed-photons`), on the closed scenes `window-sky` (lit by the sky through
+   a window), `slit-room` (lit through a slit) and, where auto should keep uniform photons,
+   `cornell-box`; and uniform photons at smaller passes (`--closed-uniform-photons`, 2^17
+   and 2^15: a chain pass costs less than a uniform pass of 2^18 photons, and more passes
+   alone can lower the error): the error against a reference where bench/reference holds
+   one (window-sky's Mitsuba path-traced one, cornell-box's), else the noise of the two
+   seeds; auto's choice and figures per seed; the load average before and after.
 
 Per scene, part 1 also gives the new visible paths per traced path (visible uniform draws
 plus accepted mutations): a uniform tracer's is V_c. A chain's other splats count a state
 again; they add no new path, so when this is not well above V_c the chains cannot win.
 
     python -m bench.adaptive [--full] [--smoke] [--visibility-only] [--reference-seconds S] [--photons-per-pass P]
-        [--equal-paths-passes N] [--defaults] [--bound] [--sky]
+        [--equal-paths-passes N] [--defaults] [--bound] [--closed [--closed-seconds S]]
 
 Error: the relative RMS of bench/error_vs_time.py against its cached references
 (bench/reference/<scene>-<W>x<H>.exr); the zoom levels get their own references (two
@@ -54,25 +59,25 @@ long uniform SPPM runs, as bench/make_reference.py makes them) on first use. `--
 runs everything tiny (a few seconds a scene) to check the script, its figures mean nothing.
 Writes bench/out/adaptive.json and bench/out/adaptive_<scene>.png (with --smoke,
 adaptive-smoke*); part 4 adaptive_defaults.json and .png, part 5 adaptive_bound.json, part 6
-adaptive_window-sky.json and .png.
+adaptive_closed.json (adaptive_closed_<P>.json with other photons a pass).
 Timing figures need a quiet machine.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
+import os
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from bench.common import BENCH_DIR, save_figure, write_json
-from bench.error_vs_time import REFERENCES, SCENES, make_reference, reference_path, rel_rms, resolution
+from bench.error_vs_time import REFERENCES, SCENES, reference_path, rel_rms, resolution
 from tests.analytic import patch_plane, patch_scene
 from worker import adaptive
 from worker.engine import Engine
@@ -84,7 +89,6 @@ from worker.settings import DEFAULTS, Settings
 BUNDLED = ("cornell-box", "cornell-caustics", "directional-caustic", "furnace", "gap", "glossy", "point-plane",
            "smallppm", "window-sky")
 ZOOM_SCENE = "directional-caustic"
-SKY_SCENE = "window-sky"
 ZOOM_FOVS = (40.0, 20.0, 10.0, 5.0, 2.5, 1.25)  # degrees; 40 is the scene's own view
 CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere's centre meets the ground
 # Photons per pass, both samplers. SPPM's radius falls by pass, not by photon, so on a
@@ -92,7 +96,7 @@ CAUSTIC = (0.225, 0.0, 0.175)  # where the light's ray through the glass sphere'
 # unless passes are many: small passes, so that a budget runs many of them.
 PHOTONS = 1 << 13
 SEED = 7
-VARIANTS = {"uniform": None, "adaptive": adaptive.MIN_GAIN, "chains": 1.0}  # sampler (uniform if None), MIN_GAIN
+VARIANTS = {"uniform": "uniform", "auto": "auto", "chains": "adaptive"}  # the sampler each runs
 
 
 def zoomed(fov: float) -> Scene:
@@ -109,27 +113,13 @@ def engine(scene: Scene, res: tuple[int, int], photons: int, seed: int = SEED, *
     return Engine(scene, base, Settings(resolution=res, photons_per_pass=photons, seed=seed, **settings))
 
 
-@contextlib.contextmanager
-def min_gain(value: float) -> Iterator[None]:
-    """adaptive.MIN_GAIN set to `value` within (1: the chains mutate at the paper's break-even)."""
-    default = adaptive.MIN_GAIN
-    adaptive.MIN_GAIN = value
-    try:
-        yield
-    finally:
-        adaptive.MIN_GAIN = default
-
-
 def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict[str, float]:
-    """V_c, theta and the acceptance after `passes` adaptive passes (the last half's
-    acceptance) of chains at the paper's break-even (MIN_GAIN 1, where they mutate while the
-    target acceptance is above V_c), and their gain (whether the sampler's own chains mutate:
-    at least MIN_GAIN)."""
+    """V_c, theta and the acceptance after `passes` passes of chains (the last half's
+    acceptance), and the gain of the chains' kernel (new_visible_gain)."""
     eng = engine(scene, res, photons, sampler="adaptive")
-    with min_gain(1.0):
-        state = render(eng, passes=passes // 2)
-        half = dict(state.counters)
-        render(eng, passes=passes, state=state)
+    state = render(eng, passes=passes // 2)
+    half = dict(state.counters)
+    render(eng, passes=passes, state=state)
     c = state.counters
     mutations = c["mutations"] - half["mutations"]
     v_c = adaptive.visible_fraction(c)
@@ -139,15 +129,25 @@ def visibility(scene: Scene, res: tuple[int, int], photons: int, passes: int) ->
             "new_visible_per_traced": (c["visible"] + c["accepted"]) / traced if traced else None,
             "theta": adaptive.theta(c, eng.settings.target_acceptance),
             "acceptance": (c["accepted"] - half["accepted"]) / mutations if mutations else None, "passes": passes,
-            "gain": adaptive.gain(v_c, eng.settings.target_acceptance) if v_c is not None else None}
+            "gain": new_visible_gain(v_c, eng.settings.target_acceptance) if v_c is not None else None}
+
+
+def new_visible_gain(v_c: float, target: float) -> float:
+    """The chains' new visible paths per traced path over uniform tracing's (V_c). A chain
+    iteration traces a uniform draw and, when it is invisible, a mutation; it finds a new
+    visible path with probability V_c + (1 - V_c) A, A the acceptance (held at the target),
+    so per traced path (V_c + (1 - V_c) A) / (2 - V_c), against V_c for uniform tracing."""
+    if v_c <= 0.0:
+        return math.inf
+    return (v_c + (1.0 - v_c) * target) / ((2.0 - v_c) * v_c)
 
 
 def warmed(scene: Scene, res: tuple[int, int], photons: int, sampler: str, seed: int = SEED) -> Engine:
-    """An engine whose kernels have run once (a pass of a state thrown away): PoCL compiles
-    a kernel at its first launch in a context (seconds, unless its disk cache has it),
-    which is no sampler's cost."""
+    """An engine whose kernels have run once (two passes of a state thrown away, a uniform
+    and, but with sampler uniform, a chain one): PoCL compiles a kernel at its first launch
+    in a context (seconds, unless its disk cache has it), which is no sampler's cost."""
     eng = engine(scene, res, photons, seed=seed, sampler=sampler)
-    render(eng, passes=1)
+    render(eng, passes=2)
     return eng
 
 
@@ -160,22 +160,27 @@ def take_turns(scene: Scene, res: tuple[int, int], photons: int, budget: float, 
     `after_pass(run)` is called after each pass, off the clock."""
     runs = {}
     for variant, seed in keys:
-        gain = VARIANTS[variant]
-        with min_gain(gain or adaptive.MIN_GAIN):
-            eng = warmed(scene, res, photons, "uniform" if gain is None else "adaptive", seed)
-            t0 = time.process_time()
-            runs[(variant, seed)] = {"engine": eng, "state": eng.start(), "gain": gain}
-            runs[(variant, seed)]["spent"] = time.process_time() - t0
+        sampler, own_photons = sampler_photons(variant, photons)
+        eng = warmed(scene, res, own_photons, sampler, seed)
+        t0 = time.process_time()
+        runs[(variant, seed)] = {"engine": eng, "state": eng.start()}
+        runs[(variant, seed)]["spent"] = time.process_time() - t0
     while any(run["spent"] < budget for run in runs.values()):
         for run in runs.values():
             if run["spent"] < budget:
-                with min_gain(run["gain"] or adaptive.MIN_GAIN):
-                    t0 = time.process_time()
-                    render(run["engine"], passes=run["state"].passes + 1, state=run["state"])
-                    run["spent"] += time.process_time() - t0
+                t0 = time.process_time()
+                render(run["engine"], passes=run["state"].passes + 1, state=run["state"])
+                run["spent"] += time.process_time() - t0
                 if after_pass is not None:
                     after_pass(run)
     return runs
+
+
+def sampler_photons(variant: str, photons: int) -> tuple[str, int]:
+    """A variant's sampler and photons a pass: VARIANTS[variant] at `photons`, or for
+    `uniform@P` uniform photons at P a pass."""
+    name, _, own = variant.partition("@")
+    return VARIANTS[name], int(own) if own else photons
 
 
 def curves(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
@@ -201,12 +206,11 @@ def split(a: np.ndarray, b: np.ndarray, ref: np.ndarray) -> dict[str, float]:
 
 
 def traced_paths(counters: dict[str, int], passes: int, photons: int) -> int:
-    """Photon paths a run traced: a pass that does not mutate (a uniform sampler's, or the
-    adaptive sampler's first and those below MIN_GAIN) traces `photons` and judges its
-    sample of draws; the chains' passes trace their draws, mutations and starts (here all
-    passes after the first mutate, or none: the gain decides from a V_c that moves little)."""
-    judged = counters.get("draws", 0) + counters.get("mutations", 0) + counters.get("boot", 0)
-    return judged + (photons if counters.get("mutations", 0) else passes * photons)
+    """Photon paths a run traced: a uniform sampler's passes trace `photons` each; the
+    chains' (sampler adaptive, every pass) their draws, mutations and starts."""
+    if "draws" not in counters:
+        return passes * photons
+    return counters["draws"] + counters.get("mutations", 0) + counters.get("boot", 0)
 
 
 def equal_paths(scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, passes: int) -> dict:
@@ -271,8 +275,14 @@ def at_defaults(scene: Scene, res: tuple[int, int], photons: int, budget: float,
             truth = patch_plane(pair[0]["engine"]).reshape(res[1], res[0])
             out[variant]["error"] = [float(np.sqrt(np.mean((img.mean(axis=2) / truth - 1.0) ** 2))) for img in images]
     v_c = out["chains"]["visible_fraction"]
-    out["gain"] = adaptive.gain(v_c, Settings.model_fields["target_acceptance"].default) if v_c is not None else None
+    out["gain"] = new_visible_gain(v_c, Settings.model_fields["target_acceptance"].default) if v_c is not None else None
+    auto = adaptive.choice(pair_of(runs, "auto")[0]["state"].counters, photons)
+    out["auto_choice"] = None if auto is None else {"chains": auto.chains, "ratio": auto.ratio}
     return out
+
+
+def pair_of(runs: dict, variant: str) -> list[dict]:
+    return [runs[(variant, seed)] for seed in (SEED, SEED + 1)]
 
 
 def defaults_chart(report: dict, prefix: str) -> None:
@@ -280,7 +290,7 @@ def defaults_chart(report: dict, prefix: str) -> None:
 
     names = list(report)
     fig, ax = plt.subplots(figsize=(7.5, 4.4))
-    for k, variant in enumerate(("adaptive", "chains")):
+    for k, variant in enumerate(("auto", "chains")):
         ratios = [report[n]["uniform"]["noise"] / report[n][variant]["noise"] for n in names]
         ax.bar(np.arange(len(names)) + 0.4 * k - 0.2, ratios, 0.4, label=variant)
     ax.axhline(1.0, color="k", lw=0.8)
@@ -319,19 +329,20 @@ BOUND_PASSES = 4  # timed passes, after 2 (the probe's and the kernels' first la
 
 def stage_bound(scene: Scene, res: tuple[int, int], photons: int, passes: int) -> dict:
     """Part 5 (module docstring) for one case: a uniform pass's device seconds by stage, V_c
-    (the pass that judges one draw in VISIBILITY_SAMPLE, untimed) and the two time bounds."""
-    eng = engine(scene, res, photons, sampler="adaptive")
+    (from as many chain passes, untimed) and the two time bounds."""
+    eng = engine(scene, res, photons, sampler="uniform")
     times = eng.device.times
-    with min_gain(math.inf):  # never mutate: every pass is the uniform photon pass
-        state = render(eng, passes=2)
-        times.settle()
-        times.seconds.clear()
-        state = render(eng, passes=2 + passes, state=state)
+    state = render(eng, passes=2)
+    times.settle()
+    times.seconds.clear()
+    render(eng, passes=2 + passes, state=state)
     times.settle()
     stage = {k: v / passes for k, v in times.seconds.items()}
     total, trace, build = sum(stage.values()), stage["trace"], stage["build"]
-    v_c = adaptive.visible_fraction(state.counters)
-    gain = adaptive.gain(v_c, Settings.model_fields["target_acceptance"].default)
+    v_c = adaptive.visible_fraction(render(engine(scene, res, photons, sampler="adaptive"), passes=passes).counters)
+    if v_c is None:
+        raise ValueError("the chain passes drew no uniform path")
+    gain = new_visible_gain(v_c, Settings.model_fields["target_acceptance"].default)
     ideal = total / (total - (1.0 - v_c) * (trace + build))
     chains = total / (total - trace * max(0.0, 1.0 - 1.0 / gain) - build * (1.0 - v_c))
     return {"resolution": list(res), "stage_seconds": stage, "pass_seconds": total, "visible_fraction": v_c,
@@ -386,7 +397,11 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="cases of parts 2 and 3 to run (default: all)")
     parser.add_argument("--defaults", action="store_true", help="part 4 alone: the service's defaults")
     parser.add_argument("--bound", action="store_true", help="part 5 alone: the most a sampler of V could gain")
-    parser.add_argument("--sky", action="store_true", help="part 6 alone: window-sky against a Mitsuba reference")
+    parser.add_argument("--closed", action="store_true", help="part 6 alone: sampler auto on closed scenes")
+    parser.add_argument("--closed-seconds", type=float, default=12.0, help="part 6: CPU seconds per run")
+    parser.add_argument("--closed-photons", type=int, default=DEFAULTS_PHOTONS, help="part 6: photons per pass")
+    parser.add_argument("--closed-uniform-photons", type=int, nargs="*", default=[1 << 17, 1 << 15],
+                        help="part 6: uniform photons at these photons per pass too (uniform@P)")
     args = parser.parse_args()
     if args.defaults:
         defaults(args.smoke)
@@ -394,8 +409,8 @@ def main() -> None:
     if args.bound:
         bound(args.smoke)
         return
-    if args.sky:
-        sky(args)
+    if args.closed:
+        closed(args)
         return
     side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
     photons = args.photons_per_pass
@@ -444,7 +459,7 @@ def main() -> None:
 
 def compare(name: str, scene: Scene, res: tuple[int, int], ref: np.ndarray, photons: int, budget: float,
             v_c: float | None, prefix: str, paths_passes: int,
-            variants: tuple[str, ...] = ("uniform", "adaptive")) -> tuple[dict, dict]:
+            variants: tuple[str, ...] = ("uniform", "auto")) -> tuple[dict, dict]:
     """Parts 2 and 3 for one case: equal time (two seeds for each of `variants` of VARIANTS,
     charted) and equal paths."""
     runs = curves(scene, res, ref, photons, budget,
@@ -463,27 +478,37 @@ def compare(name: str, scene: Scene, res: tuple[int, int], ref: np.ndarray, phot
     return equal_time, same_paths
 
 
-def sky(args: argparse.Namespace) -> None:
-    """Part 6 (module docstring): bench/out/adaptive_window-sky.json and its chart."""
-    scene = load_scene_file(bundled_scene_path(SKY_SCENE))[0]
-    side, budget, passes = (128, 60.0, 16) if args.full else (64, 12.0, 8)
-    photons, prefix = args.photons_per_pass, "adaptive"
-    res = resolution(SKY_SCENE, side)
-    if args.smoke:  # a few seconds: the reference a short uniform run, nothing written to bench/reference
-        res, budget, photons, passes, prefix = (32, 24), 1.0, 1 << 12, 2, "adaptive-smoke"
-        ref = engine(scene, res, photons, seed=SEED + 2)
-        ref_image = ref.integrator.image(render(ref, passes=8)).reshape(res[1], res[0], 3)
-    else:
-        if not reference_path(SKY_SCENE, res).exists():
-            make_reference(SKY_SCENE, res, args.reference_seconds)
-        ref_image = read_image(reference_path(SKY_SCENE, res))[..., :3].astype(np.float64)
-    v = visibility(scene, res, photons, passes)
-    print(SKY_SCENE, v, flush=True)
-    equal_time, same_paths = compare(SKY_SCENE, scene, res, ref_image, photons, budget, v["visible_fraction"],
-                                     prefix, 2 if args.smoke else args.equal_paths_passes, tuple(VARIANTS))
-    write_json(f"{prefix}_{SKY_SCENE}", {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_cpu_seconds": budget,
-                                         "photons_per_pass": photons, "smoke": args.smoke, "visibility": v,
-                                         "equal_time": equal_time, "equal_paths": same_paths})
+CLOSED_SCENES = ("window-sky", "slit-room", "cornell-box")
+
+
+def closed(args: argparse.Namespace) -> None:
+    """Part 6 (module docstring): bench/out/adaptive_closed.json."""
+    side, budget, photons, prefix = 64, args.closed_seconds, args.closed_photons, "adaptive"
+    if args.smoke:
+        side, budget, photons, prefix = 32, 1.0, 1 << 12, "adaptive-smoke"
+    report: dict = {"measured": time.strftime("%Y-%m-%d %H:%M:%S"), "budget_cpu_seconds": budget,
+                    "photons_per_pass": photons, "smoke": args.smoke, "cases": {}}
+    for name in CLOSED_SCENES:
+        scene = load_scene_file(bundled_scene_path(name))[0]
+        res = resolution(name, side)
+        path = reference_path(name, res)
+        ref = read_image(path)[..., :3].astype(np.float64) if path.exists() and not args.smoke else None
+        load = os.getloadavg()
+        variants = [*VARIANTS, *(f"uniform@{p}" for p in args.closed_uniform_photons)]
+        runs = take_turns(scene, res, photons, budget, [(v, seed) for v in variants for seed in (SEED, SEED + 1)])
+        case: dict = {"resolution": list(res), "reference": path.name if ref is not None else None,
+                      "load_average_before_after": [load, os.getloadavg()]}
+        for variant in variants:
+            pair = pair_of(runs, variant)
+            a, b = (run["engine"].integrator.image(run["state"]).reshape(res[1], res[0], 3) for run in pair)
+            case[variant] = {"passes": [run["state"].passes for run in pair],
+                             **(split(a, b, ref) if ref is not None else {"noise": rel_rms(a, b) / math.sqrt(2.0)})}
+        choices = [adaptive.choice(run["state"].counters, photons) for run in pair_of(runs, "auto")]
+        case["auto_choice"] = [None if c is None else {"chains": c.chains, "ratio": c.ratio, "note": c.note()}
+                               for c in choices]
+        report["cases"][name] = case
+        print(name, json.dumps(case, indent=1), flush=True)
+    write_json(f"{prefix}_closed" + ("" if photons == DEFAULTS_PHOTONS else f"_{photons}"), report)
 
 
 if __name__ == "__main__":

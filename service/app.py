@@ -111,7 +111,8 @@ def job_view(jobs: Jobs, record: JobRecord, history: bool = False) -> JobView:
         elapsed_seconds=round(record.elapsed_seconds(), 3), photons_per_second=round(record.photons_per_second, 1),
         workers_active=jobs.leases.owners(record.id), created=_iso(record.created), started=_iso(record.started),
         finished=_iso(record.finished), failure=record.failure, error_estimate=jobs.last_error(record.id),
-        error_history=jobs.history(record.id) if history else None, notes=list(record.notes),
+        error_history=jobs.history(record.id) if history else None,
+        notes=[*record.notes, *record.integrator.notes(record.counters)],
         links=JobLinks(self=base, image_png=f"{base}/image?format=png", image_exr=f"{base}/image?format=exr",
                        error_png=f"{base}/error?format=png", error_exr=f"{base}/error?format=exr"))
 

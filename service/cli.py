@@ -198,6 +198,8 @@ def render(args: argparse.Namespace) -> int:
             interrupted = True
     write_render(args.out, engine.integrator.settings, Published.of(engine.integrator, state), engine.arrays.width,
                  engine.arrays.height)
+    for line in engine.integrator.notes(state.counters):  # what the method decided (sampler auto's choice)
+        print(f"photonfarm: {line}", file=sys.stderr)
     note = " (interrupted: the image so far)" if interrupted else ""
     print(f"wrote {args.out}{note}: {state.passes} passes, {state.emitted} photons, "
           f"{time.perf_counter() - start:.1f} s")

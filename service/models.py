@@ -116,7 +116,9 @@ class JobView(BaseModel):
     notes: list[str] = Field(description="what the scene holds that was accepted but ignored (\"ignored: "
                                          "...\"), one line each, kept with the job: repeats dropped, each cut "
                                          f"to {MAX_NOTE_CHARS} characters, at most {MAX_JOB_NOTES} and then "
-                                         "\"... and N more\"")
+                                         "\"... and N more\"; then what the method decided from the merged "
+                                         "passes (\"sampler auto: ...\": measuring, or its choice and the "
+                                         "figures it chose by)")
     links: JobLinks
 
 

@@ -1,5 +1,6 @@
-"""Adaptive photon tracing (`sampler: adaptive`), the host half: the job's counters, the
-visible fraction V_c, the mutation size theta and the number of chains.
+"""Adaptive photon tracing, the host half: the job's counters, the visible fraction V_c,
+the mutation size theta, the number of chains, and `sampler: auto`'s choice between chains
+and uniform photon tracing.
 
 The kernels (kernels/photon_chains.cl) return per pass a few integer counters. A batch
 adds them to its Delta and the store sums them into the job (worker/stats.py), like the
@@ -36,11 +37,20 @@ of how they split into batches or how many batches ran at once: concurrent batch
 state all use the same theta and only add evidence at its grid point; integer sums make it
 bit-exact whatever order batches merged in, and a re-issued batch given the same state
 replays its passes bit for bit.
+
+`sampler: adaptive` runs chains in every pass. `sampler: auto` (the default) measures first:
+a job's passes 0 .. MEASURE_PASSES - 1 alternate a uniform pass (even) and a chain pass
+(odd), each timed on the device and counted apart (`measured`); once all are merged it
+keeps chains where their visible paths a second are at least MIN_VISIBLE_RATIO times
+uniform tracing's (`choice`), the choice and its figures in the job's notes. Passes after
+the window that start before the choice are uniform passes. The window is fixed by pass
+index (half of it each kind), so the choice is a function of the merged counters, made once.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 # Counters a pass adds, in the kernel's order (kernels/photon_chains.cl, CTR_*).
 COUNTERS = ("draws", "visible", "splats", "mutations", "accepted", "started", "boot")  # boot: the starts' draws
@@ -49,13 +59,14 @@ THETA_BIN = math.log(2.0) / 4.0  # the grid of theta: four points an octave
 PRIOR_SLOPE = -1.0  # d logit(A) / d log theta assumed until two grid points measure it
 LOGIT_CLAMP = 1e-4  # acceptances are taken within [this, 1 - this] in logit
 MIN_EVIDENCE = 64  # mutations at a grid point before its acceptance counts
-MIN_GAIN = 12.0  # chains mutate only while they promise this many times uniform tracing's visible paths (mutates)
-ITERATION_COST = 8  # a chain iteration costs about this many uniform photon paths (iterations)
+PATHS_PER_ITERATION = 8  # a chain pass runs photons per pass / this many iterations (iterations)
 CHAIN_SHARE = 0.05  # chains = this share of the visible paths a pass expects (a chain's start costs 1 / V_c draws)
 MIN_CHAINS, MAX_CHAINS = 16, 4096
 MIN_BOOT_DRAWS = 256  # a chain's start: at least this many uniform draws, else photons / chains
-VISIBILITY_SAMPLE = 16  # a pass whose chains do not mutate judges one uniform draw in this many, for V_c ...
-JUDGE_EVERY = 8  # ... in one pass of this many (pass index 0, 8, 16, ...); the others are uniform passes alone
+MEASURE_PASSES = 16  # sampler auto: a job's first passes, the even ones uniform and the odd ones chains (choice)
+MEASURED = "measured_"  # prefix of the counters only those passes add (measured)
+MEASURED_COUNTERS = ("draws", "visible", "splats", "mutations", "accepted")  # a chain pass's, kept apart
+MIN_VISIBLE_RATIO = 20.0  # sampler auto runs chains where their visible paths a second are this many times uniform's
 
 
 def theta_index(theta_value: float) -> int:
@@ -114,29 +125,6 @@ def _non_increasing(values: list[float], weights: list[int]) -> list[float]:
     return [b[0] for b in blocks for _ in range(int(b[2]))]
 
 
-def gain(v_c: float, target: float) -> float:
-    """The chains' new visible paths per traced path over uniform tracing's (V_c). A chain
-    iteration traces a uniform draw and, when it is invisible, a mutation; it finds a new
-    visible path with probability V_c + (1 - V_c) A, A the acceptance (held at the target),
-    so per traced path (V_c + (1 - V_c) A) / (2 - V_c), against V_c for uniform tracing."""
-    if v_c <= 0.0:
-        return math.inf
-    return (v_c + (1.0 - v_c) * target) / ((2.0 - v_c) * v_c)
-
-
-def mutates(counters: dict[str, int], target: float) -> bool:
-    """Whether a batch's chains mutate: only while their gain over uniform tracing (gain,
-    from the pooled V_c; 1 at V_c ~ A*) is at least MIN_GAIN; never before any V_c (a job's
-    first pass). A gain of 1 is not enough: the chains' visible paths are correlated and
-    each costs a judged trace and a gather (docs/results.md, "Adaptive photon tracing").
-    Otherwise the pass is uniform tracing (the paper's "automatically uses uniform random
-    sampling", made exact), plus, in one pass of JUDGE_EVERY, the visibility of
-    1 / VISIBILITY_SAMPLE of its draws for V_c (sample_iterations, judges). Mutations resume
-    if the pooled V_c falls far enough."""
-    v_c = visible_fraction(counters)
-    return v_c is not None and gain(v_c, target) >= MIN_GAIN
-
-
 def visible_fraction(counters: dict[str, int]) -> float | None:
     """V_c from the pooled uniform draws; None before any."""
     draws = counters.get("draws", 0)
@@ -153,24 +141,10 @@ def pass_scale(counts: dict[str, int], photons: int) -> float:
 
 
 def iterations(photons: int) -> int:
-    """Chain iterations for a pass whose user asked for `photons` photon paths: as many as
-    cost about what tracing them would (ITERATION_COST uniform paths an iteration: its one
-    or two judged traces, the state's cache and the gather of the visible photons it keeps).
-    The pass's sums are in uniform photons whatever its iterations (pass_scale), so this
-    sets its cost and noise, not its radius schedule."""
-    return max(1, photons // ITERATION_COST)
-
-
-def sample_iterations(photons: int) -> int:
-    """Uniform draws judged for V_c in a pass whose chains do not mutate (mutates)."""
-    return max(1, photons // VISIBILITY_SAMPLE)
-
-
-def judges(pass_index: int) -> bool:
-    """Whether a pass whose chains do not mutate judges its sample of draws for V_c (one in
-    JUDGE_EVERY). The others are the uniform photon pass with nothing more: the judged
-    sample needs a grid over the pass's points and a kernel of its own."""
-    return pass_index % JUDGE_EVERY == 0
+    """Chain iterations for a pass whose user asked for `photons` photon paths: photons /
+    PATHS_PER_ITERATION. The pass's sums are in uniform photons whatever its iterations
+    (pass_scale), so this sets its cost and noise, not its radius schedule."""
+    return max(1, photons // PATHS_PER_ITERATION)
 
 
 def chains(counters: dict[str, int], iterations: int) -> int:
@@ -185,3 +159,95 @@ def boot_draws(n_chains: int, photons: int) -> int:
     """Cap on the uniform draws of a chain's start: with nothing visible, the starts cost
     about one pass of photons (or MIN_BOOT_DRAWS a chain)."""
     return max(MIN_BOOT_DRAWS, -(-photons // n_chains))
+
+
+def runs_chains(pass_index: int, measuring: bool) -> bool:
+    """Whether a pass of a batch that runs chains traces its photons with them: every pass,
+    or while `measuring` (sampler auto before its choice) the odd ones below MEASURE_PASSES
+    (the even ones and those after are uniform passes)."""
+    return not measuring or (measures(pass_index) and pass_index % 2 == 1)
+
+
+def measures(pass_index: int) -> bool:
+    """Whether a pass is one that sampler auto measures (and times: measured)."""
+    return pass_index < MEASURE_PASSES
+
+
+def measured(seconds: float, counts: dict[str, int] | None) -> dict[str, int]:
+    """The counters a measuring pass adds beside the others: its device time in
+    microseconds, and for a chain pass (`counts` its COUNTERS) those of MEASURED_COUNTERS,
+    which only these passes add, so that the choice is fixed once they are all merged."""
+    kind = "uniform" if counts is None else "chain"
+    out = {f"{MEASURED}{kind}_passes": 1, f"{MEASURED}{kind}_us": round(seconds * 1e6)}
+    if counts is not None:
+        out.update({f"{MEASURED}{name}": counts[name] for name in MEASURED_COUNTERS})
+    return out
+
+
+@dataclass(frozen=True)
+class Choice:
+    """Sampler auto's choice, from its measuring passes (choice)."""
+
+    chains: bool
+    visible_fraction: float  # V_c of the chain passes' uniform draws
+    uniform_seconds: float  # device seconds of a uniform pass
+    chain_seconds: float  # ... of a chain pass
+    acceptance: float  # of the chain passes' mutations
+    uniform_rate: float  # visible photon paths a second, uniform: V_c photons / uniform_seconds
+    chain_rate: float  # ... chains: splats / chain_seconds
+
+    @property
+    def ratio(self) -> float:
+        return visible_ratio(self.uniform_rate, self.chain_rate)
+
+    def note(self) -> str:
+        """The choice and its figures, one line (the job's notes)."""
+        chosen = "chains" if self.chains else "uniform photons"
+        return (f"sampler auto: {chosen}: visible paths a second {self.ratio:.3g} times uniform's "
+                f"({'at least' if self.chains else 'below'} {MIN_VISIBLE_RATIO:g}), from passes "
+                f"0-{MEASURE_PASSES - 1}: V_c {self.visible_fraction:.3g}, a uniform pass {self.uniform_seconds:.3g} s "
+                f"({self.uniform_rate:.4g} visible/s), a chain pass {self.chain_seconds:.3g} s "
+                f"({self.chain_rate:.4g} visible/s, acceptance {self.acceptance:.3g})")
+
+
+def choice(counters: dict[str, int], photons: int) -> Choice | None:
+    """Sampler auto's choice once all MEASURE_PASSES measuring passes are merged (None
+    before): chains iff their visible photon paths a second are at least MIN_VISIBLE_RATIO
+    times uniform tracing's, both measured on the scene at hand (device seconds a pass;
+    uniform tracing's V_c photons a pass, the chains' splats). A chain's visible paths are
+    correlated (a kept state is splatted again, an accepted mutation is near its state),
+    uniform tracing's independent; the dissertation states the cost of that correlation
+    only through this ratio (8.5: the chains gain nothing where it is below 10, some at
+    41.9, "the ratio may need to be more than a few tens"). A function of the merged
+    counters alone, which only the measuring passes add to: the same whatever the batch
+    split, and fixed once made."""
+    if measured_passes(counters) < MEASURE_PASSES:
+        return None
+    c = {name[len(MEASURED):]: value for name, value in counters.items() if name.startswith(MEASURED)}
+    n_uniform, n_chain = c["uniform_passes"], c["chain_passes"]
+    draws, visible, splats, mutations, accepted = (c.get(name, 0) for name in MEASURED_COUNTERS)
+    v_c = visible / draws if draws else 0.0
+    uniform_us, chain_us = max(c.get("uniform_us", 0), 1), max(c.get("chain_us", 0), 1)
+    uniform_rate = v_c * photons * n_uniform / (uniform_us * 1e-6)
+    chain_rate = splats / (chain_us * 1e-6)
+    return Choice(visible_ratio(uniform_rate, chain_rate) >= MIN_VISIBLE_RATIO, v_c,
+                  uniform_us * 1e-6 / n_uniform, chain_us * 1e-6 / n_chain,
+                  accepted / mutations if mutations else 0.0, uniform_rate, chain_rate)
+
+
+def visible_ratio(uniform_rate: float, chain_rate: float) -> float:
+    """The paper's visible photon ratio, chains over uniform (here at equal time); 0 when
+    neither finds a visible path."""
+    if uniform_rate > 0.0:
+        return chain_rate / uniform_rate
+    return math.inf if chain_rate > 0.0 else 0.0
+
+
+def measured_passes(counters: dict[str, int]) -> int:
+    """Measuring passes merged into these counters."""
+    return counters.get(f"{MEASURED}uniform_passes", 0) + counters.get(f"{MEASURED}chain_passes", 0)
+
+
+def measuring_note(counters: dict[str, int]) -> str:
+    """What sampler auto says before its choice."""
+    return f"sampler auto: measuring ({measured_passes(counters)} of passes 0-{MEASURE_PASSES - 1} merged)"

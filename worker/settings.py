@@ -26,7 +26,7 @@ DEFAULT_MAX_SECONDS = 300.0  # the budget of a job that names none (a threshold 
 Method = Literal["sppm", "ppm", "vcm", "bpt", "lt"]
 Gather = Literal["exact", "stochastic"]
 Direct = Literal["photons", "nee"]
-Sampler = Literal["uniform", "adaptive"]
+Sampler = Literal["auto", "uniform", "adaptive"]
 Priority = Literal["high", "normal", "low"]
 PRIORITIES: tuple[Priority, ...] = ("high", "normal", "low")
 # The default radius exponent alpha by method. SPPM's and PPM's 0.7 (the radius rule); the
@@ -50,9 +50,12 @@ class Settings(BaseModel):
     direct: Direct = Field(default="photons", description="direct light at the measurement points: photons (density "
                                                   "estimate), or nee (a light sample and a BSDF sample per pass, "
                                                   "MIS-weighted; photons then skip their first hit)")
-    sampler: Sampler = Field(default="uniform", description="photon paths: uniform, or adaptive (Markov chains over "
-                                                     "paths that reach a measurement point, replica exchange "
-                                                     "with uniform draws; Hachisuka & Jensen 2011)")
+    sampler: Sampler = Field(default="auto", description="photon paths: uniform; adaptive (Markov chains over "
+                                                  "paths that reach a measurement point, replica exchange with "
+                                                  "uniform draws; Hachisuka & Jensen 2011); or auto: the job's "
+                                                  "first passes time both on the scene and it keeps the one that "
+                                                  "brings more new visible paths a second (sppm and ppm; the "
+                                                  "other methods trace no photon paths to choose for)")
     target_acceptance: float = Field(default=0.234, strict=True, gt=0.0, lt=1.0,
                                      description="adaptive sampler: the mutation acceptance its mutation size "
                                                  "is adapted toward")

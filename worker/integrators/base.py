@@ -124,6 +124,11 @@ class Integrator(ABC, Generic[StateT]):
         """The per-pixel error bound and its image average (dissertation ch. 6); None when
         the job does not estimate its error (`error_estimation` off)."""
 
+    def notes(self, counters: dict[str, int]) -> list[str]:
+        """What the method decided from a job's merged counters, one line each (a job's
+        view lists them after its scene's notes); none by default."""
+        return []
+
 
 KeepGoing = Callable[[int], bool]
 

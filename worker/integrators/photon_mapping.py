@@ -48,14 +48,15 @@ def sum_layout(error_estimation: bool, direct: str = "photons") -> SumLayout:
 
 @dataclass(frozen=True)
 class ChainInputs:
-    """What a batch of the adaptive sampler reads from the merged counters: its frozen
-    mutation size, its number of chains, the iterations a pass splits over them (None:
-    photons per pass) and whether they mutate (worker/adaptive.py)."""
+    """What a batch that runs chains reads from the merged counters: its frozen mutation
+    size, its number of chains, the iterations a pass splits over them (None: photons per
+    pass) and whether it is measuring (sampler auto before its choice: only its odd passes
+    below adaptive.MEASURE_PASSES run chains, adaptive.runs_chains)."""
 
     theta: float
     chains: int
     iterations: int | None = None
-    mutate: bool = True
+    measuring: bool = False
 
 
 @dataclass(frozen=True)
@@ -94,10 +95,6 @@ class PhotonMapping(Integrator[Accumulators]):
     def state_widths(self) -> dict[str, int]:
         return {"R0": 1, "N": 1, **{name: w for name, w in self.sums.widths if name not in BATCH_ONLY}}
 
-    @property
-    def adaptive(self) -> bool:
-        return self.settings.sampler == "adaptive"
-
     def start(self, setup: dict[str, np.ndarray]) -> Accumulators:
         return Accumulators.start(self.alpha, setup["R0"], self.sums, BATCH_ONLY)
 
@@ -111,16 +108,33 @@ class PhotonMapping(Integrator[Accumulators]):
 
     def batch_inputs(self, state: Accumulators) -> GatherInputs:
         r, count = state.batch_start()
-        chains = None
-        if self.adaptive:
-            target, photons = self.settings.target_acceptance, self.settings.paths_per_pass
-            mutate = adaptive.mutates(state.counters, target)
-            iterations = adaptive.iterations(photons) if mutate else adaptive.sample_iterations(photons)
-            chains = ChainInputs(adaptive.theta(state.counters, target), adaptive.chains(state.counters, iterations),
-                                 iterations, mutate)
         bias = bias_estimate(r, state.G, state.emitted, self.settings.bias_constant) \
             if self.settings.error_estimation else None
-        return GatherInputs(r, bias, chains, count, state.passes)
+        return GatherInputs(r, bias, self.chain_inputs(state.counters), count, state.passes)
+
+    def chain_inputs(self, counters: dict[str, int]) -> ChainInputs | None:
+        """A batch's chains: none with `sampler: uniform`, or with `auto` once it chose
+        uniform tracing (adaptive.choice); measuring with `auto` before its choice."""
+        sampler, photons = self.settings.sampler, self.settings.paths_per_pass
+        measuring = False
+        if sampler == "auto":
+            choice = adaptive.choice(counters, photons)
+            measuring = choice is None
+            if choice is not None and not choice.chains:
+                return None
+        elif sampler != "adaptive":
+            return None
+        iterations = adaptive.iterations(photons)
+        return ChainInputs(adaptive.theta(counters, self.settings.target_acceptance),
+                           adaptive.chains(counters, iterations), iterations, measuring)
+
+    def notes(self, counters: dict[str, int]) -> list[str]:
+        """With `sampler: auto`, its choice and the figures it made it from (or that it is
+        still measuring)."""
+        if self.settings.sampler != "auto":
+            return []
+        choice = adaptive.choice(counters, self.settings.paths_per_pass)
+        return [adaptive.measuring_note(counters) if choice is None else choice.note()]
 
     def merge_sums(self, state: Accumulators, sums: dict[str, np.ndarray],
                    pixels: slice = slice(None)) -> None:

@@ -3,8 +3,9 @@
 A pass is: eye pass (one measurement point per pixel), photon pass, lookup-structure
 build (exact grid or stochastic hash), gather. A batch runs several passes at the radii
 it was given and sums their contributions on the device (worker/engine.py, Device).
-With `sampler: adaptive` the photon pass is the chains' (kernels/photon_chains.cl), after
-a grid over the pass's measurement points that tells them which paths are visible.
+With chains (`sampler: adaptive`, or `auto` where it chose them or measures them) the
+photon pass is the chains' (kernels/photon_chains.cl), after a grid over the pass's
+measurement points that tells them which paths are visible.
 """
 
 from __future__ import annotations
@@ -172,7 +173,7 @@ class PhotonMappingPasses:
                 u64(settings.seed), u32(pass_index), i32(settings.max_bounces), u32(self.capacity), i32(self.nee),
                 u32(chains.chains), u32(iterations), f32(chains.theta),
                 u32(adaptive.boot_draws(chains.chains, photons)),
-                i32(self.replica_exchange), i32(chains.mutate), i32(settings.gather == "exact"),
+                i32(self.replica_exchange), i32(1), i32(settings.gather == "exact"),  # 1: the chains mutate
                 self.mp_pos, self.mp_nrm, self.mp_cut, self.radius, inv_cell, u32(self.mp_entries - 1), self.mp_start,
                 self.mp_count, self.mp_sorted, self.ph_pos, self.ph_flux, self.ph_dirs, self.ph_key, self.ph_count,
                 self.counters, one_per_group=True))
@@ -184,6 +185,12 @@ class PhotonMappingPasses:
             if stored[0] <= self.capacity:
                 return int(stored[0]), dict(zip(adaptive.COUNTERS, (int(c) for c in counts), strict=True))
             self._reserve_photons(int(stored[0] * 1.25))  # same seeds: the re-run is identical
+
+    def _device_seconds(self) -> float:
+        """Device seconds of every stage so far, the pending events waited for (a measuring
+        pass's time is the difference across it: adaptive.measured)."""
+        self.dev.times.settle()
+        return sum(self.dev.times.seconds.values())
 
     def _scale_pass(self, n_stored: int, scale: float) -> None:
         """A chain pass's photons in uniform photons: their counts times adaptive.pass_scale."""
@@ -347,20 +354,23 @@ class PhotonMappingPasses:
             # radius rule for them too, any number (shrink_radius's closed form; GatherInputs).
             catch_up = max(0, first_pass - inputs.passes) if k == first_pass and inputs.passes is not None else 0
             self.steps, self.own = 1 + catch_up, catch_up
+            chains = inputs.chains
+            measuring = chains is not None and chains.measuring and adaptive.measures(k)
+            started = self._device_seconds() if measuring else 0.0
             self._eye_pass(k)
-            if inputs.chains is None or not (inputs.chains.mutate or adaptive.judges(k)):
+            counts = None
+            if chains is None or not adaptive.runs_chains(k, chains.measuring):
                 self.photons_stored = self._photon_pass(k)
-                self._build_and_gather(self.photons_stored, float(r32.max()))
             else:
-                self.photons_stored, counts = self._chain_pass(k, inputs.chains, float(r32.max()))
-                if inputs.chains.mutate:
-                    self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.paths_per_pass))
-                else:  # the chains judged a sample of draws for V_c; the photons are a uniform pass's
-                    self.photons_stored = self._photon_pass(k)
-                self._build_and_gather(self.photons_stored, float(r32.max()))
-                counts.update(adaptive.binned(inputs.chains.theta, counts["mutations"], counts["accepted"]))
-                for name, value in counts.items():
-                    totals[name] = totals.get(name, 0) + value
+                self.photons_stored, counts = self._chain_pass(k, chains, float(r32.max()))
+                self._scale_pass(self.photons_stored, adaptive.pass_scale(counts, self.settings.paths_per_pass))
+            self._build_and_gather(self.photons_stored, float(r32.max()))
+            if counts is not None and chains is not None:
+                counts.update(adaptive.binned(chains.theta, counts["mutations"], counts["accepted"]))
+            if measuring:
+                counts = {**(counts or {}), **adaptive.measured(self._device_seconds() - started, counts)}
+            for name, value in (counts or {}).items():
+                totals[name] = totals.get(name, 0) + value
             if keep_going is not None and not keep_going(k):
                 dev.times.settle()
                 raise BatchAborted(f"stopped after pass {k}")
