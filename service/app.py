@@ -359,7 +359,7 @@ def create_app(redis_url: str, token: str | None = None) -> FastAPI:
             raise _unprocessable(scene_loc(SceneError("camera.resolution", "")),
                                  f"at most {MAX_SERVICE_PIXELS} pixels per job")
         try:
-            job_id = jobs.create(loaded.scene_json, Settings(**dict(settings)).for_frame(width, height), width, height,
+            job_id = jobs.create(loaded.scene_json, Settings(**dict(settings)), width, height,
                                  scene_name, max_active=MAX_ACTIVE_JOBS, notes=loaded.notes)
         except JobLimitReached as exc:  # not the request's fault: the same request succeeds later
             raise HTTPException(429, detail=str(exc)) from None

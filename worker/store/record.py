@@ -206,7 +206,9 @@ class Jobs:
                scene_name: str | None, max_active: int | None = None, notes: Iterable[str] = ()) -> str:
         """A new queued job; raises JobLimitReached if `max_active` jobs are active. `scene` is
         the scene JSON, as a dict or already encoded (the API's loads encode it off its threads);
-        `notes` are written with the record, in the same transaction, as bounded_notes keeps them."""
+        `notes` are written with the record, in the same transaction, as bounded_notes keeps them.
+        The settings are stored for the frame (Settings.for_frame): what the job renders with."""
+        settings = settings.for_frame(width, height)
         job_id = uuid.uuid4().hex[:16]
         now = time.time()
         fields: Fields = {"status": Status.QUEUED.value, "settings": settings.model_dump_json(),
