@@ -15,12 +15,14 @@ from api_tests.helpers import assert_exact
 from worker.config import config
 from worker.store import Jobs
 
-PASSES, P = 40, 1 << 16
+PASSES, P = 40, 1 << 18  # a job of several batches (of about 2 s each) on a quiet machine too
 
 
 def _long_job(c: Cluster, passes: int = PASSES) -> dict:
+    """A job whose passes all cost what a uniform pass of P photons does (sampler auto's
+    measuring chain passes are cheaper, and would shorten it unevenly)."""
     return c.submit(scene_name="cornell-box", settings={"max_passes": passes, "photons_per_pass": P,
-                                                        "resolution": [96, 96], "seed": 9})
+                                                        "resolution": [96, 96], "seed": 9, "sampler": "uniform"})
 
 
 def _owner(c: Cluster, job_id: str) -> subprocess.Popen | None:
@@ -38,7 +40,7 @@ def _owner(c: Cluster, job_id: str) -> subprocess.Popen | None:
 
 def test_a_reducer_killed_mid_job_hands_the_job_to_another(tmp_path: Path) -> None:
     c = Cluster(tmp_path, workers=2, reducers=2)
-    passes = 2 * PASSES  # long enough to outlast the lease the takeover waits for
+    passes = 4 * PASSES  # long enough to outlast the lease the takeover waits for
     try:
         job = _long_job(c, passes)
         c.wait(job["id"], lambda j: j["image_passes"] >= 2)
